@@ -1,0 +1,18 @@
+"""PX4 companion: RMPC image-based visual servoing of a quadrotor following a ground vehicle.
+
+Implements Q. Yang and H. Li, "RMPC-Based Visual Servoing for Trajectory Tracking of Quadrotor
+UAVs With Visibility Constraints", IEEE/CAA J. Autom. Sinica 11(9), 2024, with the conventions
+of shared/spec/rmpc-ibvs.md.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+
+class CompanionError(Exception):
+    """Root of every error this package raises on purpose."""
+
+
+class ConfigError(CompanionError):
+    """A configuration file or value is invalid; the message names the key."""
