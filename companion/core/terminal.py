@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from companion.config import CameraConfig, RmpcConfig
+
 
 def linearised_model(dt: float, z_star: float) -> tuple[np.ndarray, np.ndarray]:
     """Discrete ``(A, B)`` (7x7, 7x4) of the error dynamics at the origin (Euler, step ``dt``)."""
@@ -38,3 +40,111 @@ def dare_terminal(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) ->
     p = 0.5 * (p + p.T)
     k = -np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
     return LqrTerminal(k=k, p=p)
+
+
+@dataclass(frozen=True)
+class TerminalDesign:
+    """Everything the RMPC and the certificate need from the offline design (spec 6, 7).
+
+    ``p`` (7x7) and ``k`` (4x7): terminal cost/set matrix and terminal gain (``u_e = K eta``);
+    ``kappa``: largest value with ``A_K' P A_K - (1 - kappa) P <= -(Q + K' R K)`` (0 if none);
+    ``eps``: terminal level (``Omega = {|eta|_P <= eps}``); ``gamma``: terminal visibility radius;
+    ``r_v``: visibility circle radius; ``lipschitz_l``: L of Remark 1 (1/s).
+    """
+
+    p: np.ndarray
+    k: np.ndarray
+    kappa: float
+    eps: float
+    gamma: float
+    r_v: float
+    lipschitz_l: float
+    method: str
+
+
+def decay_margin(a: np.ndarray, b: np.ndarray, k: np.ndarray, p: np.ndarray,
+                 q: np.ndarray, r: np.ndarray) -> float:
+    """Largest ``kappa`` with ``A_K' P A_K - (1 - kappa) P <= -(Q + K' R K)`` (Assumption 2).
+
+    The inequality is ``A_K'PA_K + Q* <= (1 - kappa) P``, i.e. ``1 - kappa >= lambda_max(
+    P^-1/2 (A_K'PA_K + Q*) P^-1/2)``. A result <= 0 means no kappa in (0, 1) exists for this P.
+    """
+    ak = a + b @ k
+    qs = q + k.T @ r @ k
+    w, v = np.linalg.eigh(p)
+    p_inv_half = v @ np.diag(w**-0.5) @ v.T
+    m = p_inv_half @ (ak.T @ p @ ak + qs) @ p_inv_half
+    return float(1.0 - np.max(np.linalg.eigvalsh(0.5 * (m + m.T))))
+
+
+def tilt_limits(u_max: tuple[float, ...], g: float) -> tuple[float, float]:
+    """Largest |roll| and |pitch| (rad) that inputs within ``u_max`` can command (spec 5)."""
+    from companion.core.geometry import attitude_from_accel
+
+    worst_phi = 0.0
+    worst_theta = 0.0
+    for r1 in (-u_max[0], u_max[0]):
+        for r2 in (-u_max[1], u_max[1]):
+            for r3 in (-u_max[2], 0.0, u_max[2]):
+                phi, theta, _ = attitude_from_accel(
+                    np.float64(r1), np.float64(r2), np.float64(r3), g
+                )
+                worst_phi = max(worst_phi, abs(float(phi)))
+                worst_theta = max(worst_theta, abs(float(theta)))
+    return worst_phi, worst_theta
+
+
+def terminal_visibility_radius(
+    phi_max: float, theta_max: float, half_m: float, lam: float
+) -> float:
+    """``gamma``: radius about the origin of the circle inscribed in the intersection of the
+    visible area mapped to the virtual image at the extreme attitudes ``(+-phi_max,
+    +-theta_max)`` (normalised units).
+
+    The origin lies inside every mapped quadrangle, so the distance from it to the boundary
+    of their intersection is the smallest distance to any quadrangle's edges.
+    """
+    from companion.core.geometry import real_to_virtual
+
+    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], dtype=float) * half_m
+    best = np.inf
+    for phi in (-phi_max, phi_max):
+        for theta in (-theta_max, theta_max):
+            uv, nv = real_to_virtual(corners[:, 0], corners[:, 1], phi, theta, lam)
+            poly = np.column_stack([uv, nv]) / lam
+            for i in range(4):
+                p0, p1 = poly[i], poly[(i + 1) % 4]
+                d = p1 - p0
+                t = np.clip(-(p0 @ d) / (d @ d), 0.0, 1.0)
+                best = min(best, float(np.linalg.norm(p0 + t * d)))
+    return best
+
+
+def design_terminal(rmpc: RmpcConfig, camera: CameraConfig) -> TerminalDesign:
+    """The terminal ingredients for a config (``rmpc.terminal.method``)."""
+    a, b = linearised_model(rmpc.dt_s, rmpc.desired_depth_m)
+    q = np.diag(rmpc.q_diag)
+    r = np.diag(rmpc.r_diag)
+    tc = rmpc.terminal
+    if tc.method == "given":
+        k = np.array(tc.k_matrix, dtype=float)
+        p = np.array(tc.p_matrix, dtype=float)
+    elif tc.method == "dare":
+        lqr = dare_terminal(a, b, q, r)
+        k, p = lqr.k, lqr.p
+    else:
+        raise NotImplementedError("rmpc.terminal.method 'lmi' is provided by the certificate module")
+    p = tc.p_scale * p
+    phi_max, theta_max = tilt_limits(rmpc.u_max, rmpc.g_m_s2)
+    return TerminalDesign(
+        p=p,
+        k=k,
+        kappa=max(0.0, decay_margin(a, b, k, p, q, r)),
+        eps=rmpc.eps,
+        gamma=terminal_visibility_radius(
+            phi_max, theta_max, camera.visible_half_m, camera.focal_length_m
+        ),
+        r_v=camera.r_v,
+        lipschitz_l=rmpc.lipschitz_l,
+        method=tc.method,
+    )
