@@ -384,5 +384,6 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
             return tuple(_coerce(args[0], v, f"{key}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(f"{key}: must have {len(args)} elements (got {len(value)})")
-        return tuple(_coerce(a, v, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        pairs = enumerate(zip(args, value, strict=True))
+        return tuple(_coerce(a, v, f"{key}[{i}]") for i, (a, v) in pairs)
     raise ConfigError(f"{key}: unsupported type {tp!r}")  # pragma: no cover - programming error

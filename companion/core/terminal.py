@@ -133,7 +133,7 @@ def design_terminal(rmpc: RmpcConfig, camera: CameraConfig) -> TerminalDesign:
         lqr = dare_terminal(a, b, q, r)
         k, p = lqr.k, lqr.p
     else:
-        raise NotImplementedError("rmpc.terminal.method 'lmi' is provided by the certificate module")
+        raise NotImplementedError("rmpc.terminal.method 'lmi': see companion.core.certificate")
     p = tc.p_scale * p
     phi_max, theta_max = tilt_limits(rmpc.u_max, rmpc.g_m_s2)
     return TerminalDesign(
