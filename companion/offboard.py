@@ -1,0 +1,138 @@
+"""Offboard state machine, as PX4 expects it (shared/spec/px4-offboard.md).
+
+Pure logic with explicit time: the runtime feeds it observations (HEARTBEAT mode/armed,
+COMMAND_ACK results, whether a setpoint was just streamed) and executes the actions it returns.
+
+Sequence: stream setpoints for ``preflight_stream_s`` -> (optionally) arm -> request OFFBOARD
+(DO_SET_MODE, main mode 6) -> confirm from HEARTBEAT -> ACTIVE. Rejections are retried every
+``mode_retry_s``. Leaving: request Hold/Position, then stop streaming. If PX4 leaves OFFBOARD
+on its own (pilot, failsafe), the machine goes to ``LOST`` and does not fight the pilot: it
+re-requests OFFBOARD only when ``reengage`` is set.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from companion.config import OffboardConfig
+
+PX4_MAIN_MODE_POSCTL = 3
+PX4_MAIN_MODE_AUTO = 4
+PX4_MAIN_MODE_OFFBOARD = 6
+PX4_SUB_MODE_AUTO_LOITER = 3
+
+
+class OffboardPhase(enum.Enum):
+    PREFLIGHT = "preflight"  # streaming, not yet asked
+    ARMING = "arming"
+    REQUESTING = "requesting"  # DO_SET_MODE sent, waiting for HEARTBEAT to say OFFBOARD
+    ACTIVE = "active"
+    LOST = "lost"  # PX4 left OFFBOARD on its own
+    EXITING = "exiting"
+    DONE = "done"
+
+
+@dataclass(frozen=True)
+class Action:
+    """What the runtime must do now. ``kind``: 'arm', 'set_mode', 'stop_stream'."""
+
+    kind: str
+    main_mode: int = 0
+    sub_mode: int = 0
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class VehicleStatus:
+    """From the autopilot's HEARTBEAT: ``main_mode``/``sub_mode`` of PX4's custom_mode."""
+
+    armed: bool
+    main_mode: int
+    sub_mode: int
+    t_s: float
+
+
+class OffboardManager:
+    def __init__(self, cfg: OffboardConfig, reengage: bool = False) -> None:
+        self._cfg = cfg
+        self._reengage = reengage
+        self.phase = OffboardPhase.PREFLIGHT
+        self._stream_start_s: float | None = None
+        self._last_request_s = -1e9
+        self._status: VehicleStatus | None = None
+        self.transitions: list[tuple[float, OffboardPhase, str]] = []
+
+    @property
+    def in_offboard(self) -> bool:
+        s = self._status
+        return s is not None and s.main_mode == PX4_MAIN_MODE_OFFBOARD
+
+    def on_heartbeat(self, status: VehicleStatus) -> None:
+        self._status = status
+        if self.phase is OffboardPhase.REQUESTING and self.in_offboard:
+            self._go(status.t_s, OffboardPhase.ACTIVE, "HEARTBEAT reports OFFBOARD")
+        elif self.phase is OffboardPhase.ACTIVE and not self.in_offboard:
+            self._go(status.t_s, OffboardPhase.LOST,
+                     f"autopilot left OFFBOARD (main mode {status.main_mode})")
+        elif self.phase is OffboardPhase.EXITING and not self.in_offboard:
+            self._go(status.t_s, OffboardPhase.DONE, "autopilot out of OFFBOARD")
+
+    def on_streamed(self, t_s: float) -> None:
+        """A setpoint was just sent (the offboard proof of life)."""
+        if self._stream_start_s is None:
+            self._stream_start_s = t_s
+
+    def on_stream_gap(self) -> None:
+        """Streaming stopped (safety silence): the pre-flight stream must start over."""
+        self._stream_start_s = None
+
+    def request_exit(self, t_s: float) -> None:
+        if self.phase not in (OffboardPhase.EXITING, OffboardPhase.DONE):
+            self._go(t_s, OffboardPhase.EXITING, "exit requested")
+            self._last_request_s = -1e9
+
+    def step(self, t_s: float) -> list[Action]:
+        """Actions due at ``t_s``."""
+        st = self._status
+        acts: list[Action] = []
+        streamed_long_enough = (
+            self._stream_start_s is not None
+            and t_s - self._stream_start_s >= self._cfg.preflight_stream_s
+        )
+        due = t_s - self._last_request_s >= self._cfg.mode_retry_s
+        if self.phase is OffboardPhase.PREFLIGHT and streamed_long_enough and st is not None:
+            if self._cfg.arm and not st.armed:
+                self._go(t_s, OffboardPhase.ARMING, "pre-flight stream done, arming")
+            else:
+                self._go(t_s, OffboardPhase.REQUESTING, "pre-flight stream done")
+            due = True
+        if self.phase is OffboardPhase.ARMING and st is not None:
+            if st.armed:
+                self._go(t_s, OffboardPhase.REQUESTING, "armed")
+                due = True
+            elif due:
+                acts.append(Action("arm", reason="arming for the scenario"))
+        if self.phase is OffboardPhase.LOST and self._reengage and streamed_long_enough:
+            self._go(t_s, OffboardPhase.REQUESTING, "re-engaging")
+            due = True
+        if self.phase is OffboardPhase.REQUESTING and due and not self.in_offboard:
+            acts.append(Action("set_mode", PX4_MAIN_MODE_OFFBOARD, 0, "request OFFBOARD"))
+        if self.phase is OffboardPhase.EXITING:
+            if self.in_offboard and due:
+                if self._cfg.exit_mode == "hold":
+                    acts.append(Action("set_mode", PX4_MAIN_MODE_AUTO, PX4_SUB_MODE_AUTO_LOITER,
+                                       "exit to Hold"))
+                else:
+                    acts.append(Action("set_mode", PX4_MAIN_MODE_POSCTL, 0, "exit to Position"))
+            elif not self.in_offboard:
+                self._go(t_s, OffboardPhase.DONE, "out of OFFBOARD")
+        if self.phase is OffboardPhase.DONE:
+            acts.append(Action("stop_stream", reason="offboard finished"))
+        if any(a.kind in ("set_mode", "arm") for a in acts):
+            self._last_request_s = t_s
+        return acts
+
+    def _go(self, t_s: float, phase: OffboardPhase, reason: str) -> None:
+        self.phase = phase
+        self.transitions.append((t_s, phase, reason))

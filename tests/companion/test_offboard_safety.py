@@ -1,0 +1,106 @@
+"""Offboard state machine and safety supervisor: pure logic driven with explicit time."""
+
+from __future__ import annotations
+
+import math
+
+from companion.config import OffboardConfig, SafetyConfig
+from companion.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.safety import Health, SafetyLevel, SafetySupervisor
+
+OFF = OffboardConfig(preflight_stream_s=1.0, mode_retry_s=1.0, arm=True, exit_mode="hold")
+SAFE = SafetyConfig(
+    telemetry_timeout_s=0.2, target_lost_timeout_s=0.5, follow_target_timeout_s=1.0,
+    hover_fallback_s=1.0, silence_after_s=3.0, reacquire_climb_rate_m_s=0.3,
+    reacquire_max_height_m=4.0,
+)
+
+
+def _hb(t: float, armed: bool, main: int, sub: int = 0) -> VehicleStatus:
+    return VehicleStatus(armed=armed, main_mode=main, sub_mode=sub, t_s=t)
+
+
+def test_offboard_waits_for_preflight_stream_then_arms_then_requests_and_confirms() -> None:
+    m = OffboardManager(OFF)
+    m.on_heartbeat(_hb(0.0, False, 3))
+    acts_before = []
+    t = 0.0
+    while t < 0.99:  # streaming for less than 1 s: nothing may be requested
+        m.on_streamed(t)
+        acts_before += m.step(t)
+        t += 0.05
+    assert acts_before == [] and m.phase is OffboardPhase.PREFLIGHT
+    m.on_streamed(1.0)
+    assert [a.kind for a in m.step(1.0)] == ["arm"]
+    assert m.step(1.5) == []  # retry only after mode_retry_s
+    assert [a.kind for a in m.step(2.0)] == ["arm"]
+    m.on_heartbeat(_hb(2.1, True, 3))
+    acts = m.step(2.1)
+    assert [(a.kind, a.main_mode) for a in acts] == [("set_mode", 6)]
+    # rejected (mode unchanged): retried after mode_retry_s, not before
+    assert m.step(2.5) == []
+    assert [a.kind for a in m.step(3.2)] == ["set_mode"]
+    m.on_heartbeat(_hb(3.3, True, 6))
+    assert m.phase is OffboardPhase.ACTIVE
+    assert m.step(3.4) == []
+
+
+def test_offboard_lost_does_not_fight_pilot_unless_reengage() -> None:
+    for reengage in (False, True):
+        m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"), reengage=reengage)
+        m.on_heartbeat(_hb(0.0, True, 3))
+        m.on_streamed(0.0)
+        m.step(1.0)
+        m.on_heartbeat(_hb(1.1, True, 6))
+        assert m.phase is OffboardPhase.ACTIVE
+        m.on_heartbeat(_hb(2.0, True, 3))  # failsafe / pilot -> Position
+        assert m.phase is OffboardPhase.LOST
+        acts = m.step(2.1)
+        assert (acts != []) is reengage
+
+
+def test_offboard_exit_requests_hold_then_stops_streaming() -> None:
+    m = OffboardManager(OffboardConfig(0.0, 1.0, False, "hold"))
+    m.on_heartbeat(_hb(0.0, True, 6))
+    m.on_streamed(0.0)
+    m.step(0.0)
+    m.request_exit(5.0)
+    acts = m.step(5.0)
+    assert [(a.kind, a.main_mode, a.sub_mode) for a in acts] == [("set_mode", 4, 3)]
+    m.on_heartbeat(_hb(5.2, True, 4, 3))
+    assert [a.kind for a in m.step(5.3)] == ["stop_stream"]
+
+
+def _h(t: float, tel: float = 0.0, tgt: float = 0.0, fol: float = math.inf,
+       finite: bool = True, solver: bool = True) -> Health:
+    return Health(t, tel, tgt, fol, finite, solver)
+
+
+def test_safety_fallback_order_and_recovery() -> None:
+    s = SafetySupervisor(SAFE)
+    assert s.update(_h(0.0)).level is SafetyLevel.TRACKING
+    # solver failure with valid state: terminal law, then hover, then silence
+    assert s.update(_h(1.0, solver=False)).level is SafetyLevel.TERMINAL
+    assert s.update(_h(1.9, solver=False)).level is SafetyLevel.TERMINAL
+    assert s.update(_h(2.0, solver=False)).level is SafetyLevel.HOVER
+    assert s.update(_h(3.99, solver=False)).level is SafetyLevel.HOVER
+    d = s.update(_h(4.0, solver=False))
+    assert d.level is SafetyLevel.SILENT and d.changed and "solver failed" in d.reason
+    # healthy again: straight back to tracking
+    assert s.update(_h(4.05)).level is SafetyLevel.TRACKING
+
+
+def test_safety_never_uses_state_built_from_bad_data() -> None:
+    for bad in (_h(0.0, tel=0.5), _h(0.0, finite=False), _h(0.0, tgt=0.6)):
+        s = SafetySupervisor(SAFE)
+        d = s.update(bad)
+        assert d.level is SafetyLevel.HOVER, bad
+        assert not s.state_valid(bad)
+
+
+def test_safety_reacquires_with_fresh_follow_target() -> None:
+    s = SafetySupervisor(SAFE)
+    assert s.update(_h(0.0, tgt=0.6, fol=0.1)).level is SafetyLevel.REACQUIRE
+    # FOLLOW_TARGET goes stale too: no guess, hover
+    assert s.update(_h(0.1, tgt=0.7, fol=1.5)).level is SafetyLevel.HOVER
+    assert s.update(_h(0.2, tgt=0.0, fol=1.5)).level is SafetyLevel.TRACKING
