@@ -1,0 +1,211 @@
+"""The RMPC's measured state ``eta_e`` and target-motion parameters (spec section 4).
+
+Inputs are measurements: the target points detected in the real image (metric), the attitude
+of the camera (roll, pitch, yaw; the virtual frame ``v`` has the camera's yaw), the vehicle's
+velocity in NED and yaw rate, and the target's NED velocity, acceleration and yaw rate.
+
+In ``v`` a world vector ``d`` reads ``Rz(psi)^T d``. The target-motion parameters::
+
+    v_a      = [Rz(psi)^T v_a_ned]_xy                      (v_az = 0 by the spec)
+    vdot_a   = d/dt [Rz(psi)^T v_a_ned]_xy                 (as seen in the rotating frame v)
+             = [Rz(psi)^T a_a_ned]_xy + psidot_q [v_ay, -v_ax]
+    psidot_a = the target's yaw rate
+
+(``d/dt Rz^T = psidot J Rz^T`` with ``J = [[0, 1], [-1, 0]]``; a test checks it by finite
+differences). Note: with this ``vdot_a``, ``u_e1 = r1 + psidot_q v_ay - vdot_ax`` equals
+``r1 - [Rz^T a_a]_x`` exactly when the ``psidot_q`` in ``u`` is the one used here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from companion import CompanionError
+from companion.core.dynamics import S_REF
+from companion.core.geometry import (
+    camera_points_to_body_image,
+    real_points_to_virtual,
+    rot_z,
+)
+from companion.core.moments import ImageMoments, image_moments
+
+
+class MeasurementError(CompanionError, ValueError):
+    """A measurement is non-finite or has the wrong shape: no state is built from it."""
+
+
+def _vec(x: ArrayLike, n: int, name: str) -> np.ndarray:
+    v = np.asarray(x, dtype=float).reshape(-1)
+    if v.shape != (n,):
+        raise MeasurementError(f"{name}: expected {n} components, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise MeasurementError(f"{name}: non-finite value")
+    return v
+
+
+def _scalar(x: float, name: str) -> float:
+    v = float(x)
+    if not math.isfinite(v):
+        raise MeasurementError(f"{name}: non-finite value")
+    return v
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+def ned_to_virtual(vec_ned: ArrayLike, yaw_rad: float) -> np.ndarray:
+    """A world (NED) vector (3,) in the virtual frame's axes: ``Rz(yaw)^T vec`` (3,)."""
+    v = _vec(vec_ned, 3, "vec_ned")
+    return rot_z(_scalar(yaw_rad, "yaw_rad")).T @ v
+
+
+@dataclass(frozen=True)
+class TargetMotion:
+    """Target-motion parameters of the RMPC, in the virtual frame ``v`` (spec 4).
+
+    ``v_a_m_s`` (2,): ``[v_ax, v_ay]``; ``vdot_a_m_s2`` (2,): their derivative as seen in the
+    rotating frame ``v`` (computed with the vehicle yaw rate ``yaw_rate_rad_s``);
+    ``psidot_a_rad_s``: target yaw rate; ``accel_a_v_m_s2`` (2,): the target's inertial
+    acceleration expressed in ``v`` axes, ``[Rz^T a_a_ned]_xy`` (independent of the yaw rate).
+    """
+
+    v_a_m_s: np.ndarray
+    vdot_a_m_s2: np.ndarray
+    psidot_a_rad_s: float
+    accel_a_v_m_s2: np.ndarray
+    yaw_rate_rad_s: float
+
+    def __post_init__(self) -> None:
+        for name in ("v_a_m_s", "vdot_a_m_s2", "accel_a_v_m_s2"):
+            object.__setattr__(self, name, _ro(getattr(self, name)))
+
+
+def target_motion_in_virtual(
+    v_a_ned_m_s: ArrayLike,
+    a_a_ned_m_s2: ArrayLike,
+    psidot_a_rad_s: float,
+    yaw_rad: float,
+    yaw_rate_rad_s: float,
+) -> TargetMotion:
+    """:class:`TargetMotion` from the target's NED velocity (3,) / acceleration (3,) and yaw
+    rate, at the virtual frame's yaw ``yaw_rad`` turning at ``yaw_rate_rad_s`` (the vehicle's
+    yaw rate ``psidot_q``). Vertical components are dropped (spec: ``v_az = 0``)."""
+    psidot_q = _scalar(yaw_rate_rad_s, "yaw_rate_rad_s")
+    v = ned_to_virtual(_vec(v_a_ned_m_s, 3, "v_a_ned_m_s"), yaw_rad)[:2]
+    acc = ned_to_virtual(_vec(a_a_ned_m_s2, 3, "a_a_ned_m_s2"), yaw_rad)[:2]
+    vdot = acc + psidot_q * np.array([v[1], -v[0]])
+    return TargetMotion(
+        v_a_m_s=v,
+        vdot_a_m_s2=vdot,
+        psidot_a_rad_s=_scalar(psidot_a_rad_s, "psidot_a_rad_s"),
+        accel_a_v_m_s2=acc,
+        yaw_rate_rad_s=psidot_q,
+    )
+
+
+def virtual_image_points(
+    points_real_m: ArrayLike,
+    roll_rad: float,
+    pitch_rad: float,
+    lam: float,
+    cam_to_body: ArrayLike | None = None,
+) -> np.ndarray:
+    """Real-image target points (N, 2) (m) -> virtual image (N, 2) (m).
+
+    Without ``cam_to_body`` (the spec's default mount) ``roll_rad, pitch_rad`` are the
+    camera's = body's. With a mount rotation ``R_bc`` (3, 3, from
+    :func:`companion.core.geometry.camera_to_body_rotation`) the points are first re-projected
+    into body axes and ``roll_rad, pitch_rad`` must be the BODY's; ``v`` then has the body's yaw.
+    """
+    pts = np.asarray(points_real_m, dtype=float)
+    if cam_to_body is not None:
+        pts = camera_points_to_body_image(pts, cam_to_body, lam)
+    return real_points_to_virtual(pts, roll_rad, pitch_rad, lam)
+
+
+@dataclass(frozen=True)
+class ErrorState:
+    """The measured error state of spec 4 and what it was built from.
+
+    ``eta_e`` (7,): ``[s1, s2, s3 - 1, s4, v_ex, v_ey, v_ez]`` (``v_e`` in m/s, v frame, z down);
+    ``s`` (4,) the features; ``v_q_v_m_s`` (3,) vehicle velocity in ``v``; ``v_a_v_m_s`` (3,)
+    ``[v_ax, v_ay, 0]``; ``moments`` the image moments; ``motion`` the RMPC's target
+    parameters; ``roll_rad, pitch_rad, yaw_rad`` the attitude used (v has ``yaw_rad``).
+    All arrays are read-only.
+    """
+
+    eta_e: np.ndarray
+    s: np.ndarray
+    v_q_v_m_s: np.ndarray
+    v_a_v_m_s: np.ndarray
+    moments: ImageMoments
+    motion: TargetMotion
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+    def __post_init__(self) -> None:
+        for name in ("eta_e", "s", "v_q_v_m_s", "v_a_v_m_s"):
+            object.__setattr__(self, name, _ro(getattr(self, name)))
+
+    @property
+    def s_e(self) -> np.ndarray:
+        """``s - s_r`` (4,)."""
+        return self.eta_e[:4]
+
+    @property
+    def v_e_m_s(self) -> np.ndarray:
+        """``v_q - v_a`` in ``v`` (3,) (m/s)."""
+        return self.eta_e[4:]
+
+
+def build_error_state(
+    points_real_m: ArrayLike,
+    *,
+    roll_rad: float,
+    pitch_rad: float,
+    yaw_rad: float,
+    yaw_rate_rad_s: float,
+    v_q_ned_m_s: ArrayLike,
+    v_a_ned_m_s: ArrayLike,
+    a_a_ned_m_s2: ArrayLike,
+    psidot_a_rad_s: float,
+    a_star: float,
+    lam: float,
+    s4_prev_rad: float | None = None,
+    cam_to_body: ArrayLike | None = None,
+) -> ErrorState:
+    """``eta_e`` of spec 4 and the target-motion parameters from one frame's measurements.
+
+    ``points_real_m`` (N >= 3, 2): detected target points, metric real-image ``[u, n]`` (m).
+    ``roll_rad, pitch_rad, yaw_rad``: camera attitude (ZYX, rad; body attitude when
+    ``cam_to_body`` is given, see :func:`virtual_image_points`); ``yaw_rate_rad_s``: the
+    vehicle's yaw rate ``psidot_q``; ``v_q_ned_m_s`` (3,) own velocity; ``v_a_ned_m_s``,
+    ``a_a_ned_m_s2`` (3,) the target's velocity and acceleration (NED); ``psidot_a_rad_s`` its
+    yaw rate; ``a_star`` (m^2) and ``lam`` (m) as in :func:`companion.core.moments.image_moments`;
+    ``s4_prev_rad`` the previous ``s4`` for unwrapping (None on the first frame).
+
+    Raises :class:`MeasurementError` on non-finite measurements and
+    :class:`companion.core.moments.DegenerateTargetError` on unusable target points.
+    """
+    roll = _scalar(roll_rad, "roll_rad")
+    pitch = _scalar(pitch_rad, "pitch_rad")
+    yaw = _scalar(yaw_rad, "yaw_rad")
+    pts_v = virtual_image_points(points_real_m, roll, pitch, lam, cam_to_body)
+    mom = image_moments(pts_v, a_star, lam, s4_prev_rad)
+    motion = target_motion_in_virtual(v_a_ned_m_s, a_a_ned_m_s2, psidot_a_rad_s, yaw,
+                                      yaw_rate_rad_s)
+    v_q = ned_to_virtual(_vec(v_q_ned_m_s, 3, "v_q_ned_m_s"), yaw)
+    v_a = np.array([motion.v_a_m_s[0], motion.v_a_m_s[1], 0.0])
+    eta = np.concatenate([mom.s - np.asarray(S_REF), v_q - v_a])
+    return ErrorState(
+        eta_e=eta, s=mom.s, v_q_v_m_s=v_q, v_a_v_m_s=v_a, moments=mom, motion=motion,
+        roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
+    )
