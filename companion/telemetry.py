@@ -1,0 +1,202 @@
+"""What the companion knows about the vehicle and the target, with the time it learnt it.
+
+Fed with decoded MAVLink messages as ``(name, fields, t_s)``: ``fields`` is the message's field
+dict (pymavlink ``to_dict()`` live, the logged JSON in replay), ``t_s`` the message's time on
+the companion's time base (see :class:`companion.pipeline.TimeBase`). The same store serves the
+live process and the replay, so both compute identical commands from identical inputs.
+
+Pure bookkeeping: no sockets, no clocks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.core.geometry import euler_zyx_from_quat
+
+EARTH_RADIUS_M = 6378137.0
+
+
+@dataclass(frozen=True)
+class AttitudeSample:
+    t_s: float
+    q_wxyz: tuple[float, float, float, float]  # FRD body relative to NED
+    yaw_rate_rad_s: float
+
+
+@dataclass(frozen=True)
+class KinematicsSample:
+    t_s: float
+    pos_ned_m: tuple[float, float, float]
+    vel_ned_m_s: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class TargetSample:
+    """The AGV's own state from FOLLOW_TARGET, in the shared local NED frame."""
+
+    t_s: float
+    pos_ned_m: tuple[float, float, float]
+    vel_ned_m_s: tuple[float, float, float]
+    acc_ned_m_s2: tuple[float, float, float]
+    yaw_rad: float
+    yaw_rate_rad_s: float
+
+
+@dataclass(frozen=True)
+class VehicleMode:
+    t_s: float
+    armed: bool
+    main_mode: int
+    sub_mode: int
+
+
+class TelemetryStore:
+    """Latest samples per kind; attitude keeps a short history for interpolation."""
+
+    def __init__(
+        self,
+        target_sysid: int,
+        origin_lat_deg: float,
+        origin_lon_deg: float,
+        origin_alt_m: float,
+        history: int = 64,
+    ) -> None:
+        self._target_sysid = target_sysid
+        self._origin = (origin_lat_deg, origin_lon_deg, origin_alt_m)
+        self.attitude: deque[AttitudeSample] = deque(maxlen=history)
+        self.kinematics: KinematicsSample | None = None
+        self.target: TargetSample | None = None
+        self.mode: VehicleMode | None = None
+        self.rejected: dict[str, int] = {}
+
+    # -- ingest -----------------------------------------------------------------------------
+
+    def ingest(self, name: str, fields: Mapping[str, Any], t_s: float, src_sysid: int) -> bool:
+        """Take one message; returns False (and counts why) when it is not usable."""
+        try:
+            if name == "FOLLOW_TARGET":
+                if src_sysid != self._target_sysid:
+                    return self._reject("FOLLOW_TARGET from unexpected sysid")
+                return self._follow_target(fields, t_s)
+            if name == "ATTITUDE_QUATERNION":
+                q = (float(fields["q1"]), float(fields["q2"]), float(fields["q3"]),
+                     float(fields["q4"]))
+                if not _finite(*q, fields["yawspeed"]) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+                    return self._reject("ATTITUDE_QUATERNION not a unit quaternion")
+                self._push_attitude(AttitudeSample(t_s, q, float(fields["yawspeed"])))
+                return True
+            if name == "LOCAL_POSITION_NED":
+                vals = [float(fields[k]) for k in ("x", "y", "z", "vx", "vy", "vz")]
+                if not _finite(*vals):
+                    return self._reject("LOCAL_POSITION_NED non-finite")
+                self.kinematics = KinematicsSample(t_s, tuple(vals[:3]), tuple(vals[3:]))  # type: ignore[arg-type]
+                return True
+            if name == "HEARTBEAT":
+                custom = int(fields["custom_mode"])
+                self.mode = VehicleMode(
+                    t_s,
+                    armed=bool(int(fields["base_mode"]) & 128),
+                    main_mode=(custom >> 16) & 0xFF,
+                    sub_mode=(custom >> 24) & 0xFF,
+                )
+                return True
+        except (KeyError, TypeError, ValueError):
+            return self._reject(f"{name} malformed")
+        return False
+
+    def _push_attitude(self, s: AttitudeSample) -> None:
+        if self.attitude and s.t_s < self.attitude[-1].t_s:
+            self._reject("ATTITUDE_QUATERNION out of order")
+            return
+        self.attitude.append(s)
+
+    def _follow_target(self, f: Mapping[str, Any], t_s: float) -> bool:
+        caps = int(f["est_capabilities"])
+        if caps & 0b11 != 0b11:
+            return self._reject("FOLLOW_TARGET without position and velocity")
+        lat = int(f["lat"]) * 1e-7
+        lon = int(f["lon"]) * 1e-7
+        alt = float(f["alt"])
+        vel = tuple(float(v) for v in f["vel"])
+        acc = tuple(float(v) for v in f["acc"]) if caps & 0b100 else (0.0, 0.0, 0.0)
+        q = [float(v) for v in f["attitude_q"]]
+        rates = [float(v) for v in f["rates"]]
+        if not _finite(lat, lon, alt, *vel, *acc):
+            return self._reject("FOLLOW_TARGET non-finite")
+        if caps & 0b1000 and _finite(*q, *rates) and abs(np.linalg.norm(q) - 1.0) < 1e-3:
+            yaw = euler_zyx_from_quat(q)[2]
+            yaw_rate = rates[2]
+        else:  # heading from the velocity when the AGV does not send its attitude
+            yaw = math.atan2(vel[1], vel[0])
+            yaw_rate = 0.0
+        self.target = TargetSample(
+            t_s, self.ned_from_geodetic(lat, lon, alt), vel, acc, yaw, yaw_rate  # type: ignore[arg-type]
+        )
+        return True
+
+    def ned_from_geodetic(self, lat_deg: float, lon_deg: float, alt_m: float) -> tuple[float, float, float]:
+        """Local tangent-plane NED about the configured origin (adequate over a few km)."""
+        lat0, lon0, alt0 = self._origin
+        north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M
+        east = math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+        return (north, east, alt0 - alt_m)
+
+    def _reject(self, why: str) -> bool:
+        self.rejected[why] = self.rejected.get(why, 0) + 1
+        return False
+
+    # -- queries ----------------------------------------------------------------------------
+
+    def attitude_at(self, t_s: float, max_extrapolation_s: float = 0.05) -> AttitudeSample | None:
+        """Attitude interpolated (slerp) to ``t_s``; held from the newest sample up to
+        ``max_extrapolation_s`` past it; ``None`` if no sample brackets ``t_s``."""
+        if not self.attitude:
+            return None
+        newest = self.attitude[-1]
+        if t_s >= newest.t_s:
+            return newest if t_s - newest.t_s <= max_extrapolation_s else None
+        prev = None
+        for s in reversed(self.attitude):
+            if s.t_s <= t_s:
+                prev = s
+                break
+            nxt = s
+        if prev is None:
+            return None
+        span = nxt.t_s - prev.t_s
+        w = 0.0 if span <= 0 else (t_s - prev.t_s) / span
+        q = _slerp(np.array(prev.q_wxyz), np.array(nxt.q_wxyz), w)
+        rate = prev.yaw_rate_rad_s + w * (nxt.yaw_rate_rad_s - prev.yaw_rate_rad_s)
+        return AttitudeSample(t_s, tuple(float(x) for x in q), rate)  # type: ignore[arg-type]
+
+    def telemetry_age_s(self, t_s: float) -> float:
+        """Age of the older of the newest attitude and kinematics samples (``inf`` if none)."""
+        if not self.attitude or self.kinematics is None:
+            return math.inf
+        return t_s - min(self.attitude[-1].t_s, self.kinematics.t_s)
+
+    def target_age_s(self, t_s: float) -> float:
+        return math.inf if self.target is None else t_s - self.target.t_s
+
+
+def _finite(*xs: Any) -> bool:
+    return all(math.isfinite(float(x)) for x in xs)
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
+    dot = float(q0 @ q1)
+    if dot < 0.0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0 + w * (q1 - q0)
+    else:
+        th = math.acos(dot)
+        q = (math.sin((1 - w) * th) * q0 + math.sin(w * th) * q1) / math.sin(th)
+    return q / np.linalg.norm(q)
