@@ -141,7 +141,9 @@ class TelemetryStore:
         )
         return True
 
-    def ned_from_geodetic(self, lat_deg: float, lon_deg: float, alt_m: float) -> tuple[float, float, float]:
+    def ned_from_geodetic(
+        self, lat_deg: float, lon_deg: float, alt_m: float
+    ) -> tuple[float, float, float]:
         """Local tangent-plane NED about the configured origin (adequate over a few km)."""
         lat0, lon0, alt0 = self._origin
         north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M

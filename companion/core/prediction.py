@@ -1,0 +1,73 @@
+"""Target motion over the RMPC horizon, in the virtual frame (parameters of spec 6).
+
+The AGV is predicted as a constant-speed, constant-turn-rate (unicycle) vehicle from its
+current NED velocity and yaw rate; the vehicle's yaw is assumed to turn with the target
+(``psi_q(n) = psi_q + n dt psidot_a``), which is what the controller steers towards. Each
+stage's ``v_a`` and ``vdot_a`` are then expressed in that stage's virtual frame (spec 4:
+``vdot_a`` is the derivative of the components as seen in the rotating frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.core.geometry import rot_z
+
+
+@dataclass(frozen=True)
+class HorizonMotion:
+    """``v_a_m_s`` (N, 2), ``vdot_a_m_s2`` (N, 2), ``psidot_a_rad_s`` (N,): virtual frame."""
+
+    v_a_m_s: np.ndarray
+    vdot_a_m_s2: np.ndarray
+    psidot_a_rad_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("v_a_m_s", "vdot_a_m_s2", "psidot_a_rad_s"):
+            a = np.array(getattr(self, name), dtype=float)
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"HorizonMotion.{name}: non-finite value")
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+
+def predict_target_motion(
+    v_a_ned_m_s: np.ndarray,
+    a_a_ned_m_s2: np.ndarray,
+    psidot_a_rad_s: float,
+    yaw_q_rad: float,
+    horizon: int,
+    dt_s: float,
+) -> HorizonMotion:
+    """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
+
+    ``v_a_ned_m_s``, ``a_a_ned_m_s2`` (3,): the target's velocity/acceleration now (NED);
+    ``psidot_a_rad_s``: its yaw rate; ``yaw_q_rad``: the vehicle's (= virtual frame's) yaw now.
+    The along-track acceleration (projection of ``a`` on ``v``) is kept constant; the
+    cross-track part is carried by the turn rate.
+    """
+    v0 = np.asarray(v_a_ned_m_s, dtype=float)[:2]
+    a0 = np.asarray(a_a_ned_m_s2, dtype=float)[:2]
+    speed = float(np.hypot(*v0))
+    heading = float(np.arctan2(v0[1], v0[0])) if speed > 1e-6 else 0.0
+    tangent = np.array([np.cos(heading), np.sin(heading)])
+    a_along = float(a0 @ tangent) if speed > 1e-6 else 0.0
+    w = float(psidot_a_rad_s)
+    v_out = np.empty((horizon, 2))
+    vdot_out = np.empty((horizon, 2))
+    for n in range(horizon):
+        t = n * dt_s
+        sp = max(0.0, speed + a_along * t)
+        hd = heading + w * t
+        t_hat = np.array([np.cos(hd), np.sin(hd)])
+        v_ned = sp * t_hat if speed > 1e-6 else v0 + a0 * t
+        a_ned = a_along * t_hat + sp * w * np.array([-t_hat[1], t_hat[0]]) if speed > 1e-6 else a0
+        psi_q = yaw_q_rad + w * t
+        rzt = rot_z(psi_q).T[:2, :2]
+        v_v = rzt @ v_ned
+        # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
+        vdot_out[n] = rzt @ a_ned + w * np.array([v_v[1], -v_v[0]])
+        v_out[n] = v_v
+    return HorizonMotion(v_out, vdot_out, np.full(horizon, w))

@@ -1,0 +1,63 @@
+"""Horizon prediction of the target's motion and the reacquisition law."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.core.geometry import rot_z
+from companion.core.prediction import predict_target_motion
+from companion.core.reacquire import reacquire_input
+
+U_MAX = (1.5, 1.5, 1.5, 0.3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    speed=st.floats(0.05, 3.0), heading=st.floats(-np.pi, np.pi), w=st.floats(-0.5, 0.5),
+    a_along=st.floats(-0.2, 0.2), yaw_q=st.floats(-np.pi, np.pi),
+)
+def test_vdot_is_the_rotating_frame_derivative_of_v(
+    speed: float, heading: float, w: float, a_along: float, yaw_q: float
+) -> None:
+    t_hat = np.array([np.cos(heading), np.sin(heading), 0.0])
+    n_hat = np.array([-np.sin(heading), np.cos(heading), 0.0])
+    v = speed * t_hat
+    a = a_along * t_hat + speed * w * n_hat  # consistent with a turn at rate w
+    dt = 1e-3
+    m = predict_target_motion(v, a, w, yaw_q, horizon=40, dt_s=dt)
+    fd = np.diff(m.v_a_m_s, axis=0) / dt
+    mid = 0.5 * (m.vdot_a_m_s2[1:] + m.vdot_a_m_s2[:-1])
+    assert np.allclose(fd, mid, atol=1e-5)
+    # stage 0 is the current velocity in the virtual frame
+    assert np.allclose(m.v_a_m_s[0], (rot_z(yaw_q).T @ v)[:2], atol=1e-12)
+
+
+def test_constant_target_velocity_seen_from_a_vehicle_turning_with_it() -> None:
+    # target turning at w, vehicle yaw turning at w too: the velocity in v is constant
+    m = predict_target_motion(np.array([1.0, 0, 0]), np.array([0, 0.3, 0]), 0.3, 0.0, 16, 0.05)
+    assert np.allclose(m.v_a_m_s, m.v_a_m_s[0], atol=1e-12)
+    assert np.allclose(m.vdot_a_m_s2, 0.0, atol=1e-12)
+
+
+def test_reacquire_moves_towards_target_climbs_and_turns() -> None:
+    u = reacquire_input(np.array([2.0, -1.0, 2.0]), np.zeros(3), np.zeros(3), np.zeros(3),
+                        yaw_q_rad=0.0, yaw_a_rad=0.2, height_above_target_m=2.0,
+                        climb_rate_m_s=0.3, max_height_m=4.0, u_max=U_MAX)
+    assert u[0] > 0 and u[1] < 0      # towards the target (forward, left)
+    assert u[2] < 0                   # climb: NED z down, so negative acceleration
+    assert u[3] > 0                   # yaw towards its heading
+    assert np.all(np.abs(u) <= np.array(U_MAX) + 1e-12)
+    # at the height limit and hovering over a still target: no command
+    u0 = reacquire_input(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.0, 0.0, 4.0,
+                         0.3, 4.0, U_MAX)
+    assert np.allclose(u0, 0.0)
+
+
+def test_reacquire_refuses_non_finite() -> None:
+    import pytest
+
+    with pytest.raises(ValueError):
+        reacquire_input(np.array([np.nan, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
+                        0.0, 0.0, 2.0, 0.3, 4.0, U_MAX)
