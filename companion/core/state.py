@@ -31,7 +31,7 @@ from companion.core.geometry import (
     real_points_to_virtual,
     rot_z,
 )
-from companion.core.moments import ImageMoments, image_moments
+from companion.core.moments import DegenerateTargetError, ImageMoments, image_moments
 
 
 class MeasurementError(CompanionError, ValueError):
@@ -123,8 +123,14 @@ def virtual_image_points(
     camera's = body's. With a mount rotation ``R_bc`` (3, 3, from
     :func:`companion.core.geometry.camera_to_body_rotation`) the points are first re-projected
     into body axes and ``roll_rad, pitch_rad`` must be the BODY's; ``v`` then has the body's yaw.
+    Raises :class:`DegenerateTargetError` for fewer than 3 or non-finite points and
+    :class:`companion.core.geometry.GeometryError` (its parent) for a ray above the horizon.
     """
     pts = np.asarray(points_real_m, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 3:
+        raise DegenerateTargetError(f"target points: need (N >= 3, 2), got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise DegenerateTargetError("target points: non-finite value")
     if cam_to_body is not None:
         pts = camera_points_to_body_image(pts, cam_to_body, lam)
     return real_points_to_virtual(pts, roll_rad, pitch_rad, lam)
@@ -192,8 +198,10 @@ def build_error_state(
     yaw rate; ``a_star`` (m^2) and ``lam`` (m) as in :func:`companion.core.moments.image_moments`;
     ``s4_prev_rad`` the previous ``s4`` for unwrapping (None on the first frame).
 
-    Raises :class:`MeasurementError` on non-finite measurements and
-    :class:`companion.core.moments.DegenerateTargetError` on unusable target points.
+    Raises :class:`MeasurementError` on non-finite measurements,
+    :class:`companion.core.moments.DegenerateTargetError` on unusable target points and
+    :class:`companion.core.geometry.GeometryError` (the latter's parent) when a point's ray is
+    above the virtual horizon. Catch ``GeometryError`` for "no target measurement this frame".
     """
     roll = _scalar(roll_rad, "roll_rad")
     pitch = _scalar(pitch_rad, "pitch_rad")
