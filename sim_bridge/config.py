@@ -1,0 +1,397 @@
+"""Emulator configuration: ``[sim]``, ``[camera]`` and ``[target]`` of a scenario TOML file,
+loaded once into validated, frozen dataclasses.
+
+The emulator parses the file itself (it shares no code with the companion). A file may start
+with ``base = "other.toml"`` (relative to itself): the base is loaded first, then this file's
+tables and keys override it (deep merge; tables merge key by key, every other value replaces).
+A bad value raises :class:`sim_bridge.ConfigError` naming the key (``sim.vehicle.hover_thrust:
+must be in (0, 1)``). The scenario (initial UAV pose) is picked by name from
+``[sim.scenarios.<name>]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sim_bridge import ConfigError
+
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "paper.toml"
+
+Check = Callable[[Any], str | None]
+
+
+def _positive(x: float) -> str | None:
+    return None if x > 0 else "must be > 0"
+
+
+def _nonneg(x: float) -> str | None:
+    return None if x >= 0 else "must be >= 0"
+
+
+def _open_unit(x: float) -> str | None:
+    return None if 0 < x < 1 else "must be in (0, 1)"
+
+
+def _unit(x: float) -> str | None:
+    return None if 0 < x <= 1 else "must be in (0, 1]"
+
+
+def _port(x: int) -> str | None:
+    return None if 0 <= x <= 65535 else "must be a port number in 0..65535 (0 = any free port)"
+
+
+def _sysid(x: int) -> str | None:
+    return None if 1 <= x <= 255 else "must be in 1..255"
+
+
+def _one_of(*choices: Any) -> Check:
+    def check(x: Any) -> str | None:
+        return None if x in choices else f"must be one of {', '.join(map(repr, choices))}"
+
+    return check
+
+
+def _address(x: str) -> str | None:
+    try:
+        parse_address(x)
+    except ValueError as e:
+        return str(e)
+    return None
+
+
+def _c(fn: Check) -> dict[str, Any]:
+    return {"check": fn}
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """``"HOST:PORT"`` -> ``(host, port)``; raises ``ValueError`` on anything else."""
+    host, sep, port_s = text.rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"must be 'HOST:PORT', got {text!r}")
+    try:
+        port = int(port_s)
+    except ValueError:
+        raise ValueError(f"port of {text!r} is not an integer") from None
+    if not 1 <= port <= 65535:
+        raise ValueError(f"port of {text!r} must be in 1..65535")
+    return host, port
+
+
+# --------------------------------------------------------------------------------------------
+# [camera] and [target]: the physical camera and target the emulator renders
+@dataclass(frozen=True)
+class CameraConfig:
+    """Pinhole camera and its mount in the body frame (FRD); camera axes = body axes rotated
+    by ``mount_rpy_rad`` (ZYX)."""
+
+    focal_length_m: float = field(metadata=_c(_positive))
+    pixel_size_m: float = field(metadata=_c(_positive))
+    width_px: int = field(metadata=_c(_positive))
+    height_px: int = field(metadata=_c(_positive))
+    visible_fraction: float = field(metadata=_c(_unit))
+    report_pixel_size_m: float = field(metadata=_c(_positive))
+    mount_offset_m: tuple[float, float, float]
+    mount_rpy_rad: tuple[float, float, float]
+    calibration_file: str = ""
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    """The AGV's top (a rectangle or an ArUco marker) and its MAVLink identity."""
+
+    length_m: float = field(metadata=_c(_positive))
+    width_m: float = field(metadata=_c(_positive))
+    height_m: float = field(metadata=_c(_nonneg))
+    pattern: str = field(metadata=_c(_one_of("rectangle", "aruco")))
+    aruco_dictionary: str
+    aruco_id: int = field(metadata=_c(_nonneg))
+    aruco_size_m: float = field(metadata=_c(_positive))
+    mavlink_sysid: int = field(metadata=_c(_sysid))
+    mavlink_compid: int = field(metadata=_c(_sysid))
+    origin_lat_deg: float
+    origin_lon_deg: float
+    origin_alt_m: float
+
+
+# --------------------------------------------------------------------------------------------
+# [sim.*]
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Quadrotor model (``sim_bridge.physics.vehicle``)."""
+
+    hover_thrust: float = field(metadata=_c(_open_unit))
+    attitude_tau_s: float = field(metadata=_c(_positive))
+    max_tilt_rate_rad_s: float = field(metadata=_c(_positive))
+    max_yaw_rate_rad_s: float = field(metadata=_c(_positive))
+    drag_per_s: float = field(metadata=_c(_nonneg))
+    max_tilt_rad: float = field(metadata=_c(lambda x: None if 0 < x < math.pi / 2 else
+                                            "must be in (0, pi/2)"))
+
+
+@dataclass(frozen=True)
+class DisturbanceConfig:
+    """Additive acceleration disturbance: constant wind + sinusoidal gust + seeded random."""
+
+    wind_accel_ned_m_s2: tuple[float, float, float]
+    gust_amplitude_m_s2: float = field(metadata=_c(_nonneg))
+    gust_period_s: float = field(metadata=_c(_positive))
+    random_bound_m_s2: float = field(metadata=_c(_nonneg))
+
+
+@dataclass(frozen=True)
+class Px4Config:
+    """The PX4 parameters the emulator imitates (names after PX4's)."""
+
+    com_of_loss_t_s: float = field(metadata=_c(_positive))
+    com_obl_rc_act: int = field(metadata=_c(_one_of(0, 1, 2, 3, 4, 5, 6, 7)))
+    com_disarm_prflt_s: float = field(metadata=_c(_nonneg))
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Sockets (docs/wire.md). Local ports may be 0 (any free port; the app logs the real one)."""
+
+    sysid: int = field(metadata=_c(_sysid))
+    compid: int = field(metadata=_c(_sysid))
+    offboard_local_port: int = field(metadata=_c(_port))
+    offboard_remote: str = field(metadata=_c(_address))
+    gcs_local_port: int = field(metadata=_c(_port))
+    gcs_remote: str = field(metadata=_c(_address))
+    agv_local_port: int = field(metadata=_c(_port))
+    frame_port: int = field(metadata=_c(_port))
+    truth_remote: str = field(metadata=_c(_address))
+
+
+@dataclass(frozen=True)
+class AgvConfig:
+    trajectory: str = field(metadata=_c(_one_of("paper", "line", "circle", "figure8",
+                                                  "stop_and_go")))
+    speed_scale: float = field(metadata=_c(_nonneg))
+    rate_hz: float = field(metadata=_c(_positive))
+    top_z_m: float
+
+
+@dataclass(frozen=True)
+class SimCameraConfig:
+    rate_hz: float = field(metadata=_c(_positive))
+    noise_std: float = field(metadata=_c(_nonneg))
+    blur_px: float = field(metadata=_c(_nonneg))
+    occlusions: tuple[tuple[float, float], ...] = ()
+
+    def occluded(self, t_s: float) -> bool:
+        """Whether the target is hidden at ``t_s`` (s since boot)."""
+        return any(a <= t_s < b for a, b in self.occlusions)
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """Initial UAV pose: position (m, NED) and roll, pitch, yaw (rad, ZYX)."""
+
+    name: str
+    uav_pose: tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    time_mode: str = field(metadata=_c(_one_of("realtime", "lockstep")))
+    lockstep_timeout_s: float = field(metadata=_c(_positive))
+    physics_dt_s: float = field(metadata=_c(_positive))
+    step_dt_s: float = field(metadata=_c(_positive))
+    seed: int
+    start: str = field(metadata=_c(_one_of("airborne", "ground")))
+    scenario: str
+    duration_s: float = field(metadata=_c(_positive))
+    vehicle: VehicleConfig
+    disturbance: DisturbanceConfig
+    px4: Px4Config
+    link: LinkConfig
+    agv: AgvConfig
+    camera: SimCameraConfig
+
+    def __post_init__(self) -> None:
+        if self.physics_dt_s > self.step_dt_s:
+            raise ConfigError("sim.physics_dt_s: must be <= sim.step_dt_s")
+
+
+@dataclass(frozen=True)
+class EmulatorConfig:
+    """Everything the emulator reads: ``[sim]``, ``[camera]``, ``[target]`` and the chosen
+    ``[sim.scenarios.<name>]``."""
+
+    sim: SimConfig
+    camera: CameraConfig
+    target: TargetConfig
+    scenario: ScenarioConfig
+    source: str = ""
+
+    @property
+    def ground_z_m(self) -> float:
+        """NED z of the ground: the AGV top (``sim.agv.top_z_m``) is ``target.height_m`` above
+        it."""
+        return self.sim.agv.top_z_m + self.target.height_m
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Tables merge key by key (recursively); any other value in ``over`` replaces."""
+    out: dict[str, Any] = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def read_toml(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """Read a TOML file, resolving ``base = "file.toml"`` chains (relative to the file)."""
+    p = Path(path).expanduser().resolve()
+    if p in _seen:
+        raise ConfigError(f"{p}: 'base' chain loops back to itself")
+    try:
+        with p.open("rb") as f:
+            data = tomllib.load(f)
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read ({e.strerror})") from e
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML ({e})") from e
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ConfigError(f"{p}: base: must be a file name (string)")
+    return deep_merge(read_toml(p.parent / base, (*_seen, p)), data)
+
+
+def _convert(value: Any, tp: Any, key: str) -> Any:
+    """Check ``value`` against the annotation string ``tp`` and convert it."""
+    tp = str(tp)
+    if tp == "float":
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{key}: must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}: must be finite")
+        return float(value)
+    if tp == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: must be an integer, got {value!r}")
+        return value
+    if tp == "str":
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: must be a string, got {value!r}")
+        return value
+    if tp.startswith("tuple[tuple[float, float], ...]"):
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: must be a list of [start, end] pairs")
+        out = []
+        for i, pair in enumerate(value):
+            if not isinstance(pair, list) or len(pair) != 2:
+                raise ConfigError(f"{key}[{i}]: must be [start_s, end_s]")
+            a, b = (_convert(x, "float", f"{key}[{i}]") for x in pair)
+            if b < a:
+                raise ConfigError(f"{key}[{i}]: end must be >= start")
+            out.append((a, b))
+        return tuple(out)
+    if tp.startswith("tuple[float"):
+        n = tp.count("float")
+        if not isinstance(value, list) or len(value) != n:
+            raise ConfigError(f"{key}: must be a list of {n} numbers")
+        return tuple(_convert(x, "float", f"{key}[{i}]") for i, x in enumerate(value))
+    raise ConfigError(f"{key}: unsupported type {tp}")  # pragma: no cover - programming error
+
+
+def _build(cls: Any, table: Any, prefix: str, extra: Mapping[str, Any] | None = None) -> Any:
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{prefix}: must be a table")
+    kwargs: dict[str, Any] = dict(extra or {})
+    known = {f.name for f in dataclasses.fields(cls)}
+    for f in dataclasses.fields(cls):
+        if f.name in kwargs:
+            continue
+        key = f"{prefix}.{f.name}"
+        if f.name not in table:
+            if f.default is not dataclasses.MISSING:
+                continue
+            raise ConfigError(f"{key}: missing")
+        value = _convert(table[f.name], f.type, key)
+        check = f.metadata.get("check")
+        if check is not None and (msg := check(value)) is not None:
+            raise ConfigError(f"{key}: {msg}")
+        kwargs[f.name] = value
+    unknown = set(table) - known - set(extra or {})
+    if unknown:
+        raise ConfigError(f"{prefix}: unknown key(s) {', '.join(sorted(unknown))}")
+    return cls(**kwargs)
+
+
+_SIM_SUBTABLES = {
+    "vehicle": VehicleConfig,
+    "disturbance": DisturbanceConfig,
+    "px4": Px4Config,
+    "link": LinkConfig,
+    "agv": AgvConfig,
+    "camera": SimCameraConfig,
+}
+
+
+def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
+                     source: str = "") -> EmulatorConfig:
+    """Validate a merged TOML document. ``scenario`` overrides ``sim.scenario``."""
+    for t in ("sim", "camera", "target"):
+        if t not in data:
+            raise ConfigError(f"{t}: missing table")
+    sim_t = data["sim"]
+    if not isinstance(sim_t, Mapping):
+        raise ConfigError("sim: must be a table")
+    subs = {}
+    for name, cls in _SIM_SUBTABLES.items():
+        if name not in sim_t:
+            raise ConfigError(f"sim.{name}: missing table")
+        subs[name] = _build(cls, sim_t[name], f"sim.{name}")
+    scenarios = sim_t.get("scenarios", {})
+    sim_flat = {k: v for k, v in sim_t.items() if k != "scenarios"}
+    sim = _build(SimConfig, sim_flat, "sim", extra=subs)
+    name = scenario if scenario is not None else sim.scenario
+    if not isinstance(scenarios, Mapping) or name not in scenarios:
+        have = ", ".join(sorted(scenarios)) if isinstance(scenarios, Mapping) else ""
+        raise ConfigError(f"sim.scenarios.{name}: no such scenario (have: {have})")
+    scen = _build(ScenarioConfig, scenarios[name], f"sim.scenarios.{name}",
+                  extra={"name": name})
+    if scenario is not None:
+        sim = dataclasses.replace(sim, scenario=name)
+    camera = _build(CameraConfig, data["camera"], "camera")
+    target = _build(TargetConfig, data["target"], "target")
+    return EmulatorConfig(sim=sim, camera=camera, target=target, scenario=scen, source=source)
+
+
+def load_config(path: str | Path | None = None, scenario: str | None = None) -> EmulatorConfig:
+    """Load and validate the emulator's part of a scenario file (default ``config/paper.toml``)."""
+    p = Path(path) if path is not None else DEFAULT_CONFIG
+    return config_from_dict(read_toml(p), scenario=scenario, source=str(p))
+
+
+def with_link(cfg: EmulatorConfig, **changes: Any) -> EmulatorConfig:
+    """A copy of ``cfg`` with ``sim.link`` fields replaced (validated like the file's)."""
+    link = cfg.sim.link
+    for k, v in changes.items():
+        f = next((f for f in dataclasses.fields(LinkConfig) if f.name == k), None)
+        if f is None:
+            raise ConfigError(f"sim.link.{k}: unknown key")
+        v = _convert(v, f.type, f"sim.link.{k}")
+        check = f.metadata.get("check")
+        if check is not None and (msg := check(v)) is not None:
+            raise ConfigError(f"sim.link.{k}: {msg}")
+        link = dataclasses.replace(link, **{k: v})
+    return dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, link=link))
+
+
+def with_sim(cfg: EmulatorConfig, **changes: Any) -> EmulatorConfig:
+    """A copy of ``cfg`` with top-level ``sim`` fields (or whole sub-configs) replaced."""
+    return dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, **changes))

@@ -1,0 +1,303 @@
+"""Quadrotor model of the emulator: translational dynamics in NED, attitude as a rate-limited
+first-order response to the setpoint. Pure numpy, fixed-step, deterministic.
+
+Frames: world NED, body FRD; quaternions are w,x,y,z (body FRD relative to NED, as MAVLink's
+ATTITUDE_QUATERNION). Euler angles are ZYX (yaw psi, pitch theta, roll phi).
+
+Translational model (PX4 maps normalised thrust to acceleration with ``MPC_THR_HOVER``)::
+
+    a_NED = R(q) [0, 0, -g T / T_hover] + [0, 0, g] - drag * v + d(t)
+
+Attitude model: each of roll, pitch, yaw moves towards its setpoint as a first-order lag with
+time constant ``attitude_tau_s``; roll/pitch speed is limited to ``max_tilt_rate_rad_s``, yaw
+speed to ``max_yaw_rate_rad_s`` (after the yaw-rate feed-forward is added). The setpoint's tilt
+is clipped to ``max_tilt_rad`` first (roll and pitch scaled together).
+
+Ground contact: the ground is the plane ``z = ground_z_m`` (NED, down positive); the vehicle
+cannot go below it and, while pressed onto it, its velocity is zero.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+Vec = NDArray[np.float64]
+
+G_M_S2 = 9.81
+
+
+# --------------------------------------------------------------------------------------------
+# Rotations
+def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Vec:
+    """ZYX Euler -> quaternion w,x,y,z (body FRD relative to NED)."""
+    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
+    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
+    return np.array([
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ])
+
+
+def euler_from_quat(q_wxyz: Vec) -> tuple[float, float, float]:
+    """Quaternion w,x,y,z -> ZYX Euler (roll, pitch, yaw) in rad. Normalises ``q`` first."""
+    q = np.asarray(q_wxyz, dtype=float)
+    n = float(np.linalg.norm(q))
+    if not n > 0 or not math.isfinite(n):
+        raise ValueError("quaternion must have a finite, non-zero norm")
+    w, x, y, z = q / n
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def rot_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Vec:
+    """Rotation matrix body FRD -> NED, ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (3x3)."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def wrap_pi(a: float) -> float:
+    """Angle wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def clip_tilt(roll_rad: float, pitch_rad: float, max_tilt_rad: float) -> tuple[float, float]:
+    """Scale roll and pitch together so that the tilt ``acos(cos(roll) cos(pitch))`` is at most
+    ``max_tilt_rad``."""
+    tilt = math.acos(max(-1.0, min(1.0, math.cos(roll_rad) * math.cos(pitch_rad))))
+    if tilt <= max_tilt_rad:
+        return roll_rad, pitch_rad
+    lo, hi = 0.0, 1.0  # bisection on the common scale factor (tilt is monotonic in it)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        t = math.acos(max(-1.0, min(1.0, math.cos(mid * roll_rad) * math.cos(mid * pitch_rad))))
+        if t > max_tilt_rad:
+            hi = mid
+        else:
+            lo = mid
+    return lo * roll_rad, lo * pitch_rad
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters, commands, state
+@dataclass(frozen=True)
+class VehicleParams:
+    hover_thrust: float = 0.5
+    attitude_tau_s: float = 0.08
+    max_tilt_rate_rad_s: float = 3.0
+    max_yaw_rate_rad_s: float = 1.5
+    drag_per_s: float = 0.05
+    max_tilt_rad: float = 0.6
+    ground_z_m: float = 0.0
+    g_m_s2: float = G_M_S2
+
+    def __post_init__(self) -> None:
+        if not 0 < self.hover_thrust < 1:
+            raise ValueError("hover_thrust must be in (0, 1)")
+        if not (self.attitude_tau_s > 0 and self.max_tilt_rate_rad_s > 0
+                and self.max_yaw_rate_rad_s > 0 and self.drag_per_s >= 0
+                and 0 < self.max_tilt_rad < math.pi / 2):
+            raise ValueError("invalid vehicle parameters")
+
+
+@dataclass(frozen=True)
+class DisturbanceParams:
+    """``d(t) = wind + gust_amplitude sin(2 pi t / gust_period) e_gust + w_k`` (m/s^2, NED).
+
+    ``e_gust`` is the unit direction of the horizontal wind (north when there is none).
+    ``w_k`` is uniform in the ball of radius ``random_bound_m_s2``, drawn from ``seed`` and the
+    index ``k = floor(t / random_hold_s)`` alone, so it does not depend on the step size or
+    on how often it is evaluated.
+    """
+
+    wind_accel_ned_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_amplitude_m_s2: float = 0.0
+    gust_period_s: float = 10.0
+    random_bound_m_s2: float = 0.0
+    random_hold_s: float = 0.05
+    seed: int = 0
+
+
+class Disturbance:
+    """Deterministic disturbance acceleration ``d(t)`` (see :class:`DisturbanceParams`)."""
+
+    def __init__(self, params: DisturbanceParams) -> None:
+        self.params = params
+        wind = np.asarray(params.wind_accel_ned_m_s2, dtype=float)
+        h = float(np.hypot(wind[0], wind[1]))
+        self._gust_dir = np.array([wind[0] / h, wind[1] / h, 0.0]) if h > 0 else np.array(
+            [1.0, 0.0, 0.0])
+        self._wind = wind
+        self._cache_k = -1
+        self._cache_w = np.zeros(3)
+
+    def _random(self, k: int) -> Vec:
+        if k != self._cache_k:
+            rng = np.random.default_rng([self.params.seed & 0xFFFFFFFF, k])
+            v = rng.normal(size=3)
+            n = float(np.linalg.norm(v))
+            r = rng.uniform() ** (1 / 3)
+            self._cache_w = (v / n) * r * self.params.random_bound_m_s2 if n > 0 else np.zeros(3)
+            self._cache_k = k
+        return self._cache_w
+
+    def accel_ned_m_s2(self, t_s: float) -> Vec:
+        p = self.params
+        d = self._wind.copy()
+        if p.gust_amplitude_m_s2 > 0:
+            d += p.gust_amplitude_m_s2 * math.sin(2 * math.pi * t_s / p.gust_period_s) \
+                * self._gust_dir
+        if p.random_bound_m_s2 > 0:
+            d += self._random(math.floor(t_s / p.random_hold_s))
+        return d
+
+
+@dataclass(frozen=True)
+class AttitudeCommand:
+    """What the attitude/thrust loop tracks.
+
+    ``roll/pitch/yaw_rad``: setpoint (ZYX, rad). ``thrust_norm``: 0..1 along body -z.
+    ``yaw_rate_ff_rad_s``: Earth-frame yaw-rate feed-forward added to the yaw loop.
+    ``motors_on``: False when disarmed or terminated (no thrust, attitude uncontrolled).
+    """
+
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    thrust_norm: float
+    yaw_rate_ff_rad_s: float = 0.0
+    motors_on: bool = True
+
+    @staticmethod
+    def from_quat(q_wxyz: Vec, thrust_norm: float, yaw_rate_ff_rad_s: float = 0.0
+                  ) -> AttitudeCommand:
+        r, p, y = euler_from_quat(q_wxyz)
+        return AttitudeCommand(r, p, y, thrust_norm, yaw_rate_ff_rad_s)
+
+
+MOTORS_OFF = AttitudeCommand(0.0, 0.0, 0.0, 0.0, 0.0, motors_on=False)
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Vehicle state at ``t_s`` (s since boot)."""
+
+    t_s: float
+    pos_ned_m: Vec
+    vel_ned_m_s: Vec
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    euler_rates_rad_s: Vec = field(default_factory=lambda: np.zeros(3))
+    acc_ned_m_s2: Vec = field(default_factory=lambda: np.zeros(3))
+    thrust_norm: float = 0.0
+    on_ground: bool = False
+    disturbance_ned_m_s2: Vec = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def q_wxyz(self) -> Vec:
+        return quat_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad)
+
+    @property
+    def rot_body_to_ned(self) -> Vec:
+        return rot_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad)
+
+    @property
+    def rates_frd_rad_s(self) -> Vec:
+        """Body rates (p, q, r) from the Euler rates (ZYX kinematics)."""
+        dr, dp, dy = (float(v) for v in self.euler_rates_rad_s)
+        sr, cr = math.sin(self.roll_rad), math.cos(self.roll_rad)
+        sp, cp = math.sin(self.pitch_rad), math.cos(self.pitch_rad)
+        return np.array([dr - sp * dy, cr * dp + sr * cp * dy, -sr * dp + cr * cp * dy])
+
+
+def initial_state(pos_ned_m: tuple[float, float, float] | Vec, roll_rad: float = 0.0,
+                  pitch_rad: float = 0.0, yaw_rad: float = 0.0, t_s: float = 0.0,
+                  on_ground: bool = False) -> VehicleState:
+    return VehicleState(t_s=t_s, pos_ned_m=np.asarray(pos_ned_m, dtype=float).copy(),
+                        vel_ned_m_s=np.zeros(3), roll_rad=roll_rad, pitch_rad=pitch_rad,
+                        yaw_rad=yaw_rad, on_ground=on_ground)
+
+
+# --------------------------------------------------------------------------------------------
+class VehicleModel:
+    """Fixed-step integrator. ``step(state, cmd, duration_s)`` advances by whole ``dt_s``
+    sub-steps (``round(duration_s / dt_s)`` of them, at least one) with the command held."""
+
+    def __init__(self, params: VehicleParams, disturbance: Disturbance | None = None,
+                 dt_s: float = 0.0025) -> None:
+        if not dt_s > 0:
+            raise ValueError("dt_s must be > 0")
+        self.params = params
+        self.disturbance = disturbance or Disturbance(DisturbanceParams())
+        self.dt_s = dt_s
+
+    def specific_thrust_ned(self, roll: float, pitch: float, yaw: float,
+                            thrust_norm: float) -> Vec:
+        """``R(q) [0, 0, -g T / T_hover]`` (m/s^2, NED)."""
+        p = self.params
+        return rot_from_euler(roll, pitch, yaw) @ np.array(
+            [0.0, 0.0, -p.g_m_s2 * thrust_norm / p.hover_thrust])
+
+    def step(self, s: VehicleState, cmd: AttitudeCommand, duration_s: float) -> VehicleState:
+        n = max(1, round(duration_s / self.dt_s))
+        for _ in range(n):
+            s = self._substep(s, cmd)
+        return s
+
+    def _substep(self, s: VehicleState, cmd: AttitudeCommand) -> VehicleState:
+        p, dt = self.params, self.dt_s
+        alpha = 1.0 - math.exp(-dt / p.attitude_tau_s)
+        thrust = min(1.0, max(0.0, cmd.thrust_norm)) if cmd.motors_on else 0.0
+        roll, pitch, yaw = s.roll_rad, s.pitch_rad, s.yaw_rad
+        if cmd.motors_on:
+            r_sp, p_sp = clip_tilt(cmd.roll_rad, cmd.pitch_rad, p.max_tilt_rad)
+            lim = p.max_tilt_rate_rad_s * dt
+            d_roll = float(np.clip(alpha * wrap_pi(r_sp - roll), -lim, lim))
+            d_pitch = float(np.clip(alpha * wrap_pi(p_sp - pitch), -lim, lim))
+            ylim = p.max_yaw_rate_rad_s * dt
+            d_yaw = float(np.clip(alpha * wrap_pi(cmd.yaw_rad - yaw) + cmd.yaw_rate_ff_rad_s * dt,
+                                  -ylim, ylim))
+        else:
+            d_roll = d_pitch = d_yaw = 0.0
+        if s.on_ground and (thrust <= p.hover_thrust or not cmd.motors_on):
+            # resting on the ground: no tipping over below lift-off thrust
+            d_roll, d_pitch = -roll * alpha, -pitch * alpha
+        roll, pitch, yaw = roll + d_roll, pitch + d_pitch, wrap_pi(yaw + d_yaw)
+        euler_rates = np.array([d_roll, d_pitch, d_yaw]) / dt
+
+        t_next = s.t_s + dt
+        dist = self.disturbance.accel_ned_m_s2(s.t_s)
+        acc = (self.specific_thrust_ned(roll, pitch, yaw, thrust)
+               + np.array([0.0, 0.0, p.g_m_s2]) - p.drag_per_s * s.vel_ned_m_s + dist)
+        vel = s.vel_ned_m_s + acc * dt
+        pos = s.pos_ned_m + vel * dt  # semi-implicit Euler
+        on_ground = False
+        if pos[2] >= p.ground_z_m:
+            if acc[2] >= 0 or vel[2] >= 0:
+                # pressed onto (or sinking into) the ground: it stops there, no sliding
+                xy = s.pos_ned_m[:2] if s.on_ground else pos[:2]
+                pos = np.array([xy[0], xy[1], p.ground_z_m])
+                vel = np.zeros(3)
+                acc = np.zeros(3)
+                on_ground = True
+            else:
+                pos = np.array([pos[0], pos[1], p.ground_z_m])
+        return VehicleState(t_s=t_next, pos_ned_m=pos, vel_ned_m_s=vel, roll_rad=roll,
+                            pitch_rad=pitch, yaw_rad=yaw, euler_rates_rad_s=euler_rates,
+                            acc_ned_m_s2=acc, thrust_norm=thrust, on_ground=on_ground,
+                            disturbance_ned_m_s2=dist)

@@ -1,0 +1,501 @@
+"""The PX4 state machine the emulator imitates (commander + offboard handling + the simple
+position controllers of the non-offboard modes). Pure logic: every call takes the time
+explicitly (``t_s``, seconds since boot, wall or simulated), no sockets or clocks.
+
+Behaviour (shared/spec/px4-offboard.md; PX4 ``commander/``, ``mavlink_receiver.cpp``):
+
+* Modes: POSCTL (default), ALTCTL, STABILIZED, MANUAL, ACRO, OFFBOARD, AUTO.TAKEOFF,
+  AUTO.LOITER (Hold), AUTO.RTL, AUTO.LAND, TERMINATION. With no RC, the manual modes hold
+  what they can: POSCTL holds position, ALTCTL holds altitude (level), STABILIZED/MANUAL/ACRO
+  stay level at hover thrust.
+* SET_ATTITUDE_TARGET with attitude (bit 128 clear) or body rates (bits 1 and 2 clear) is the
+  offboard signal, in every mode; it is applied only while in OFFBOARD (nothing is stored
+  before). THROTTLE_IGNORE (bit 64) without thrust_body (pymavlink's dialect has no such field)
+  makes the message neither a signal nor applied (PX4 after PR #27627).
+* DO_SET_MODE to OFFBOARD: accepted when disarmed; armed without a fresh signal ->
+  TEMPORARILY_REJECTED. Arming in OFFBOARD without the signal -> TEMPORARILY_REJECTED.
+  Disarming in the air without force (param2 = 21196) -> TEMPORARILY_REJECTED.
+* Armed in OFFBOARD and the last signal older than ``COM_OF_LOSS_T``: switch at once to
+  ``COM_OBL_RC_ACT`` (0 Position, 1 Altitude, 2 Stabilized, 3 Return, 4 Land, 5 Hold,
+  6 Terminate, 7 Disarm). The vehicle stays in that mode until a client asks again.
+* Auto-disarm: on the ground ``COM_DISARM_PRFLT`` after arming without take-off, and
+  ``COM_DISARM_LAND`` (2 s) after landing.
+* Airborne start (the paper starts hovering): PX4 cannot boot armed in the air, so this is a
+  documented emulator choice: the vehicle starts ARMED, in POSCTL, holding its start pose, as if
+  a pilot had taken off and handed over.
+* Take-off: MAV_CMD_NAV_TAKEOFF (AUTO.TAKEOFF, climb to param7 AMSL or 2.5 m above home, then
+  Hold), or arming in OFFBOARD and commanding thrust above hover.
+* RTL (simplified): fly at the current altitude to above home, then land.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_bridge.physics.vehicle import (
+    MOTORS_OFF,
+    AttitudeCommand,
+    VehicleState,
+    euler_from_quat,
+    wrap_pi,
+)
+
+# MAV_RESULT
+ACCEPTED = 0
+TEMPORARILY_REJECTED = 1
+DENIED = 2
+UNSUPPORTED = 3
+FAILED = 4
+
+# MAV_CMD handled by the state machine
+CMD_NAV_RETURN_TO_LAUNCH = 20
+CMD_NAV_LAND = 21
+CMD_NAV_TAKEOFF = 22
+CMD_DO_SET_MODE = 176
+CMD_DO_FLIGHTTERMINATION = 185
+CMD_COMPONENT_ARM_DISARM = 400
+FORCE_MAGIC = 21196
+
+# SET_ATTITUDE_TARGET type_mask bits
+MASK_ROLL_RATE_IGNORE = 1
+MASK_PITCH_RATE_IGNORE = 2
+MASK_YAW_RATE_IGNORE = 4
+MASK_THRUST_BODY_SET = 32
+MASK_THROTTLE_IGNORE = 64
+MASK_ATTITUDE_IGNORE = 128
+
+# MAV_MODE_FLAG
+FLAG_CUSTOM_MODE_ENABLED = 1
+FLAG_AUTO_ENABLED = 4
+FLAG_GUIDED_ENABLED = 8
+FLAG_STABILIZE_ENABLED = 16
+FLAG_MANUAL_INPUT_ENABLED = 64
+FLAG_SAFETY_ARMED = 128
+
+# MAV_STATE
+STATE_STANDBY = 3
+STATE_ACTIVE = 4
+STATE_CRITICAL = 5
+STATE_FLIGHT_TERMINATION = 8
+
+# MAV_LANDED_STATE
+LANDED_ON_GROUND = 1
+LANDED_IN_AIR = 2
+LANDED_TAKEOFF = 3
+LANDED_LANDING = 4
+
+COM_DISARM_LAND_S = 2.0
+MIS_TAKEOFF_ALT_M = 2.5
+MPC_LAND_SPEED_M_S = 0.7
+MPC_TKO_SPEED_M_S = 1.5
+RTL_ARRIVE_RADIUS_M = 0.5
+
+
+class Mode(enum.Enum):
+    """PX4 navigation state -> (main_mode, sub_mode) of px4_custom_mode.h."""
+
+    MANUAL = (1, 0)
+    ALTCTL = (2, 0)
+    POSCTL = (3, 0)
+    AUTO_TAKEOFF = (4, 2)
+    AUTO_LOITER = (4, 3)
+    AUTO_RTL = (4, 5)
+    AUTO_LAND = (4, 6)
+    ACRO = (5, 0)
+    OFFBOARD = (6, 0)
+    STABILIZED = (7, 0)
+    TERMINATION = (1, 99)  # reported as MANUAL (PX4 does the same)
+
+    @property
+    def custom_mode(self) -> int:
+        main, sub = self.value
+        return (main << 16) | ((sub if sub != 99 else 0) << 24)
+
+    @property
+    def label(self) -> str:
+        """Name used in ground truth and logs (``"OFFBOARD"``, ``"AUTO.LOITER"``)."""
+        return self.name.replace("AUTO_", "AUTO.")
+
+    @property
+    def is_auto(self) -> bool:
+        return self.value[0] == 4
+
+
+OBL_RC_ACT = {0: Mode.POSCTL, 1: Mode.ALTCTL, 2: Mode.STABILIZED, 3: Mode.AUTO_RTL,
+              4: Mode.AUTO_LAND, 5: Mode.AUTO_LOITER, 6: Mode.TERMINATION}  # 7: disarm
+
+_MAIN_TO_MODE = {1: Mode.MANUAL, 2: Mode.ALTCTL, 3: Mode.POSCTL, 5: Mode.ACRO, 6: Mode.OFFBOARD,
+                 7: Mode.STABILIZED}
+_AUTO_SUB_TO_MODE = {2: Mode.AUTO_TAKEOFF, 3: Mode.AUTO_LOITER, 5: Mode.AUTO_RTL,
+                     6: Mode.AUTO_LAND}
+
+
+@dataclass(frozen=True)
+class Px4Params:
+    com_of_loss_t_s: float = 1.0
+    com_obl_rc_act: int = 0
+    com_disarm_prflt_s: float = 10.0
+    com_disarm_land_s: float = COM_DISARM_LAND_S
+    hover_thrust: float = 0.5
+    max_tilt_rad: float = 0.6
+    g_m_s2: float = 9.81
+    origin_alt_m: float = 0.0  # AMSL altitude of the NED origin (for NAV_TAKEOFF param7)
+
+
+@dataclass(frozen=True)
+class AttitudeTarget:
+    """A decoded SET_ATTITUDE_TARGET (#82). ``q_wxyz``: body FRD relative to NED;
+    ``body_rates_rad_s``: FRD; ``thrust_norm``: 0..1."""
+
+    type_mask: int
+    q_wxyz: tuple[float, float, float, float]
+    body_rates_rad_s: tuple[float, float, float]
+    thrust_norm: float
+
+    @property
+    def uses_attitude(self) -> bool:
+        return not self.type_mask & MASK_ATTITUDE_IGNORE
+
+    @property
+    def uses_rates(self) -> bool:
+        return not self.type_mask & (MASK_ROLL_RATE_IGNORE | MASK_PITCH_RATE_IGNORE)
+
+    @property
+    def is_signal(self) -> bool:
+        """Whether PX4 takes this message as offboard proof of life (and applies it)."""
+        if self.type_mask & MASK_THROTTLE_IGNORE and not self.type_mask & MASK_THRUST_BODY_SET:
+            return False
+        if not (self.uses_attitude or self.uses_rates):
+            return False
+        vals = (*self.q_wxyz, *self.body_rates_rad_s, self.thrust_norm)
+        if not all(math.isfinite(v) for v in vals):
+            return False
+        return not (self.uses_attitude and not np.linalg.norm(self.q_wxyz) > 1e-6)
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    result: int
+    text: str = ""
+
+
+class Px4:
+    """The emulated autopilot's logic. Feed it setpoints and commands as they arrive, call
+    :meth:`update` with the vehicle state once per control tick, and take the
+    :class:`AttitudeCommand` for the physics from :meth:`attitude_command`."""
+
+    def __init__(self, params: Px4Params, state: VehicleState, *, armed: bool,
+                 mode: Mode = Mode.POSCTL, t_s: float = 0.0) -> None:
+        self.p = params
+        self.mode = mode
+        self.armed = armed
+        self.home_ned_m = np.array([state.pos_ned_m[0], state.pos_ned_m[1],
+                                    state.pos_ned_m[2]])
+        self.landed = state.on_ground
+        self.has_flown = not state.on_ground
+        self.last_signal_t_s = -math.inf
+        self.signals = 0
+        self.ignored_setpoints = 0
+        self.offboard_losses = 0
+        self.events: list[str] = []
+        self._armed_t_s = t_s
+        self._landed_since_t_s = t_s if state.on_ground else math.inf
+        self._sp: AttitudeTarget | None = None
+        self._rate_att: np.ndarray | None = None  # integrated attitude for rate setpoints
+        self._hold_pos = np.array(state.pos_ned_m, dtype=float)
+        self._hold_yaw = state.yaw_rad
+        self._target_z = float(state.pos_ned_m[2])
+        self._state = state
+        self._t_s = t_s
+
+    # ------------------------------------------------------------------ queries
+    def signal_fresh(self, t_s: float) -> bool:
+        return t_s - self.last_signal_t_s <= self.p.com_of_loss_t_s
+
+    def setpoint_age_s(self, t_s: float) -> float:
+        return t_s - self.last_signal_t_s
+
+    @property
+    def base_mode(self) -> int:
+        """HEARTBEAT base_mode, as PX4's HEARTBEAT.hpp derives it from the control flags."""
+        b = FLAG_CUSTOM_MODE_ENABLED | (FLAG_SAFETY_ARMED if self.armed else 0)
+        m = self.mode
+        if m in (Mode.MANUAL, Mode.ALTCTL, Mode.POSCTL, Mode.STABILIZED):
+            b |= FLAG_MANUAL_INPUT_ENABLED | FLAG_STABILIZE_ENABLED
+        elif m is Mode.ACRO:
+            b |= FLAG_MANUAL_INPUT_ENABLED
+        elif m is Mode.OFFBOARD:
+            b |= FLAG_STABILIZE_ENABLED
+        elif m.is_auto:
+            b |= FLAG_AUTO_ENABLED | FLAG_STABILIZE_ENABLED | FLAG_GUIDED_ENABLED
+        return b
+
+    @property
+    def custom_mode(self) -> int:
+        return self.mode.custom_mode
+
+    @property
+    def system_status(self) -> int:
+        if self.mode is Mode.TERMINATION:
+            return STATE_FLIGHT_TERMINATION
+        return STATE_ACTIVE if self.armed else STATE_STANDBY
+
+    @property
+    def landed_state(self) -> int:
+        if self.landed:
+            return LANDED_ON_GROUND
+        if self.mode is Mode.AUTO_TAKEOFF:
+            return LANDED_TAKEOFF
+        if self.mode is Mode.AUTO_LAND:
+            return LANDED_LANDING
+        return LANDED_IN_AIR
+
+    # ------------------------------------------------------------------ inputs
+    def on_attitude_target(self, t_s: float, sp: AttitudeTarget) -> bool:
+        """A SET_ATTITUDE_TARGET addressed to us. Returns whether it counted as a signal."""
+        if not sp.is_signal:
+            self.ignored_setpoints += 1
+            return False
+        self.last_signal_t_s = t_s
+        self.signals += 1
+        if self.mode is Mode.OFFBOARD:
+            if sp.uses_attitude:
+                self._rate_att = None
+            elif self._rate_att is None:
+                s = self._state
+                self._rate_att = np.array([s.roll_rad, s.pitch_rad, s.yaw_rad])
+            self._sp = sp
+        return True
+
+    def handle_command(self, t_s: float, command: int, params: tuple[float, ...],
+                       *, from_self: bool = False) -> CommandResult:
+        """A COMMAND_LONG addressed to the autopilot; ``params`` = param1..param7."""
+        del from_self
+        p1, p2, p3, _p4, _p5, _p6, p7 = (list(params) + [math.nan] * 7)[:7]
+        if command == CMD_COMPONENT_ARM_DISARM:
+            return self._arm_disarm(t_s, p1, p2)
+        if command == CMD_DO_SET_MODE:
+            return self._set_mode_cmd(t_s, p1, p2, p3)
+        if command == CMD_NAV_TAKEOFF:
+            if self.mode is Mode.AUTO_TAKEOFF:
+                return CommandResult(ACCEPTED)
+            if not self.landed:
+                return CommandResult(TEMPORARILY_REJECTED, "Takeoff denied: already flying")
+            z = self.home_ned_m[2] - MIS_TAKEOFF_ALT_M
+            if math.isfinite(p7):
+                z = -(p7 - self.p.origin_alt_m)
+            self._target_z = min(z, self._state.pos_ned_m[2] - 0.5)
+            self._switch(t_s, Mode.AUTO_TAKEOFF)
+            return CommandResult(ACCEPTED)
+        if command == CMD_NAV_LAND:
+            self._switch(t_s, Mode.AUTO_LAND)
+            return CommandResult(ACCEPTED)
+        if command == CMD_NAV_RETURN_TO_LAUNCH:
+            self._switch(t_s, Mode.AUTO_RTL)
+            return CommandResult(ACCEPTED)
+        if command == CMD_DO_FLIGHTTERMINATION:
+            if p1 > 0.5:
+                self._switch(t_s, Mode.TERMINATION)
+            return CommandResult(ACCEPTED)
+        return CommandResult(UNSUPPORTED)
+
+    def _arm_disarm(self, t_s: float, p1: float, p2: float) -> CommandResult:
+        if not math.isfinite(p1) or round(p1) not in (0, 1):
+            return CommandResult(UNSUPPORTED, "Unsupported ARM_DISARM param")
+        forced = math.isfinite(p2) and round(p2) == FORCE_MAGIC
+        if round(p1) == 1:
+            if self.armed:
+                return CommandResult(ACCEPTED)
+            if self.mode is Mode.TERMINATION:
+                return CommandResult(TEMPORARILY_REJECTED, "Arming denied: terminated")
+            if not forced and self.mode is Mode.OFFBOARD and not self.signal_fresh(t_s):
+                return CommandResult(TEMPORARILY_REJECTED, "Arming denied: no offboard signal")
+            if not forced and self.mode in (Mode.AUTO_LAND, Mode.AUTO_RTL):
+                return CommandResult(TEMPORARILY_REJECTED, "Arming denied: mode not armable")
+            self.armed = True
+            self._armed_t_s = t_s
+            self.has_flown = not self.landed
+            self._landed_since_t_s = t_s if self.landed else math.inf
+            self.home_ned_m = np.array(self._state.pos_ned_m, dtype=float)
+            self._enter_mode(self.mode)
+            self.events.append(f"{t_s:.3f} armed")
+            return CommandResult(ACCEPTED)
+        if not self.armed:
+            return CommandResult(ACCEPTED)
+        if not forced and not self.landed:
+            return CommandResult(TEMPORARILY_REJECTED, "Disarming denied: not landed")
+        self._disarm(t_s, "command")
+        return CommandResult(ACCEPTED)
+
+    def _set_mode_cmd(self, t_s: float, p1: float, p2: float, p3: float) -> CommandResult:
+        if not math.isfinite(p1):
+            return CommandResult(TEMPORARILY_REJECTED, "invalid base mode")
+        base = int(p1)
+        target: Mode | None
+        if base & FLAG_CUSTOM_MODE_ENABLED:
+            main = int(p2) if math.isfinite(p2) else -1
+            sub = int(p3) if math.isfinite(p3) else 0
+            target = _AUTO_SUB_TO_MODE.get(sub) if main == 4 else _MAIN_TO_MODE.get(main)
+        elif base & FLAG_AUTO_ENABLED:
+            target = None  # AUTO.MISSION: no mission loaded
+        elif base & FLAG_MANUAL_INPUT_ENABLED:
+            if base & FLAG_GUIDED_ENABLED:
+                target = Mode.POSCTL
+            elif base & FLAG_STABILIZE_ENABLED:
+                target = Mode.STABILIZED
+            else:
+                target = Mode.MANUAL
+        else:
+            target = None
+        if target is None:
+            return CommandResult(TEMPORARILY_REJECTED, "Rejecting mode switch cmd")
+        if target is self.mode:
+            return CommandResult(ACCEPTED)
+        if target is Mode.OFFBOARD and self.armed and not self.signal_fresh(t_s):
+            return CommandResult(TEMPORARILY_REJECTED, "Switching to Offboard denied: no signal")
+        if target is Mode.AUTO_TAKEOFF and not self.landed:
+            return CommandResult(TEMPORARILY_REJECTED, "Takeoff denied: already flying")
+        if self.mode is Mode.TERMINATION:
+            return CommandResult(TEMPORARILY_REJECTED, "terminated")
+        if target is Mode.AUTO_TAKEOFF:
+            self._target_z = self.home_ned_m[2] - MIS_TAKEOFF_ALT_M
+        self._switch(t_s, target)
+        return CommandResult(ACCEPTED)
+
+    # ------------------------------------------------------------------ transitions
+    def _switch(self, t_s: float, mode: Mode, why: str = "") -> None:
+        if mode is not self.mode:
+            self.events.append(f"{t_s:.3f} {self.mode.label} -> {mode.label}"
+                               + (f" ({why})" if why else ""))
+        self.mode = mode
+        self._enter_mode(mode)
+
+    def _enter_mode(self, mode: Mode) -> None:
+        s = self._state
+        self._hold_pos = np.array(s.pos_ned_m, dtype=float)
+        self._hold_yaw = s.yaw_rad
+        if mode is not Mode.AUTO_TAKEOFF:
+            self._target_z = float(s.pos_ned_m[2])
+        if mode is not Mode.OFFBOARD:
+            self._sp = None
+            self._rate_att = None
+
+    def _disarm(self, t_s: float, why: str) -> None:
+        self.armed = False
+        self.events.append(f"{t_s:.3f} disarmed ({why})")
+        self._sp = None
+
+    # ------------------------------------------------------------------ tick
+    def update(self, t_s: float, state: VehicleState) -> None:
+        """Advance the logic to ``t_s`` with the current vehicle ``state``: landing detection,
+        offboard loss, auto-disarm, mode sequencing."""
+        dt = max(0.0, t_s - self._t_s)
+        self._t_s = t_s
+        self._state = state
+        was_landed = self.landed
+        self.landed = state.on_ground
+        if not self.landed:
+            self.has_flown = True
+            self._landed_since_t_s = math.inf
+        elif not was_landed:
+            self._landed_since_t_s = t_s
+        if not self.armed:
+            return
+        if self.mode is Mode.OFFBOARD and not self.signal_fresh(t_s):
+            self.offboard_losses += 1
+            act = self.p.com_obl_rc_act
+            if act == 7:
+                self.events.append(f"{t_s:.3f} offboard lost -> disarm")
+                self._disarm(t_s, "offboard lost")
+                self._switch(t_s, Mode.POSCTL, "offboard lost")
+                return
+            self._switch(t_s, OBL_RC_ACT[act], "offboard lost")
+        if self.landed:
+            if not self.has_flown:
+                if t_s - self._armed_t_s >= self.p.com_disarm_prflt_s > 0:
+                    self._disarm(t_s, "no take-off (COM_DISARM_PRFLT)")
+                    return
+            elif t_s - self._landed_since_t_s >= self.p.com_disarm_land_s > 0:
+                self._disarm(t_s, "landed (COM_DISARM_LAND)")
+                return
+        if self.mode is Mode.AUTO_TAKEOFF and state.pos_ned_m[2] <= self._target_z + 0.1:
+            self._switch(t_s, Mode.AUTO_LOITER, "take-off done")
+        if self.mode is Mode.AUTO_RTL:
+            d = np.hypot(*(self.home_ned_m[:2] - state.pos_ned_m[:2]))
+            if d < RTL_ARRIVE_RADIUS_M and np.linalg.norm(state.vel_ned_m_s[:2]) < 0.3:
+                self._switch(t_s, Mode.AUTO_LAND, "RTL: above home")
+        if self._rate_att is not None and self._sp is not None:
+            self._rate_att = self._rate_att + np.asarray(self._sp.body_rates_rad_s) * dt
+
+    # ------------------------------------------------------------------ control output
+    def attitude_command(self) -> AttitudeCommand:
+        """What the attitude loop tracks now (from the offboard setpoint or the mode's own
+        controller)."""
+        s = self._state
+        if not self.armed or self.mode is Mode.TERMINATION:
+            return MOTORS_OFF
+        m = self.mode
+        if m is Mode.OFFBOARD:
+            sp = self._sp
+            if sp is None:  # in OFFBOARD with nothing applied yet: keep level, hover
+                return AttitudeCommand(0.0, 0.0, s.yaw_rad, self.p.hover_thrust)
+            if sp.uses_attitude:
+                r, p, y = euler_from_quat(np.asarray(sp.q_wxyz))
+                ff = 0.0 if sp.type_mask & MASK_YAW_RATE_IGNORE else sp.body_rates_rad_s[2]
+                return AttitudeCommand(r, p, y, sp.thrust_norm, ff)
+            att = self._rate_att if self._rate_att is not None else np.array(
+                [s.roll_rad, s.pitch_rad, s.yaw_rad])
+            return AttitudeCommand(float(att[0]), float(att[1]), wrap_pi(float(att[2])),
+                                   sp.thrust_norm)
+        if self.landed and m in (Mode.AUTO_LAND, Mode.AUTO_RTL):
+            return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self.p.hover_thrust)
+        if m in (Mode.STABILIZED, Mode.MANUAL, Mode.ACRO):
+            return AttitudeCommand(0.0, 0.0, self._hold_yaw, self.p.hover_thrust)
+        if self.landed and m in (Mode.POSCTL, Mode.ALTCTL, Mode.AUTO_LOITER):
+            return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self.p.hover_thrust)
+        pos_sp = self._hold_pos.copy()
+        vel_ff = np.zeros(3)
+        hold_xy = True
+        if m is Mode.ALTCTL:
+            hold_xy = False
+        elif m is Mode.AUTO_TAKEOFF:
+            pos_sp[2] = self._target_z
+        elif m is Mode.AUTO_LAND:
+            pos_sp[2] = s.pos_ned_m[2]
+            vel_ff[2] = MPC_LAND_SPEED_M_S
+        elif m is Mode.AUTO_RTL:
+            pos_sp[:2] = self.home_ned_m[:2]
+        return self._position_control(pos_sp, vel_ff, hold_xy, m is Mode.AUTO_LAND)
+
+    def _position_control(self, pos_sp: np.ndarray, vel_ff: np.ndarray, hold_xy: bool,
+                          velocity_z_only: bool) -> AttitudeCommand:
+        s, g = self._state, self.p.g_m_s2
+        kp_xy, kd_xy, kp_z, kd_z = 1.0, 1.8, 1.5, 2.5
+        err = pos_sp - s.pos_ned_m
+        acc = np.zeros(3)
+        if hold_xy:
+            vel_sp_xy = np.clip(kp_xy * err[:2], -2.0, 2.0)
+            acc[:2] = kd_xy * (vel_sp_xy - s.vel_ned_m_s[:2])
+        else:
+            acc[:2] = -kd_xy * s.vel_ned_m_s[:2]
+        vz_sp = vel_ff[2] if velocity_z_only else float(np.clip(kp_z * err[2], -1.5, 1.0))
+        acc[2] = kd_z * (vz_sp - s.vel_ned_m_s[2])
+        a_xy_max = g * math.tan(0.7 * self.p.max_tilt_rad)
+        n = float(np.hypot(acc[0], acc[1]))
+        if n > a_xy_max:
+            acc[:2] *= a_xy_max / n
+        acc[2] = float(np.clip(acc[2], -0.5 * g, 0.5 * g))
+        f = acc - np.array([0.0, 0.0, g])  # specific force (NED), points up
+        fn = float(np.linalg.norm(f))
+        cy, sy = math.cos(self._hold_yaw), math.sin(self._hold_yaw)
+        b = -f / fn
+        bx = cy * b[0] + sy * b[1]
+        by = -sy * b[0] + cy * b[1]
+        roll = -math.asin(max(-1.0, min(1.0, by)))
+        pitch = math.atan2(bx, b[2])
+        thrust = min(1.0, fn / g * self.p.hover_thrust)
+        return AttitudeCommand(roll, pitch, self._hold_yaw, thrust)
