@@ -1,0 +1,199 @@
+"""Figures of a flight (``report.json``), computed from its log.
+
+Input: the decoded messages of a flight log, ``(topic, log_time_ns, payload dict)``, in any
+order. Visibility and tracking figures come from the emulator's ground truth (``/truth``), never
+from what the companion believed; solver, latency and link figures come from the companion's own
+records (``/control/step``, ``/mavlink/out/SET_ATTITUDE_TARGET``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+TOPIC_TRUTH = "/truth"
+TOPIC_STEP = "/control/step"
+TOPIC_SAT_OUT = "/mavlink/out/SET_ATTITUDE_TARGET"
+
+
+@dataclass(frozen=True)
+class ReportSettings:
+    """Camera geometry needed to express true corner pixels in the paper's pixels."""
+
+    width_px: int
+    height_px: int
+    pixel_size_m: float
+    report_pixel_size_m: float
+    visible_bound_report_px: float
+    desired_depth_m: float
+    settle_window_s: float = 10.0
+
+
+def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
+                   st: ReportSettings) -> dict[str, Any]:
+    truth: list[Mapping[str, Any]] = []
+    steps: list[Mapping[str, Any]] = []
+    sat_times: list[int] = []
+    for topic, t_ns, payload in messages:
+        if topic == TOPIC_TRUTH:
+            truth.append(payload)
+        elif topic == TOPIC_STEP:
+            steps.append(payload)
+        elif topic == TOPIC_SAT_OUT:
+            sat_times.append(t_ns)
+    truth.sort(key=lambda r: r["t_us"])
+    steps.sort(key=lambda r: r["t_s"])
+    out: dict[str, Any] = {
+        "sim_time_s": (truth[-1]["t_us"] - truth[0]["t_us"]) * 1e-6 if len(truth) > 1 else 0.0,
+        "steps": len(steps),
+    }
+    out["visibility"] = _visibility(truth, steps, st)
+    out["tracking"] = _tracking(truth, st)
+    out["solver"] = _solver(steps)
+    out["latency"] = _latency(steps)
+    span_s = out["sim_time_s"] or math.nan
+    out["mavlink"] = {
+        "set_attitude_target_sent": len(sat_times),
+        "rate_hz": len(sat_times) / span_s if span_s and math.isfinite(span_s) else 0.0,
+    }
+    out["safety"] = _safety(steps)
+    return out
+
+
+def _visibility(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
+                st: ReportSettings) -> dict[str, Any]:
+    scale = st.pixel_size_m / st.report_pixel_size_m
+    cx, cy = (st.width_px - 1) / 2.0, (st.height_px - 1) / 2.0
+    max_u = max_n = 0.0
+    out_frames = 0
+    centroid_max = 0.0
+    for r in truth:
+        c = np.asarray(r.get("corners_px") or [], dtype=float)
+        if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+            continue
+        u_px = -(c[:, 1] - cy) * scale
+        n_px = (c[:, 0] - cx) * scale
+        mu, mn = float(np.max(np.abs(u_px))), float(np.max(np.abs(n_px)))
+        max_u, max_n = max(max_u, mu), max(max_n, mn)
+        if max(mu, mn) > st.visible_bound_report_px:
+            out_frames += 1
+        centroid_max = max(centroid_max, float(np.max(np.abs([u_px.mean(), n_px.mean()]))))
+    lost = sum(1 for s in steps if (s.get("perception") or {}).get("status") != "ok")
+    return {
+        "max_abs_u_px": max_u,
+        "max_abs_n_px": max_n,
+        "bound_px": st.visible_bound_report_px,
+        "frames_outside_bound": out_frames,
+        "max_abs_centroid_px": centroid_max,
+        "frames_target_lost": lost,
+        "frames": len(truth),
+    }
+
+
+def true_features(r: Mapping[str, Any], z_star: float) -> np.ndarray | None:
+    """The true ``s_e`` (4,) of a truth record: the AGV top centre in the vehicle's virtual
+    frame (``s1 = x_v/z*``, ``s2 = y_v/z*``, ``s3 = z_v/z*``) and ``s4 = psi_a - psi_q``
+    wrapped to (-pi/2, pi/2] (the rectangle is symmetric under a half turn)."""
+    try:
+        p_q = np.asarray(r["uav"]["pos_ned_m"], dtype=float)
+        q = np.asarray(r["uav"]["q_wxyz"], dtype=float)
+        p_a = np.asarray(r["agv"]["pos_ned_m"], dtype=float)
+        yaw_a = float(r["agv"]["yaw_rad"])
+    except (KeyError, TypeError):
+        return None
+    w, x, y, z = q
+    yaw_q = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    d = p_a - p_q
+    c, s = math.cos(yaw_q), math.sin(yaw_q)
+    x_v, y_v = c * d[0] + s * d[1], -s * d[0] + c * d[1]
+    e4 = (yaw_a - yaw_q + math.pi / 2) % math.pi - math.pi / 2
+    return np.array([x_v / z_star, y_v / z_star, d[2] / z_star - 1.0, e4])
+
+
+def _tracking(truth: list[Mapping[str, Any]], st: ReportSettings) -> dict[str, Any]:
+    rows = []
+    for r in truth:
+        se = true_features(r, st.desired_depth_m)
+        if se is None:
+            continue
+        p_q = np.asarray(r["uav"]["pos_ned_m"], dtype=float)
+        p_a = np.asarray(r["agv"]["pos_ned_m"], dtype=float)
+        rows.append((r["t_us"] * 1e-6, se, (p_a[2] - p_q[2]) - st.desired_depth_m,
+                     float(np.hypot(*(p_a[:2] - p_q[:2])))))
+    if not rows:
+        return {"rms_se": None, "final_se": None, "rms_height_error_m": None,
+                "rms_horizontal_error_m": None}
+    t = np.array([r[0] for r in rows])
+    se = np.array([r[1] for r in rows])
+    dh = np.array([r[2] for r in rows])
+    dxy = np.array([r[3] for r in rows])
+    norm = np.linalg.norm(se, axis=1)
+    tail = t >= t[-1] - st.settle_window_s
+    settle = _settle_time(t, norm, 0.05)
+    return {
+        "rms_se": [float(v) for v in np.sqrt(np.mean(se**2, axis=0))],
+        "final_se": [float(v) for v in se[-1]],
+        "max_abs_se_last_window": [float(v) for v in np.max(np.abs(se[tail]), axis=0)],
+        "settle_time_s": settle,
+        "rms_height_error_m": float(np.sqrt(np.mean(dh**2))),
+        "rms_horizontal_error_m": float(np.sqrt(np.mean(dxy**2))),
+        "rms_height_error_after_settle_m": _rms_after(t, dh, settle),
+        "rms_horizontal_error_after_settle_m": _rms_after(t, dxy, settle),
+    }
+
+
+def _settle_time(t: np.ndarray, norm: np.ndarray, tol: float) -> float | None:
+    """First time after which ``|s_e|`` stays below ``tol`` for the rest of the flight."""
+    above = np.nonzero(norm > tol)[0]
+    if above.size == 0:
+        return float(t[0])
+    i = int(above[-1]) + 1
+    return float(t[i]) if i < t.size else None
+
+
+def _rms_after(t: np.ndarray, v: np.ndarray, t0: float | None) -> float | None:
+    if t0 is None:
+        return None
+    sel = t >= t0
+    return float(np.sqrt(np.mean(v[sel] ** 2))) if np.any(sel) else None
+
+
+def _solver(steps: list[Mapping[str, Any]]) -> dict[str, Any]:
+    recs = [s["rmpc"] for s in steps if s.get("rmpc")]
+    times = np.array([r["solve_time_s"] for r in recs if r.get("solve_time_s") is not None])
+    ms = times * 1e3
+    return {
+        "solves": len(recs),
+        "failures": sum(1 for r in recs if not r["success"]),
+        "optimal": sum(1 for r in recs if r["mode"] == "optimal"),
+        "recoveries": sum(1 for r in recs if r["mode"] == "recovery"),
+        "fallbacks": sum(1 for r in recs if r["mode"] == "fallback"),
+        "median_ms": float(np.median(ms)) if ms.size else None,
+        "p95_ms": float(np.percentile(ms, 95)) if ms.size else None,
+        "max_ms": float(np.max(ms)) if ms.size else None,
+        "mean_iterations": float(np.mean([r["iterations"] for r in recs])) if recs else None,
+    }
+
+
+def _latency(steps: list[Mapping[str, Any]]) -> dict[str, Any]:
+    lat = np.array([s["latency_ms"] for s in steps if s.get("latency_ms") is not None])
+    return {
+        "frame_to_command_median_ms": float(np.median(lat)) if lat.size else None,
+        "p95_ms": float(np.percentile(lat, 95)) if lat.size else None,
+        "max_ms": float(np.max(lat)) if lat.size else None,
+    }
+
+
+def _safety(steps: list[Mapping[str, Any]]) -> dict[str, Any]:
+    counts: dict[str, int] = {}
+    transitions = []
+    for s in steps:
+        lvl = (s.get("safety") or {}).get("level", "unknown")
+        counts[lvl] = counts.get(lvl, 0) + 1
+        if (s.get("safety") or {}).get("changed"):
+            transitions.append({"t_s": s["t_s"], "level": lvl, "reason": s["safety"]["reason"]})
+    return {"steps_per_level": counts, "transitions": transitions[:200]}
