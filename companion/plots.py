@@ -15,10 +15,10 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from companion.flight_report import (  # noqa: E402
+from companion.flight_report import (
     TOPIC_STEP,
     TOPIC_TRUTH,
     ReportSettings,
