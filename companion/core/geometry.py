@@ -122,7 +122,8 @@ def rot_z(psi: float) -> np.ndarray:
 
 def rotation_zyx(phi: float, theta: float, psi: float) -> np.ndarray:
     """``R = Rz(psi) Ry(theta) Rx(phi)`` (3, 3): body FRD -> world NED (``p_ned = R p_body``)."""
-    return rot_z(psi) @ rot_y(theta) @ rot_x(phi)
+    r: np.ndarray = rot_z(psi) @ rot_y(theta) @ rot_x(phi)
+    return r
 
 
 def euler_zyx_from_rotation(r: ArrayLike) -> tuple[float, float, float]:
@@ -235,9 +236,9 @@ def camera_position_ned(
     body_pos_ned_m: ArrayLike, r_body_to_ned: ArrayLike, mount_offset_m: ArrayLike
 ) -> np.ndarray:
     """Camera optical centre in NED (m): ``p_body + R_nb offset`` (offset in body FRD, m)."""
-    return np.asarray(body_pos_ned_m, dtype=float) + np.asarray(r_body_to_ned, dtype=float) @ (
-        np.asarray(mount_offset_m, dtype=float)
-    )
+    r = np.asarray(r_body_to_ned, dtype=float)
+    out: np.ndarray = np.asarray(body_pos_ned_m, dtype=float) + r @ np.asarray(mount_offset_m, float)
+    return out
 
 
 def camera_points_to_body_image(points_m: ArrayLike, r_bc: ArrayLike, lam: float) -> np.ndarray:
@@ -295,7 +296,8 @@ def world_to_camera(
     """World NED points (N, 3) in camera axes (N, 3): ``R_nc^T (p - p_cam)``."""
     p = np.atleast_2d(np.asarray(points_ned_m, dtype=float))
     d = p - np.asarray(cam_pos_ned_m, dtype=float).reshape(1, 3)
-    return d @ np.asarray(r_cam_to_ned, dtype=float)  # row-wise R^T d
+    out: np.ndarray = d @ np.asarray(r_cam_to_ned, dtype=float)  # row-wise R^T d
+    return out
 
 
 def real_points_to_virtual(points_m: ArrayLike, phi: float, theta: float, lam: float) -> np.ndarray:

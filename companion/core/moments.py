@@ -42,7 +42,7 @@ class DegenerateTargetError(GeometryError):
     collinear points). The frame must be treated as "target not measured"."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: no element-wise ==
 class ImageMoments:
     """Image-moment features of one frame (spec 3).
 

@@ -30,7 +30,7 @@ class SetpointError(CompanionError, ValueError):
     """No setpoint can be built from these inputs (non-finite, or no upward thrust)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: no element-wise ==
 class AttitudeSetpoint:
     """One attitude/thrust command.
 

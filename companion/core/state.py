@@ -63,10 +63,11 @@ def _ro(a: np.ndarray) -> np.ndarray:
 def ned_to_virtual(vec_ned: ArrayLike, yaw_rad: float) -> np.ndarray:
     """A world (NED) vector (3,) in the virtual frame's axes: ``Rz(yaw)^T vec`` (3,)."""
     v = _vec(vec_ned, 3, "vec_ned")
-    return rot_z(_scalar(yaw_rad, "yaw_rad")).T @ v
+    out: np.ndarray = rot_z(_scalar(yaw_rad, "yaw_rad")).T @ v
+    return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: no element-wise ==
 class TargetMotion:
     """Target-motion parameters of the RMPC, in the virtual frame ``v`` (spec 4).
 
@@ -136,7 +137,7 @@ def virtual_image_points(
     return real_points_to_virtual(pts, roll_rad, pitch_rad, lam)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: no element-wise ==
 class ErrorState:
     """The measured error state of spec 4 and what it was built from.
 
