@@ -237,7 +237,7 @@ def camera_position_ned(
 ) -> np.ndarray:
     """Camera optical centre in NED (m): ``p_body + R_nb offset`` (offset in body FRD, m)."""
     r = np.asarray(r_body_to_ned, dtype=float)
-    out: np.ndarray = np.asarray(body_pos_ned_m, dtype=float) + r @ np.asarray(mount_offset_m, float)
+    out: np.ndarray = np.asarray(body_pos_ned_m, float) + r @ np.asarray(mount_offset_m, float)
     return out
 
 
