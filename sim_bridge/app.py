@@ -1,0 +1,552 @@
+"""The emulator's asyncio runtime: wires the vehicle physics, the PX4 state machine, the MAVLink
+links, the AGV (FOLLOW_TARGET from its own node), the camera frame server and the ground-truth
+publisher (docs/wire.md).
+
+Two clocks:
+
+* ``realtime``: boot time follows the wall clock (``time.monotonic``); the physics is integrated
+  in fixed steps up to "now" every tick; setpoints are applied as they arrive.
+* ``lockstep``: simulated time advances one ``step_dt_s`` at a time. At step ``k`` the emulator
+  sends the MAVLink messages due by ``t = k step_dt_s`` (stamped ``t``), FOLLOW_TARGET if due,
+  the ground-truth record and the camera frame; then waits up to ``lockstep_timeout_s`` of
+  wall time for a SET_ATTITUDE_TARGET addressed to it that arrived since the step began (a
+  timeout is counted as a lost setpoint and is no offboard signal); then integrates to
+  ``t + step_dt_s``. Commands are handled whenever they arrive, stamped with ``t``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim_bridge import SimBridgeError
+from sim_bridge.config import EmulatorConfig, parse_address
+from sim_bridge.link import Address, LinkCounters, MavUdpLink
+from sim_bridge.physics.vehicle import (
+    Disturbance,
+    DisturbanceParams,
+    VehicleModel,
+    VehicleParams,
+    VehicleState,
+    initial_state,
+)
+from sim_bridge.px4 import (
+    ACCEPTED,
+    DENIED,
+    AttitudeTarget,
+    Mode,
+    Px4,
+    Px4Params,
+)
+
+log = logging.getLogger(__name__)
+
+# MAVLink message ids the emulator streams or answers
+HEARTBEAT = 0
+SYS_STATUS = 1
+ATTITUDE = 30
+ATTITUDE_QUATERNION = 31
+LOCAL_POSITION_NED = 32
+GLOBAL_POSITION_INT = 33
+AUTOPILOT_VERSION = 148
+HOME_POSITION = 242
+EXTENDED_SYS_STATE = 245
+
+# MAV_CMD answered by the link layer (not the commander)
+CMD_REQUEST_MESSAGE = 512
+CMD_SET_MESSAGE_INTERVAL = 511
+CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
+CMD_GET_HOME_POSITION = 410
+
+# Default stream rates (Hz), like a PX4 "onboard" MAVLink instance; 0 = only on request
+DEFAULT_RATES_HZ: dict[int, float] = {
+    HEARTBEAT: 1.0,
+    SYS_STATUS: 2.0,
+    ATTITUDE_QUATERNION: 50.0,
+    ATTITUDE: 25.0,
+    LOCAL_POSITION_NED: 30.0,
+    GLOBAL_POSITION_INT: 10.0,
+    EXTENDED_SYS_STATE: 5.0,
+    HOME_POSITION: 0.0,
+    AUTOPILOT_VERSION: 0.0,
+}
+
+EARTH_RADIUS_M = 6371000.0
+FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0 official
+CAPABILITIES = 8192 | 8 | 64 | 128  # MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, POS TARGET
+
+
+@dataclass(frozen=True)
+class BridgeStats:
+    """What the runtime counted (for logs and tests)."""
+
+    t_s: float
+    steps: int
+    lockstep_timeouts: int
+    setpoints_received: int
+    setpoints_ignored: int
+    commands: int
+    acks_sent: int
+    frames: int
+    offboard: LinkCounters
+    gcs: LinkCounters
+
+
+class _Streams:
+    """Per-link stream schedule in boot time (s)."""
+
+    def __init__(self) -> None:
+        self.interval_s: dict[int, float | None] = {
+            mid: (1.0 / hz if hz > 0 else None) for mid, hz in DEFAULT_RATES_HZ.items()}
+        self.next_s: dict[int, float] = dict.fromkeys(DEFAULT_RATES_HZ, 0.0)
+
+    def set_interval(self, msgid: int, interval_us: float, now_s: float) -> bool:
+        if msgid not in DEFAULT_RATES_HZ:
+            return False
+        if interval_us == 0:  # default rate
+            hz = DEFAULT_RATES_HZ[msgid]
+            self.interval_s[msgid] = 1.0 / hz if hz > 0 else None
+        elif interval_us < 0:
+            self.interval_s[msgid] = None
+        else:
+            self.interval_s[msgid] = interval_us * 1e-6
+        self.next_s[msgid] = now_s
+        return True
+
+    def due(self, now_s: float) -> list[int]:
+        out = []
+        for mid, iv in self.interval_s.items():
+            if iv is None or now_s + 1e-9 < self.next_s[mid]:
+                continue
+            out.append(mid)
+            # no catch-up bursts: the next one is one interval after now (or the schedule)
+            self.next_s[mid] = max(self.next_s[mid] + iv, now_s + 0.5 * iv)
+        return out
+
+
+class SimBridge:
+    """The emulator. ``async with SimBridge(cfg) as sim: await sim.run(duration_s)``.
+
+    ``bind_host`` is where the UDP links and the frame server listen (PX4 SITL listens on all
+    interfaces; tests use 127.0.0.1). After ``__aenter__``, :attr:`ports` holds the bound ports.
+    """
+
+    def __init__(self, cfg: EmulatorConfig, *, bind_host: str = "0.0.0.0") -> None:
+        self.cfg = cfg
+        self.bind_host = bind_host
+        sim = cfg.sim
+        self.lockstep = sim.time_mode == "lockstep"
+        self.model = VehicleModel(
+            VehicleParams(
+                hover_thrust=sim.vehicle.hover_thrust,
+                attitude_tau_s=sim.vehicle.attitude_tau_s,
+                max_tilt_rate_rad_s=sim.vehicle.max_tilt_rate_rad_s,
+                max_yaw_rate_rad_s=sim.vehicle.max_yaw_rate_rad_s,
+                drag_per_s=sim.vehicle.drag_per_s,
+                max_tilt_rad=sim.vehicle.max_tilt_rad,
+                ground_z_m=cfg.ground_z_m,
+            ),
+            Disturbance(DisturbanceParams(
+                wind_accel_ned_m_s2=sim.disturbance.wind_accel_ned_m_s2,
+                gust_amplitude_m_s2=sim.disturbance.gust_amplitude_m_s2,
+                gust_period_s=sim.disturbance.gust_period_s,
+                random_bound_m_s2=sim.disturbance.random_bound_m_s2,
+                random_hold_s=sim.step_dt_s,
+                seed=sim.seed,
+            )),
+            dt_s=sim.physics_dt_s,
+        )
+        x, y, z, roll, pitch, yaw = cfg.scenario.uav_pose
+        airborne = sim.start == "airborne"
+        if not airborne:
+            z = cfg.ground_z_m
+            roll = pitch = 0.0
+        self.state: VehicleState = initial_state((x, y, z), roll, pitch, yaw,
+                                                 on_ground=not airborne)
+        self.px4 = Px4(
+            Px4Params(com_of_loss_t_s=sim.px4.com_of_loss_t_s,
+                      com_obl_rc_act=sim.px4.com_obl_rc_act,
+                      com_disarm_prflt_s=sim.px4.com_disarm_prflt_s,
+                      hover_thrust=sim.vehicle.hover_thrust,
+                      max_tilt_rad=sim.vehicle.max_tilt_rad,
+                      origin_alt_m=cfg.target.origin_alt_m),
+            self.state, armed=airborne, mode=Mode.POSCTL)
+        self._t0_wall = time.monotonic()
+        self.t_s = 0.0
+        self._setpoint_event = asyncio.Event()
+        self._links: dict[str, MavUdpLink] = {}
+        self._streams: dict[str, _Streams] = {}
+        self._world: Any = None
+        self._frame_server: Any = None
+        self._truth: Any = None
+        self._camera: Any = None
+        self._agv: Any = None
+        self._ft_fields: Any = None
+        self._frame_seq = 0
+        self._steps = 0
+        self._timeouts = 0
+        self._setpoints = 0
+        self._commands = 0
+        self._acks = 0
+        self._last_mode = self.px4.mode
+        self._last_armed = self.px4.armed
+        self._stack = contextlib.AsyncExitStack()
+        self.ports: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+    async def __aenter__(self) -> SimBridge:
+        await self._stack.__aenter__()
+        try:
+            await self._open()
+        except BaseException:
+            await self._stack.aclose()
+            raise
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self._stack.aclose()
+
+    async def _open(self) -> None:
+        cfg, link = self.cfg, self.cfg.sim.link
+        self._setpoint_event = asyncio.Event()
+        for name, port, remote in (("offboard", link.offboard_local_port, link.offboard_remote),
+                                   ("gcs", link.gcs_local_port, link.gcs_remote)):
+            ml = MavUdpLink(name, self.bind_host, port, parse_address(remote), link.sysid,
+                            link.compid, handler=self._on_message)
+            await ml.open()
+            self._stack.callback(ml.close)
+            self._links[name] = ml
+            self._streams[name] = _Streams()
+            self.ports[name] = ml.port
+        agv_link = MavUdpLink("agv", self.bind_host, link.agv_local_port, None,
+                              cfg.target.mavlink_sysid, cfg.target.mavlink_compid)
+        await agv_link.open()
+        self._stack.callback(agv_link.close)
+        self._links["agv"] = agv_link
+        self.ports["agv"] = agv_link.port
+        try:
+            await self._open_world()
+        except ImportError as e:  # the world half is built separately; run without it
+            log.warning("world modules unavailable (%s): no AGV, camera, frames or truth", e)
+        self._t0_wall = time.monotonic()
+        log.info("sim_bridge %s, scenario %s, start %s: MAVLink offboard udp %s:%d -> %s, "
+                 "GCS udp %s:%d -> %s, AGV udp :%d (sysid %d), frames tcp :%s, truth udp -> %s",
+                 self.cfg.sim.time_mode, cfg.scenario.name, cfg.sim.start, self.bind_host,
+                 self.ports["offboard"], link.offboard_remote, self.bind_host,
+                 self.ports["gcs"], link.gcs_remote, self.ports["agv"],
+                 cfg.target.mavlink_sysid, self.ports.get("frames", "-"), link.truth_remote)
+
+    async def _open_world(self) -> None:
+        """The world half: AGV trajectory, camera, frame server, truth, FOLLOW_TARGET."""
+        cfg = self.cfg
+        from sim_bridge.camera import Camera
+        from sim_bridge.follow_target import follow_target_fields
+        from sim_bridge.frames import FrameServer
+        from sim_bridge.physics.agv import AgvTrajectory
+        from sim_bridge.truth import TruthPublisher
+
+        self._agv = AgvTrajectory(cfg.sim.agv.trajectory, cfg.sim.agv.speed_scale,
+                                  cfg.sim.agv.top_z_m)
+        c, t = cfg.camera, cfg.target
+        self._camera = Camera(
+            c.focal_length_m, c.pixel_size_m, c.width_px, c.height_px,
+            mount_rpy_rad=c.mount_rpy_rad, mount_offset_m=c.mount_offset_m,
+            target_length_m=t.length_m, target_width_m=t.width_m, target_height_m=t.height_m,
+            pattern=t.pattern, aruco_dictionary=t.aruco_dictionary, aruco_id=t.aruco_id,
+            aruco_size_m=t.aruco_size_m, noise_std=cfg.sim.camera.noise_std,
+            blur_px=cfg.sim.camera.blur_px, seed=cfg.sim.seed)
+        self._ft_fields = follow_target_fields
+        self._frame_server = await self._stack.enter_async_context(
+            FrameServer(self.bind_host, cfg.sim.link.frame_port))
+        self.ports["frames"] = int(getattr(self._frame_server, "port",
+                                           cfg.sim.link.frame_port))
+        host, port = parse_address(cfg.sim.link.truth_remote)
+        self._truth = TruthPublisher(host, port)
+        if hasattr(self._truth, "close"):
+            self._stack.callback(self._truth.close)
+
+    # ------------------------------------------------------------------ clock
+    def now_s(self) -> float:
+        """Boot time (s): wall clock since start in realtime, simulated time in lockstep."""
+        if self.lockstep:
+            return self.t_s
+        return time.monotonic() - self._t0_wall
+
+    def _ms(self, t_s: float) -> int:
+        return int(t_s * 1000) & 0xFFFFFFFF
+
+    # ------------------------------------------------------------------ receive
+    def _on_message(self, link: MavUdpLink, msg: Any, addr: Address) -> None:
+        mtype = msg.get_type()
+        t = self.now_s()
+        if mtype == "SET_ATTITUDE_TARGET":
+            self._setpoints += 1
+            sp = AttitudeTarget(
+                type_mask=int(msg.type_mask), q_wxyz=tuple(float(v) for v in msg.q),
+                body_rates_rad_s=(float(msg.body_roll_rate), float(msg.body_pitch_rate),
+                                  float(msg.body_yaw_rate)),
+                thrust_norm=float(msg.thrust))
+            self.px4.on_attitude_target(t, sp)
+            self._setpoint_event.set()
+            self._note_changes(t)
+        elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
+            self._on_command(link, msg, addr, t)
+        elif mtype == "PING":
+            if msg.target_system == 0 and msg.target_component == 0:
+                link.send(link.mav.ping_encode(msg.time_usec, msg.seq, msg.get_srcSystem(),
+                                               msg.get_srcComponent()), addr)
+        elif mtype == "TIMESYNC" and msg.tc1 == 0:
+            link.send(link.mav.timesync_encode(int(t * 1e9), msg.ts1), addr)
+
+    def _on_command(self, link: MavUdpLink, msg: Any, addr: Address, t: float) -> None:
+        self._commands += 1
+        cmd = int(msg.command)
+        if msg.get_type() == "COMMAND_LONG":
+            params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                      msg.param7)
+        else:
+            params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x),
+                      float(msg.y), float(msg.z))
+        params = tuple(float(p) for p in params)
+        after: int | None = None
+        if cmd == CMD_REQUEST_MESSAGE:
+            mid = int(params[0]) if math.isfinite(params[0]) else -1
+            result = ACCEPTED if mid in DEFAULT_RATES_HZ else DENIED
+            after = mid if result == ACCEPTED else None
+        elif cmd == CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            result, after = ACCEPTED, AUTOPILOT_VERSION
+        elif cmd == CMD_GET_HOME_POSITION:
+            result, after = ACCEPTED, HOME_POSITION
+        elif cmd == CMD_SET_MESSAGE_INTERVAL:
+            ok = math.isfinite(params[0]) and math.isfinite(params[1]) and self._streams[
+                link.name].set_interval(int(params[0]), params[1], t)
+            result = ACCEPTED if ok else DENIED
+        else:
+            res = self.px4.handle_command(t, cmd, params)
+            result = res.result
+            if res.text:
+                log.info("command %d from %d/%d: result %d (%s)", cmd, msg.get_srcSystem(),
+                         msg.get_srcComponent(), result, res.text)
+        link.send(link.mav.command_ack_encode(cmd, result, 0, 0, msg.get_srcSystem(),
+                                              msg.get_srcComponent()), addr)
+        self._acks += 1
+        if after is not None:
+            self._send_message(link, after, t, addr)
+        self._note_changes(t)
+
+    def _note_changes(self, t: float) -> None:
+        if self.px4.mode is not self._last_mode or self.px4.armed != self._last_armed:
+            log.info("t=%.3f s: %s, %s", t, self.px4.mode.label,
+                     "armed" if self.px4.armed else "disarmed")
+            self._last_mode, self._last_armed = self.px4.mode, self.px4.armed
+
+    # ------------------------------------------------------------------ telemetry
+    def _ned_to_global(self, pos: np.ndarray) -> tuple[float, float, float]:
+        tg = self.cfg.target
+        lat0 = math.radians(tg.origin_lat_deg)
+        lat = tg.origin_lat_deg + math.degrees(pos[0] / EARTH_RADIUS_M)
+        lon = tg.origin_lon_deg + math.degrees(pos[1] / (EARTH_RADIUS_M * math.cos(lat0)))
+        return lat, lon, tg.origin_alt_m - float(pos[2])
+
+    def _encode(self, link: MavUdpLink, mid: int, t: float) -> Any:
+        s, px4, mav, ms = self.state, self.px4, link.mav, self._ms(t)
+        if mid == HEARTBEAT:
+            return mav.heartbeat_encode(2, 12, px4.base_mode, px4.custom_mode,
+                                        px4.system_status, 3)
+        if mid == SYS_STATUS:
+            sensors = 1 | 2 | 4 | 8 | 32 | 0x8000 | 0x200000 | 0x2000000
+            return mav.sys_status_encode(sensors, sensors, sensors, 100, 16000, -1, 100,
+                                         0, 0, 0, 0, 0, 0)
+        if mid == ATTITUDE_QUATERNION:
+            q, w = s.q_wxyz, s.rates_frd_rad_s
+            return mav.attitude_quaternion_encode(ms, *(float(v) for v in q),
+                                                  *(float(v) for v in w))
+        if mid == ATTITUDE:
+            w = s.rates_frd_rad_s
+            return mav.attitude_encode(ms, s.roll_rad, s.pitch_rad, s.yaw_rad,
+                                       *(float(v) for v in w))
+        if mid == LOCAL_POSITION_NED:
+            return mav.local_position_ned_encode(ms, *(float(v) for v in s.pos_ned_m),
+                                                 *(float(v) for v in s.vel_ned_m_s))
+        if mid == GLOBAL_POSITION_INT:
+            lat, lon, alt = self._ned_to_global(s.pos_ned_m)
+            rel = float(px4.home_ned_m[2] - s.pos_ned_m[2])
+            v = s.vel_ned_m_s * 100
+            hdg = round(math.degrees(s.yaw_rad) % 360 * 100) % 36000
+            return mav.global_position_int_encode(ms, int(lat * 1e7), int(lon * 1e7),
+                                                  int(alt * 1000), int(rel * 1000),
+                                                  int(v[0]), int(v[1]), int(v[2]), hdg)
+        if mid == EXTENDED_SYS_STATE:
+            return mav.extended_sys_state_encode(0, px4.landed_state)
+        if mid == HOME_POSITION:
+            h = px4.home_ned_m
+            lat, lon, alt = self._ned_to_global(h)
+            return mav.home_position_encode(int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
+                                            float(h[0]), float(h[1]), float(h[2]),
+                                            [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                            int(t * 1e6))
+        if mid == AUTOPILOT_VERSION:
+            return mav.autopilot_version_encode(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0,
+                                                [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x11,
+                                                0x5EB1D6E0)
+        raise SimBridgeError(f"no encoder for message {mid}")  # pragma: no cover
+
+    def _send_message(self, link: MavUdpLink, mid: int, t: float,
+                      addr: Address | None = None) -> None:
+        link.send(self._encode(link, mid, t), addr)
+
+    def _send_streams(self, t: float) -> None:
+        for name, streams in self._streams.items():
+            link = self._links[name]
+            for mid in streams.due(t):
+                self._send_message(link, mid, t)
+
+    # ------------------------------------------------------------------ world outputs
+    def _agv_state(self, t: float) -> Any:
+        return self._agv.state(t) if self._agv is not None else None
+
+    def _send_follow_target(self, t: float) -> None:
+        if self._agv is None or self._ft_fields is None:
+            return
+        tg = self.cfg.target
+        fields = self._ft_fields(self._agv.state(t), self._ms(t), tg.origin_lat_deg,
+                                 tg.origin_lon_deg, tg.origin_alt_m)
+        agv_link = self._links["agv"]
+        msg = agv_link.mav.follow_target_encode(**fields)
+        targets: list[Address] = []
+        for name in ("offboard", "gcs"):
+            for a in self._links[name].peers:
+                if a not in targets:
+                    targets.append(a)
+        for a in targets:
+            agv_link.send(msg, a)
+
+    async def _publish_frame(self, t: float) -> None:
+        """Render the camera frame at ``t``, publish it and the ground-truth record."""
+        agv = self._agv_state(t)
+        frame = None
+        s = self.state
+        if self._camera is not None and agv is not None:
+            frame = self._camera.render(s.pos_ned_m, s.q_wxyz, agv,
+                                        occluded=self.cfg.sim.camera.occluded(t))
+        seq = self._frame_seq
+        self._frame_seq += 1
+        t_us = round(t * 1e6)
+        if self._truth is not None:
+            self._truth.publish(self._truth_record(t_us, seq, agv, frame))
+        if self._frame_server is not None and frame is not None:
+            await self._frame_server.publish(seq, t_us, frame.image)
+
+    def _truth_record(self, t_us: int, seq: int, agv: Any, frame: Any) -> dict[str, Any]:
+        s = self.state
+        rec: dict[str, Any] = {
+            "t_us": t_us,
+            "frame_seq": seq,
+            "uav": {"pos_ned_m": s.pos_ned_m.tolist(), "vel_ned_m_s": s.vel_ned_m_s.tolist(),
+                    "q_wxyz": s.q_wxyz.tolist(), "rates_frd_rad_s": s.rates_frd_rad_s.tolist()},
+            "disturbance_accel_ned_m_s2": s.disturbance_ned_m_s2.tolist(),
+            "mode": self.px4.mode.label,
+            "armed": self.px4.armed,
+            "setpoint_age_s": min(self.px4.setpoint_age_s(t_us * 1e-6), 1e9),
+        }
+        if agv is not None:
+            rec["agv"] = {"pos_ned_m": np.asarray(agv.pos_ned_m).tolist(),
+                          "vel_ned_m_s": np.asarray(agv.vel_ned_m_s).tolist(),
+                          "acc_ned_m_s2": np.asarray(agv.acc_ned_m_s2).tolist(),
+                          "yaw_rad": float(agv.yaw_rad),
+                          "yaw_rate_rad_s": float(agv.yaw_rate_rad_s)}
+        if frame is not None:
+            rec["corners_px"] = np.asarray(frame.corners_px).tolist()
+            rec["target_in_image"] = bool(frame.target_in_image)
+        return rec
+
+    # ------------------------------------------------------------------ stepping
+    def _advance(self, t_target: float) -> None:
+        """Integrate the physics from ``state.t_s`` to ``t_target`` in whole physics steps,
+        running the commander logic at the start of each step."""
+        dt = self.model.dt_s
+        n = math.floor((t_target - self.state.t_s) / dt + 1e-9)
+        if n <= 0:
+            return
+        self.px4.update(self.state.t_s, self.state)
+        self._note_changes(self.state.t_s)
+        self.state = self.model.step(self.state, self.px4.attitude_command(), n * dt)
+        self.px4.update(self.state.t_s, self.state)
+        self._note_changes(self.state.t_s)
+
+    async def run(self, duration_s: float | None = None) -> BridgeStats:
+        """Run for ``duration_s`` of boot time (default: ``sim.duration_s``)."""
+        d = self.cfg.sim.duration_s if duration_s is None else duration_s
+        if self.lockstep:
+            await self._run_lockstep(d)
+        else:
+            await self._run_realtime(d)
+        return self.stats()
+
+    async def _run_realtime(self, duration_s: float) -> None:
+        sim = self.cfg.sim
+        tick = min(0.01, sim.step_dt_s)
+        frame_dt = 1.0 / sim.camera.rate_hz
+        ft_dt = 1.0 / sim.agv.rate_hz
+        next_frame = next_ft = 0.0
+        while True:
+            now = self.now_s()
+            if now >= duration_s:
+                break
+            self._advance(now)
+            self.t_s = self.state.t_s
+            self._send_streams(now)
+            if now >= next_ft:
+                self._send_follow_target(now)
+                next_ft = max(next_ft + ft_dt, now)
+            if now >= next_frame:
+                await self._publish_frame(self.state.t_s)
+                self._steps += 1
+                next_frame = max(next_frame + frame_dt, now)
+            delay = tick - (self.now_s() - now)
+            await asyncio.sleep(max(0.0, delay))
+
+    async def _run_lockstep(self, duration_s: float) -> None:
+        sim = self.cfg.sim
+        step = sim.step_dt_s
+        ft_dt = 1.0 / sim.agv.rate_hz
+        next_ft = 0.0
+        k = 0
+        while k * step < duration_s - 1e-9:
+            t = k * step
+            self.t_s = t
+            self._setpoint_event.clear()
+            self.px4.update(t, self.state)
+            self._note_changes(t)
+            self._send_streams(t)
+            if t + 1e-9 >= next_ft:
+                self._send_follow_target(t)
+                next_ft += ft_dt
+            await self._publish_frame(t)
+            try:
+                await asyncio.wait_for(self._setpoint_event.wait(), sim.lockstep_timeout_s)
+            except TimeoutError:
+                self._timeouts += 1
+            self._advance((k + 1) * step)
+            self._steps += 1
+            k += 1
+        self.t_s = k * step
+
+    def stats(self) -> BridgeStats:
+        return BridgeStats(
+            t_s=self.t_s, steps=self._steps, lockstep_timeouts=self._timeouts,
+            setpoints_received=self._setpoints, setpoints_ignored=self.px4.ignored_setpoints,
+            commands=self._commands, acks_sent=self._acks, frames=self._frame_seq,
+            offboard=self._links["offboard"].counters, gcs=self._links["gcs"].counters)
+
+
+def stats_dict(stats: BridgeStats) -> dict[str, Any]:
+    return dataclasses.asdict(stats)

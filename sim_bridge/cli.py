@@ -1,0 +1,92 @@
+"""``sim-bridge`` / ``python -m sim_bridge``: run the emulator.
+
+With no arguments: realtime, the ``paper`` scenario of ``config/paper.toml``, PX4 SITL default
+ports (it logs which). Exits 0 at the end of ``--duration`` or on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+
+from sim_bridge import SimBridgeError
+from sim_bridge.app import SimBridge
+from sim_bridge.config import load_config, with_link, with_sim
+
+log = logging.getLogger("sim_bridge")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sim-bridge", description=__doc__.splitlines()[0])
+    p.add_argument("--config", help="scenario TOML (default: config/paper.toml)")
+    p.add_argument("--scenario", help="name in [sim.scenarios.*] (default: sim.scenario)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", action="store_true", help="simulated time (docs/wire.md)")
+    mode.add_argument("--realtime", action="store_true", help="wall-clock time")
+    p.add_argument("--duration", type=float, help="seconds of boot time to run "
+                   "(default: sim.duration_s)")
+    p.add_argument("--start", choices=("airborne", "ground"), help="override sim.start")
+    p.add_argument("--bind", default="0.0.0.0", help="listen address (default 0.0.0.0)")
+    p.add_argument("--offboard-port", type=int, help="local UDP port of the offboard link")
+    p.add_argument("--offboard-remote", help="HOST:PORT the offboard link sends to")
+    p.add_argument("--gcs-port", type=int, help="local UDP port of the GCS link")
+    p.add_argument("--gcs-remote", help="HOST:PORT the GCS link sends to")
+    p.add_argument("--agv-port", type=int, help="local UDP port of the AGV node")
+    p.add_argument("--frame-port", type=int, help="TCP port of the camera frame server")
+    p.add_argument("--truth-remote", help="HOST:PORT for ground-truth JSON")
+    p.add_argument("--log-level", default="INFO")
+    return p
+
+
+async def _run(sim: SimBridge, duration: float | None) -> None:
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, task.cancel)
+    try:
+        async with sim:
+            stats = await sim.run(duration)
+            log.info("done: t=%.2f s, %d steps, %d lockstep timeouts, %d setpoints, "
+                     "%d commands, %d frames", stats.t_s, stats.steps, stats.lockstep_timeouts,
+                     stats.setpoints_received, stats.commands, stats.frames)
+    except asyncio.CancelledError:
+        log.info("stopped by signal")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        cfg = load_config(args.config, scenario=args.scenario)
+        changes = {k: v for k, v in {
+            "offboard_local_port": args.offboard_port, "offboard_remote": args.offboard_remote,
+            "gcs_local_port": args.gcs_port, "gcs_remote": args.gcs_remote,
+            "agv_local_port": args.agv_port, "frame_port": args.frame_port,
+            "truth_remote": args.truth_remote}.items() if v is not None}
+        cfg = with_link(cfg, **changes)
+        if args.lockstep:
+            cfg = with_sim(cfg, time_mode="lockstep")
+        elif args.realtime:
+            cfg = with_sim(cfg, time_mode="realtime")
+        if args.start:
+            cfg = with_sim(cfg, start=args.start)
+        if args.duration is not None and not args.duration > 0:
+            raise SimBridgeError("--duration: must be > 0")
+        asyncio.run(_run(SimBridge(cfg, bind_host=args.bind), args.duration))
+    except SimBridgeError as e:
+        log.error("%s", e)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

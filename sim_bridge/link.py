@@ -1,0 +1,197 @@
+"""MAVLink 2 over UDP (pymavlink), the way the emulated PX4 talks to its peers.
+
+One :class:`MavUdpLink` per PX4 "instance" (offboard API link, GCS link) and one for the AGV's
+own node. Receive path (shared/spec/pitfalls.md): every datagram is parsed by a FRESH robust
+parser, so a truncated or corrupted datagram cannot poison the next ones; ``BAD_DATA`` and
+``UNKNOWN_<id>`` pseudo-messages are counted and dropped, MAVLink 1 frames are counted and
+dropped, frames from our own (sysid, compid) are dropped, and messages addressed to another
+system/component are counted as foreign and not delivered.
+
+Send path: telemetry goes to the configured remote plus every address that sent us a valid
+MAVLink 2 message (so a client that binds elsewhere, like MAVSDK with ``udpin``, is served as
+PX4 serves it); replies (ACKs, requested messages) go to the sender's address only.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from sim_bridge import LinkError
+
+log = logging.getLogger(__name__)
+
+Address = tuple[str, int]
+MessageHandler = Callable[["MavUdpLink", Any, Address], None]
+
+PEER_TIMEOUT_S = 10.0
+MAVLINK2_MAGIC = 0xFD
+
+
+@dataclass(frozen=True)
+class LinkCounters:
+    """Receive/send statistics of one link (monotonic counts since it opened)."""
+
+    rx_datagrams: int = 0
+    rx_bytes: int = 0
+    rx_messages: int = 0   # valid MAVLink 2 messages delivered to the handler
+    rx_bad: int = 0        # BAD_DATA pseudo-messages (bad CRC, garbage, truncation)
+    rx_unknown: int = 0    # unknown message ids
+    rx_mavlink1: int = 0   # MAVLink 1 frames (dropped: 16-bit CRC lets garbage through)
+    rx_foreign: int = 0    # addressed to another system/component
+    rx_own: int = 0        # our own frames echoed back
+    rx_empty: int = 0      # datagrams that yielded no message at all
+    tx_messages: int = 0
+    tx_errors: int = 0
+
+
+class _Sink:
+    """File-like object pymavlink writes packed frames into."""
+
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def write(self, b: bytes) -> None:
+        self.frames.append(bytes(b))
+
+
+class _Protocol(asyncio.DatagramProtocol):
+    def __init__(self, link: MavUdpLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.link._on_datagram(data, (addr[0], addr[1]))
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable when nobody listens yet: normal for UDP telemetry
+        log.debug("%s: socket error %s", self.link.name, exc)
+
+
+class MavUdpLink:
+    """A UDP MAVLink 2 endpoint. ``async with MavUdpLink(...) as link:``; ``link.port`` is the
+    bound local port (useful when ``local_port`` is 0)."""
+
+    def __init__(self, name: str, local_host: str, local_port: int, remote: Address | None,
+                 sysid: int, compid: int, handler: MessageHandler | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.name = name
+        self.local_host = local_host
+        self.local_port = local_port
+        self.remote = remote
+        self.sysid = sysid
+        self.compid = compid
+        self.handler = handler
+        self._clock = clock
+        self._sink = _Sink()
+        self.mav = mavlink2.MAVLink(self._sink, srcSystem=sysid, srcComponent=compid)
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peers: dict[Address, float] = {}
+        self._c: dict[str, int] = dict.fromkeys(LinkCounters.__dataclass_fields__, 0)
+
+    # ------------------------------------------------------------------ lifecycle
+    async def open(self) -> MavUdpLink:
+        loop = asyncio.get_running_loop()
+        try:
+            transport, _ = await loop.create_datagram_endpoint(
+                lambda: _Protocol(self), local_addr=(self.local_host, self.local_port))
+        except OSError as e:
+            raise LinkError(f"{self.name}: cannot bind UDP {self.local_host}:{self.local_port}"
+                            f" ({e.strerror})") from e
+        self._transport = transport  # type: ignore[assignment]
+        self.port = transport.get_extra_info("sockname")[1]
+        return self
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+            self._transport = None
+
+    async def __aenter__(self) -> MavUdpLink:
+        return await self.open()
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def counters(self) -> LinkCounters:
+        return LinkCounters(**self._c)
+
+    @property
+    def peers(self) -> list[Address]:
+        now = self._clock()
+        out = [self.remote] if self.remote is not None else []
+        out += [a for a, t in self._peers.items()
+                if now - t <= PEER_TIMEOUT_S and a != self.remote]
+        return out
+
+    # ------------------------------------------------------------------ receive
+    def _on_datagram(self, data: bytes, addr: Address) -> None:
+        c = self._c
+        c["rx_datagrams"] += 1
+        c["rx_bytes"] += len(data)
+        parser = mavlink2.MAVLink(None)  # fresh per datagram (pitfalls.md)
+        parser.robust_parsing = True
+        try:
+            msgs = parser.parse_buffer(data) or []
+        except Exception:  # robust parsing should not raise; count anything that does
+            log.debug("%s: parser raised on a datagram from %s", self.name, addr, exc_info=True)
+            c["rx_bad"] += 1
+            return
+        if not msgs:
+            c["rx_empty"] += 1
+            return
+        for msg in msgs:
+            self._dispatch(msg, addr)
+
+    def _dispatch(self, msg: Any, addr: Address) -> None:
+        c = self._c
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            c["rx_bad"] += 1
+            return
+        if mtype.startswith("UNKNOWN_"):
+            c["rx_unknown"] += 1
+            return
+        buf = msg.get_msgbuf()
+        if not buf or buf[0] != MAVLINK2_MAGIC:
+            c["rx_mavlink1"] += 1
+            return
+        if msg.get_srcSystem() == self.sysid and msg.get_srcComponent() == self.compid:
+            c["rx_own"] += 1
+            return
+        ts = getattr(msg, "target_system", None)
+        tc = getattr(msg, "target_component", None)
+        if (ts is not None and ts not in (0, self.sysid)) or (
+                tc is not None and tc not in (0, self.compid)):
+            c["rx_foreign"] += 1
+            return
+        c["rx_messages"] += 1
+        self._peers[addr] = self._clock()
+        if self.handler is not None:
+            try:
+                self.handler(self, msg, addr)
+            except Exception:
+                log.exception("%s: handler failed on %s from %s", self.name, mtype, addr)
+
+    # ------------------------------------------------------------------ send
+    def send(self, msg: Any, addr: Address | None = None) -> None:
+        """Pack ``msg`` (a pymavlink message from ``self.mav.xxx_encode``) and send it to
+        ``addr`` or, without one, to every current peer."""
+        self.mav.send(msg)
+        frames, self._sink.frames = self._sink.frames, []
+        targets = [addr] if addr is not None else self.peers
+        if self._transport is None:
+            return
+        for frame in frames:
+            for a in targets:
+                try:
+                    self._transport.sendto(frame, a)
+                    self._c["tx_messages"] += 1
+                except OSError:
+                    self._c["tx_errors"] += 1
