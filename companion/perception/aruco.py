@@ -1,0 +1,114 @@
+"""ArUco marker detector (cv2.aruco) returning the configured marker's four corners.
+
+Marker corner order (OpenCV): the marker image's top-left, top-right, bottom-right,
+bottom-left, clockwise on screen when the marker is seen from its printed side. The marker is
+mounted on the AGV's top with its image "up" pointing along the AGV's heading, so the corners
+are front-left, front-right, rear-right, rear-left, the same order as the rectangle detector,
+at ``(+-s/2, +-s/2)`` with ``s = aruco_size_m`` (the outer edge of the black border).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from companion.perception._types import (
+    Detection,
+    DetectionReport,
+    FloatArray,
+    PerceptionError,
+    Rejection,
+    to_gray,
+)
+from companion.perception.plausibility import QuadLimits, check_quad, signed_area
+
+
+def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
+    """``cv2.aruco.getPredefinedDictionary`` by name (``"DICT_4X4_50"``), clear error if unknown."""
+    code = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
+    if not isinstance(code, int):
+        raise PerceptionError(f"aruco_dictionary: {name!r} is not a cv2.aruco dictionary name")
+    return cv2.aruco.getPredefinedDictionary(code)
+
+
+class ArucoDetector:
+    """Detects marker ``marker_id`` of ``dictionary`` (corners refined with CORNER_REFINE_SUBPIX).
+
+    Other ids are ignored (reported as rejections). Two markers with the configured id make
+    the frame ambiguous: rejected. ``quality`` is 1.0 for a decoded marker that passes the
+    plausibility checks (cv2.aruco gives no finer score).
+    """
+
+    def __init__(
+        self,
+        dictionary: str,
+        marker_id: int,
+        size_m: float,
+        *,
+        limits: QuadLimits | None = None,
+        subpix_window_px: int = 5,
+    ) -> None:
+        if not size_m > 0:
+            raise PerceptionError("aruco_size_m: must be > 0")
+        dict_ = aruco_dictionary(dictionary)
+        if not 0 <= marker_id < dict_.bytesList.shape[0]:
+            raise PerceptionError(
+                f"aruco_id: {marker_id} is not in {dictionary} (0..{dict_.bytesList.shape[0] - 1})"
+            )
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        params.cornerRefinementWinSize = int(subpix_window_px)
+        params.cornerRefinementMaxIterations = 50
+        params.cornerRefinementMinAccuracy = 0.01
+        self._detector = cv2.aruco.ArucoDetector(dict_, params)
+        self.marker_id = int(marker_id)
+        self.size_m = float(size_m)
+        self.limits = limits or QuadLimits(expected_aspect=1.0)
+        h = size_m / 2
+        pts = np.array([[h, -h], [h, h], [-h, h], [-h, -h]], dtype=np.float64)
+        pts.setflags(write=False)
+        self._target_points_m = pts
+
+    @property
+    def target_points_m(self) -> FloatArray:
+        """(4, 2) ``(x forward, y right)`` metres: FL, FR, RR, RL of the marker's outer edge."""
+        return self._target_points_m
+
+    def detect(self, image: npt.NDArray[np.uint8]) -> Detection | None:
+        return self.analyse(image).detection
+
+    def analyse(
+        self, image: npt.NDArray[np.uint8], hint: npt.ArrayLike | None = None
+    ) -> DetectionReport:
+        del hint  # the marker's code fixes the corner order
+        gray = to_gray(image)
+        h, w = gray.shape
+        corners, ids, _ = self._detector.detectMarkers(gray)
+        if ids is None or len(ids) == 0:
+            return DetectionReport(None, (), "no marker decoded (target not in view)", 0)
+        ids = np.asarray(ids).reshape(-1)
+        rejections: list[Rejection] = []
+        mine: list[FloatArray] = []
+        for c, i in zip(corners, ids, strict=True):
+            pts = np.asarray(c, dtype=np.float64).reshape(4, 2)
+            if int(i) != self.marker_id:
+                rejections.append(Rejection(f"marker id {int(i)} is not {self.marker_id}", pts))
+            else:
+                mine.append(pts)
+        if not mine:
+            reason = "; ".join(r.reason for r in rejections)
+            return DetectionReport(None, tuple(rejections), reason, len(ids))
+        if len(mine) > 1:
+            rejections.extend(Rejection("marker id seen twice: ambiguous", m) for m in mine)
+            return DetectionReport(None, tuple(rejections), "marker id seen twice", len(ids))
+        pts = mine[0]
+        reason = check_quad(pts, w, h, self.limits)
+        if reason is not None:
+            rejections.append(Rejection(reason, pts))
+            return DetectionReport(None, tuple(rejections), reason, len(ids))
+        det = Detection(pts, 1.0, abs(signed_area(pts)), self.marker_id)
+        return DetectionReport(det, tuple(rejections), "", len(ids))
+
+
+__all__ = ["ArucoDetector", "aruco_dictionary"]

@@ -1,0 +1,191 @@
+"""Perception: pixels in, the target's four image points in metric image coordinates out.
+
+``image -> detector (raw pixel corners) -> undistortion (if calibrated) -> metric (u, n)``.
+The virtual-camera mapping and the image moments are the core's job
+(``companion.core.geometry`` / ``moments``), not this module's.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from companion.config import CameraConfig, TargetConfig
+from companion.perception._types import (
+    Detection,
+    DetectionReport,
+    Detector,
+    FloatArray,
+    PerceptionError,
+)
+from companion.perception.aruco import ArucoDetector
+from companion.perception.calibration import Calibration, load_calibration
+from companion.perception.rectangle import RectangleDetector
+
+_log = logging.getLogger(__name__)
+
+Status = Literal["ok", "lost", "rejected"]
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """What the pixel -> metric conversion needs: focal lengths and principal point in
+    pixels, the focal length in metres (the spec's ``lambda``)."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    focal_length_m: float
+
+
+def camera_model(camera: CameraConfig, calibration: Calibration | None = None) -> CameraModel:
+    """Intrinsics from the calibration if given, else the ideal pinhole of the config:
+    ``f_px = focal_length_m / pixel_size_m`` and the principal point at the image centre
+    ``((width - 1) / 2, (height - 1) / 2)`` (pixel centres at integer coordinates)."""
+    if calibration is not None:
+        cx, cy = calibration.principal_point_px
+        return CameraModel(calibration.fx, calibration.fy, cx, cy, camera.focal_length_m)
+    f_px = camera.focal_length_m / camera.pixel_size_m
+    return CameraModel(
+        f_px,
+        f_px,
+        (camera.width_px - 1) / 2.0,
+        (camera.height_px - 1) / 2.0,
+        camera.focal_length_m,
+    )
+
+
+def pixels_to_metric(points_px: npt.ArrayLike, model: CameraModel) -> FloatArray:
+    """Undistorted pixel ``(col, row)`` -> metric image coordinates ``(u, n)`` (metres).
+
+    Spec section 1 with "forward = up" in the image: ``col = cx + n_px``, ``row = cy - u_px``
+    and ``u = lambda * u_px / f_px`` (= ``u_px * pixel_size`` for the ideal camera).
+    (N, 2) in, (N, 2) out.
+
+    TODO(core): the single local copy of this mapping; replace with
+    ``companion.core.geometry``'s pixel <-> metric function once it lands.
+    """
+    p = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+    u = model.focal_length_m * (model.cy_px - p[:, 1]) / model.fy_px
+    n = model.focal_length_m * (p[:, 0] - model.cx_px) / model.fx_px
+    return np.column_stack([u, n])
+
+
+@dataclass(frozen=True)
+class PerceptionResult:
+    """One frame's measurement of the target.
+
+    ``status``: ``"ok"`` (target measured), ``"lost"`` (nothing target-like in view) or
+    ``"rejected"`` (candidates seen, none plausible); ``reason`` says why when not ok.
+    ``corners_px``: (4, 2) raw detected ``(col, row)``; ``corners_undistorted_px``: the same
+    after undistortion (equal without calibration); ``points_m``: (4, 2) metric ``(u, n)`` on
+    the real image plane, spec section 1 (``None`` unless ok). Order: the detector's
+    (front-left, front-right, rear-right, rear-left), matching :attr:`target_points_m`.
+    ``t_us``: the frame's capture time, passed through.
+    """
+
+    status: Status
+    reason: str = ""
+    corners_px: FloatArray | None = None
+    corners_undistorted_px: FloatArray | None = None
+    points_m: FloatArray | None = None
+    quality: float = 0.0
+    t_us: int | None = None
+    detection: Detection | None = None
+    report: DetectionReport | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def make_detector(target: TargetConfig) -> RectangleDetector | ArucoDetector:
+    """The detector ``target.pattern`` names."""
+    if target.pattern == "rectangle":
+        return RectangleDetector(target.length_m, target.width_m)
+    if target.pattern == "aruco":
+        return ArucoDetector(target.aruco_dictionary, target.aruco_id, target.aruco_size_m)
+    raise PerceptionError(f"target.pattern: {target.pattern!r} has no detector")
+
+
+class Perception:
+    """Detector + undistortion + metric conversion for one camera and target.
+
+    ``calibration``: explicit, else loaded from ``camera.calibration_file`` when set, else
+    the ideal pinhole. A calibration made at another image size than the config's is an
+    error (its pixels would not be ours). Keeps the last accepted corners to hold the
+    rectangle's corner order across frames (``track_order=False`` to disable).
+    """
+
+    def __init__(
+        self,
+        camera: CameraConfig,
+        target: TargetConfig,
+        *,
+        calibration: Calibration | None = None,
+        detector: Detector | None = None,
+        track_order: bool = True,
+    ) -> None:
+        if calibration is None and camera.calibration_file:
+            calibration = load_calibration(camera.calibration_file)
+        if calibration is not None and calibration.image_size_px is not None:
+            expected = (camera.width_px, camera.height_px)
+            if tuple(calibration.image_size_px) != expected:
+                raise PerceptionError(
+                    f"camera.calibration_file: calibrated at {calibration.image_size_px} px,"
+                    f" camera is {expected} px"
+                )
+        self.camera = camera
+        self.calibration = calibration
+        self.model = camera_model(camera, calibration)
+        self.detector: Detector = detector if detector is not None else make_detector(target)
+        self._track_order = track_order
+        self._last_corners: FloatArray | None = None
+
+    @property
+    def target_points_m(self) -> FloatArray:
+        return self.detector.target_points_m
+
+    def process(self, image: npt.NDArray[np.uint8], *, t_us: int | None = None) -> PerceptionResult:
+        """Measure the target in ``image`` ((H, W) mono or (H, W, 3) BGR uint8)."""
+        if image.shape[:2] != (self.camera.height_px, self.camera.width_px):
+            return PerceptionResult(
+                "rejected",
+                f"image is {image.shape[1]}x{image.shape[0]} px, camera is "
+                f"{self.camera.width_px}x{self.camera.height_px}",
+                t_us=t_us,
+            )
+        hint = self._last_corners if self._track_order else None
+        report = self.detector.analyse(image, hint)
+        det = report.detection
+        if det is None:
+            self._last_corners = None
+            status: Status = "rejected" if report.rejections else "lost"
+            return PerceptionResult(status, report.reason, t_us=t_us, report=report)
+        self._last_corners = det.corners_px
+        undist = (
+            self.calibration.undistort_px(det.corners_px)
+            if self.calibration is not None
+            else det.corners_px.copy()
+        )
+        points = pixels_to_metric(undist, self.model)
+        for a in (undist, points):
+            a.setflags(write=False)
+        return PerceptionResult(
+            "ok", "", det.corners_px, undist, points, det.quality, t_us, det, report
+        )
+
+
+__all__ = [
+    "CameraModel",
+    "Perception",
+    "PerceptionResult",
+    "camera_model",
+    "make_detector",
+    "pixels_to_metric",
+]

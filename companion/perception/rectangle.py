@@ -1,0 +1,319 @@
+"""Detector for the emulator's pattern: a bright rectangle (the AGV's top) on a darker scene.
+
+Scene model (what the emulator renders, docs/wire.md): the AGV top is the brightest region
+(>= 200), the ground is textured (about 40..150) and the box's sides are dark (<= 60).
+
+Pipeline: fixed (or Otsu) threshold -> external contours -> convex hull -> polygon
+approximation to 4 vertices (coarse corners, about 1 px) -> sub-pixel refinement: each edge is
+sampled across its normal, the edge position on every profile is where the intensity crosses
+the midpoint between the local inside and outside levels, a line is fitted to those points
+(total least squares, one outlier pass) and adjacent lines are intersected. Fitting whole
+edges averages pixel quantisation, noise and texture; corners themselves are never used.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from companion.perception._types import (
+    Detection,
+    DetectionReport,
+    FloatArray,
+    PerceptionError,
+    Rejection,
+    to_gray,
+)
+from companion.perception.plausibility import (
+    QuadLimits,
+    check_quad,
+    order_target_corners,
+    signed_area,
+    touches_border,
+)
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RectangleSettings:
+    """Tuning of :class:`RectangleDetector` (pixels unless named otherwise).
+
+    ``threshold``: grey level separating the top (>= 200) from everything else (<= 150);
+    ``None`` = Otsu (only sensible when the top covers a good part of the image).
+    ``presmooth_px``: Gaussian sigma applied before thresholding (coarse stage only).
+    ``profile_half_px``: half length of the profile sampled across each edge; must cover the
+    edge blur plus the coarse corners' error. ``min_contrast``: inside minus outside level for
+    an edge sample to count. ``noise_floor_px``: blobs smaller than this are ignored silently
+    (sensor noise); larger ones that fail a check are reported as rejections.
+    ``max_candidates``: bright blobs examined per image, largest first.
+    """
+
+    threshold: int | None = 175
+    presmooth_px: float = 0.8
+    profile_half_px: float = 4.0
+    profile_step_px: float = 0.25
+    min_contrast: float = 40.0
+    max_samples_per_edge: int = 120
+    refine_passes: int = 2
+    noise_floor_px: float = 12.0
+    max_candidates: int = 5
+    min_fill: float = 0.85
+    max_corner_shift_px: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.threshold is not None and not 0 < self.threshold < 255:
+            raise PerceptionError("threshold: must be in (0, 255) or None for Otsu")
+        if not self.profile_half_px >= 2:
+            raise PerceptionError("profile_half_px: must be >= 2")
+        if not 0 < self.profile_step_px <= 0.5:
+            raise PerceptionError("profile_step_px: must be in (0, 0.5]")
+        if self.refine_passes < 1:
+            raise PerceptionError("refine_passes: must be >= 1")
+
+
+@dataclass(frozen=True)
+class _EdgeFit:
+    point: FloatArray  # a point on the line (col, row)
+    direction: FloatArray  # unit direction
+    rms_px: float
+    valid_fraction: float
+
+
+class RectangleDetector:
+    """Finds the target rectangle's four corners with sub-pixel accuracy.
+
+    ``length_m``, ``width_m``: the target's sides (length along its heading). Corner order:
+    clockwise on screen and edge 0 is the image of a width edge, i.e. front-left, front-right,
+    rear-right, rear-left of the target up to the half-turn ambiguity of a plain rectangle
+    (see :func:`~companion.perception.plausibility.order_target_corners`; pass ``hint`` to
+    :meth:`analyse` to keep the order continuous between frames).
+
+    ``quality`` = (fraction of usable edge samples) * exp(-(RMS line-fit residual in px)).
+    """
+
+    def __init__(
+        self,
+        length_m: float,
+        width_m: float,
+        *,
+        settings: RectangleSettings | None = None,
+        limits: QuadLimits | None = None,
+    ) -> None:
+        if not (length_m > 0 and width_m > 0):
+            raise PerceptionError("length_m, width_m: must be > 0")
+        self.length_m = float(length_m)
+        self.width_m = float(width_m)
+        self.settings = settings or RectangleSettings()
+        aspect = max(length_m, width_m) / min(length_m, width_m)
+        self.limits = limits or QuadLimits(expected_aspect=aspect)
+        pts = np.array(
+            [
+                [+length_m / 2, -width_m / 2],
+                [+length_m / 2, +width_m / 2],
+                [-length_m / 2, +width_m / 2],
+                [-length_m / 2, -width_m / 2],
+            ]
+        )
+        pts.setflags(write=False)
+        self._target_points_m = pts
+
+    @property
+    def target_points_m(self) -> FloatArray:
+        """(4, 2) ``(x forward, y right)`` metres: FL, FR, RR, RL (the detection's order)."""
+        return self._target_points_m
+
+    def detect(self, image: npt.NDArray[np.uint8]) -> Detection | None:
+        return self.analyse(image).detection
+
+    def analyse(
+        self, image: npt.NDArray[np.uint8], hint: npt.ArrayLike | None = None
+    ) -> DetectionReport:
+        gray = to_gray(image)
+        h, w = gray.shape
+        s = self.settings
+        coarse = gray
+        if s.presmooth_px > 0:
+            coarse = cv2.GaussianBlur(gray, (0, 0), s.presmooth_px)
+        if s.threshold is None:
+            _, binary = cv2.threshold(coarse, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+        else:
+            _, binary = cv2.threshold(coarse, s.threshold, 255, cv2.THRESH_BINARY)
+        contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        blobs = [(float(cv2.contourArea(c)), c) for c in contours]
+        blobs = [b for b in blobs if b[0] >= s.noise_floor_px]
+        if not blobs:
+            return DetectionReport(None, (), "no bright region (target not in view)", 0)
+        blobs.sort(key=lambda b: -b[0])
+        rejections: list[Rejection] = []
+        accepted: list[Detection] = []
+        for area, contour in blobs[: s.max_candidates]:
+            result = self._candidate(gray, contour, area, w, h, hint)
+            if isinstance(result, Rejection):
+                rejections.append(result)
+            else:
+                accepted.append(result)
+        if len(blobs) > s.max_candidates:
+            rejections.append(Rejection(f"{len(blobs) - s.max_candidates} smaller blobs ignored"))
+        if not accepted:
+            reason = "; ".join(r.reason for r in rejections)
+            return DetectionReport(None, tuple(rejections), reason, len(blobs))
+        best = max(accepted, key=lambda d: (d.quality > 0.5, d.area_px))
+        return DetectionReport(best, tuple(rejections), "", len(blobs))
+
+    # ------------------------------------------------------------------------------------------
+
+    def _candidate(
+        self,
+        gray: npt.NDArray[np.uint8],
+        contour: npt.NDArray[np.int32],
+        area: float,
+        w: int,
+        h: int,
+        hint: npt.ArrayLike | None,
+    ) -> Detection | Rejection:
+        s = self.settings
+        lim = self.limits
+        if area < lim.min_area_px:
+            return Rejection(f"too small: blob area {area:.0f} px^2 < {lim.min_area_px:.0f}")
+        if touches_border(contour.reshape(-1, 2), w, h, lim.border_margin_px):
+            return Rejection("touches image border: partially visible")
+        quad = _approx_quad(contour)
+        if quad is None:
+            return Rejection("not a quadrilateral")
+        quad_area = abs(signed_area(quad))
+        fill = area / max(quad_area, 1e-9)
+        if not s.min_fill <= fill <= 1.0 / s.min_fill:
+            return Rejection(f"not quadrilateral-shaped: fill {fill:.2f}", quad)
+        ordered = order_target_corners(quad, self.width_m <= self.length_m, hint)
+        corners = ordered
+        fits: list[_EdgeFit] = []
+        for _ in range(s.refine_passes):
+            refined = self._refine(gray, corners)
+            if refined is None:
+                return Rejection("edges not measurable (low contrast or too short)", ordered)
+            corners, fits = refined
+        shift = float(np.max(np.linalg.norm(corners - ordered, axis=1)))
+        limit = s.max_corner_shift_px + 0.05 * math.sqrt(quad_area)
+        if shift > limit:
+            return Rejection(f"refinement moved a corner by {shift:.1f} px", ordered)
+        reason = check_quad(corners, w, h, lim)
+        if reason is not None:
+            return Rejection(reason, corners)
+        valid = float(np.mean([f.valid_fraction for f in fits]))
+        rms = float(np.sqrt(np.mean([f.rms_px**2 for f in fits])))
+        quality = float(np.clip(valid * math.exp(-rms), 0.0, 1.0))
+        flags: tuple[str, ...] = ()
+        if touches_border(corners, w, h, lim.border_margin_px + s.profile_half_px):
+            flags = ("near border",)
+        return Detection(corners, quality, abs(signed_area(corners)), None, flags)
+
+    def _refine(
+        self, gray: npt.NDArray[np.uint8], corners: FloatArray
+    ) -> tuple[FloatArray, list[_EdgeFit]] | None:
+        fits = []
+        for i in range(4):
+            fit = self._fit_edge(gray, corners[i], corners[(i + 1) % 4])
+            if fit is None:
+                return None
+            fits.append(fit)
+        out = np.empty((4, 2))
+        for i in range(4):
+            p = _intersect(fits[(i - 1) % 4], fits[i])
+            if p is None:
+                return None
+            out[i] = p
+        return out, fits
+
+    def _fit_edge(
+        self, gray: npt.NDArray[np.uint8], a: FloatArray, b: FloatArray
+    ) -> _EdgeFit | None:
+        """Sub-pixel line through the edge from ``a`` to ``b`` (clockwise polygon)."""
+        s = self.settings
+        d = b - a
+        length = float(np.hypot(d[0], d[1]))
+        r = s.profile_half_px
+        margin = 1.5 * r + 1.0
+        if length < 2 * margin + 4:
+            return None
+        t = d / length
+        normal_out = np.array([t[1], -t[0]])  # outward for a clockwise-on-screen polygon
+        n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
+        along = np.linspace(margin, length - margin, n_samples)
+        ks = np.arange(-r, r + 1e-9, s.profile_step_px)
+        base = a[None, :] + along[:, None] * t[None, :]
+        pts = base[:, None, :] + ks[None, :, None] * normal_out[None, None, :]
+        mapx = pts[..., 0].astype(np.float32)
+        mapy = pts[..., 1].astype(np.float32)
+        prof = cv2.remap(
+            gray, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        ).astype(np.float64)
+        inside = prof[:, ks <= -1.5].mean(axis=1)
+        out_sel = (ks >= 1.5) & (ks <= 2.5)
+        outside = prof[:, out_sel].mean(axis=1)
+        level = 0.5 * (inside + outside)
+        contrast = inside - outside
+        # first crossing of `level` from inside (k = -r) outwards, nearest to k = 0
+        above = prof >= level[:, None]
+        cross = above[:, :-1] & ~above[:, 1:]
+        offsets = np.full(n_samples, np.nan)
+        mid = (ks[:-1] + ks[1:]) / 2
+        for j in range(n_samples):
+            if contrast[j] < s.min_contrast:
+                continue
+            idx = np.flatnonzero(cross[j])
+            if idx.size == 0:
+                continue
+            i = idx[np.argmin(np.abs(mid[idx]))]
+            v0, v1 = prof[j, i], prof[j, i + 1]
+            frac = (v0 - level[j]) / (v0 - v1) if v0 != v1 else 0.5
+            offsets[j] = ks[i] + frac * s.profile_step_px
+        ok = np.isfinite(offsets)
+        if ok.sum() < max(4, 0.3 * n_samples):
+            return None
+        edge_pts = base[ok] + offsets[ok, None] * normal_out[None, :]
+        fit = _tls_line(edge_pts)
+        # one outlier pass: texture or a side face can fool a few profiles
+        res = np.abs((edge_pts - fit[0]) @ np.array([-fit[1][1], fit[1][0]]))
+        mad = float(np.median(res)) * 1.4826 + 0.05
+        keep = res <= max(3.0 * mad, 0.3)
+        if keep.sum() >= 4 and not keep.all():
+            fit = _tls_line(edge_pts[keep])
+            res = np.abs((edge_pts[keep] - fit[0]) @ np.array([-fit[1][1], fit[1][0]]))
+        rms = float(np.sqrt(np.mean(res**2)))
+        valid = float(keep.sum()) / n_samples
+        return _EdgeFit(fit[0], fit[1], rms, valid)
+
+
+def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Total-least-squares line: (centroid, unit direction)."""
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    return c, vt[0]
+
+
+def _intersect(e1: _EdgeFit, e2: _EdgeFit) -> FloatArray | None:
+    m = np.column_stack([e1.direction, -e2.direction])
+    if abs(float(np.linalg.det(m))) < 1e-6:
+        return None
+    ts = np.linalg.solve(m, e2.point - e1.point)
+    return np.asarray(e1.point + ts[0] * e1.direction, dtype=np.float64)
+
+
+def _approx_quad(contour: npt.NDArray[np.int32]) -> FloatArray | None:
+    """Four vertices approximating a blob's convex hull, or ``None``."""
+    hull = cv2.convexHull(contour)
+    peri = cv2.arcLength(hull, True)
+    for frac in (0.02, 0.03, 0.04, 0.015, 0.05, 0.01, 0.07):
+        poly = cv2.approxPolyDP(hull, frac * peri, True)
+        if len(poly) == 4:
+            return poly.reshape(4, 2).astype(np.float64)
+    return None
+
+
+__all__ = ["RectangleDetector", "RectangleSettings"]
