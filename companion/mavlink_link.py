@@ -1,0 +1,1051 @@
+"""A robust MAVLink 2 link for the companion: asyncio transport, hostile-input receive path.
+
+Why not ``mavutil``: its UDP connections feed every datagram into ONE shared parser, so a single
+truncated datagram poisons the following good frames (shared/spec/pitfalls.md). Here each UDP
+datagram is parsed by a fresh robust parser; streams (TCP, serial) keep one robust parser.
+pymavlink is used only as the codec (``pymavlink.dialects.v20.common``).
+
+Receive path, in order (each rejection increments ``counters[reason]``):
+``bad_data`` / ``unknown_msgid`` (robust parser pseudo-messages), ``incomplete`` (bytes left in a
+datagram), ``mavlink1`` (MAVLink 2 only), ``not_whitelisted`` (see :class:`AllowRule`), signing
+(``unsigned``, ``bad_signature``, ``old_timestamp``, ``stale_stream``), ``duplicate`` (same bytes
+as one of the last frames of that source), values (``non_finite``, ``quaternion_norm``,
+``speed``, ``angular_rate``). Accepted frames become :class:`Received` objects in a bounded queue
+that drops the oldest (``queue_overflow``); iterate with ``async for rx in link``.
+
+Signing: the key file holds the 32-byte secret either as exactly 32 raw bytes or as 64 hex
+characters (surrounding whitespace ignored). Incoming signatures are verified HERE, not by
+pymavlink, because pymavlink 2.4.50 stores a frame's timestamp before checking its signature:
+one forged frame stamped 2^48-2 would block every later legitimate frame of that stream. We check
+the signature first and only then update the stream's timestamp (as the C library does).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import hashlib
+import logging
+import math
+import os
+import re
+import socket
+import termios
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion import CompanionError
+
+log = logging.getLogger(__name__)
+
+MAVLINK2_MAGIC = 0xFD
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+MAV_CMD_DO_SET_MODE = 176
+MAV_CMD_COMPONENT_ARM_DISARM = 400
+ARM_FORCE_MAGIC = 21196
+#: SET_ATTITUDE_TARGET type_mask: ignore roll/pitch/yaw body rates, use attitude + thrust.
+#: Never bit 64 (throttle ignore): PX4 then drops the message (px4-offboard.md).
+ATTITUDE_THRUST_TYPE_MASK = 7
+
+_SIGNING_EPOCH_UNIX_S = 1420070400  # 2015-01-01T00:00:00Z, MAVLink signing time origin
+_NEW_STREAM_MAX_AGE_10US = 6_000_000  # 60 s, as pymavlink and the C library
+
+
+class LinkError(CompanionError):
+    """The MAVLink link failed or was misused (bad connection string, closed, no peer...)."""
+
+
+class ConnectionStringError(LinkError):
+    """A connection string could not be parsed."""
+
+
+class NoPeerError(LinkError):
+    """``udpin``: nothing was sent because no whitelisted autopilot frame has arrived yet."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Connection strings
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A parsed connection string. ``kind`` udpin/udpout/tcp: ``host``/``port``; serial:
+    ``device``/``baud``."""
+
+    kind: Literal["udpin", "udpout", "tcp", "serial"]
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+    def __str__(self) -> str:
+        if self.kind == "serial":
+            return f"serial:{self.device}:{self.baud}"
+        return f"{self.kind}:{self.host}:{self.port}"
+
+
+_FORMS = (
+    "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyX,BAUD or serial:/dev/ttyX:BAUD "
+    "(a '://' after the scheme is accepted too)"
+)
+DEFAULT_SERIAL_BAUD = 115200
+
+
+def parse_connection_string(text: str) -> Endpoint:
+    """Parse a pymavlink/MAVSDK-style connection string into an :class:`Endpoint`.
+
+    ``udp:`` means ``udpin:`` (as in pymavlink). ``udpin`` accepts an empty host (0.0.0.0) and
+    port 0 (an ephemeral port, see :attr:`MavlinkLink.local_address`).
+    """
+    s = text.strip()
+
+    def bad(why: str) -> ConnectionStringError:
+        return ConnectionStringError(f"bad MAVLink connection string {text!r}: {why}; use {_FORMS}")
+
+    if not s:
+        raise bad("empty")
+    if s.startswith("/"):  # /dev/ttyACM0,921600 or /dev/ttyACM0
+        dev, _, baud_s = s.partition(",")
+        return _serial(dev, baud_s, bad)
+    m = re.fullmatch(r"([A-Za-z]+):(?://)?(.*)", s)
+    if not m:
+        raise bad("no scheme")
+    scheme, rest = m.group(1).lower(), m.group(2)
+    if scheme == "serial":
+        dev, sep, baud_s = rest.rpartition(":")
+        if not sep:
+            dev, baud_s = rest, ""
+        return _serial(dev, baud_s, bad)
+    if scheme == "udp":
+        scheme = "udpin"
+    if scheme not in ("udpin", "udpout", "tcp"):
+        raise bad(f"unknown scheme {scheme!r}")
+    host, sep, port_s = rest.rpartition(":")
+    if not sep:
+        raise bad("missing ':PORT'")
+    if not port_s.isdigit():
+        raise bad(f"port {port_s!r} is not a number")
+    port = int(port_s)
+    lo = 0 if scheme == "udpin" else 1
+    if not lo <= port <= 65535:
+        raise bad(f"port {port} out of range {lo}..65535")
+    if not host:
+        if scheme != "udpin":
+            raise bad("missing host")
+        host = "0.0.0.0"
+    if not re.fullmatch(r"[A-Za-z0-9.\-_]+", host):
+        raise bad(f"host {host!r} is not a hostname or IPv4 address")
+    return Endpoint(kind=scheme, host=host, port=port)  # type: ignore[arg-type]
+
+
+def _serial(dev: str, baud_s: str, bad: Callable[[str], ConnectionStringError]) -> Endpoint:
+    if not dev.startswith("/"):
+        raise bad(f"serial device {dev!r} must be an absolute path")
+    if baud_s == "":
+        baud = DEFAULT_SERIAL_BAUD
+    elif baud_s.isdigit():
+        baud = int(baud_s)
+    else:
+        raise bad(f"baud rate {baud_s!r} is not a number")
+    if not hasattr(termios, f"B{baud}"):
+        raise bad(f"baud rate {baud} is not supported by this system")
+    return Endpoint(kind="serial", device=dev, baud=baud)
+
+
+# ----------------------------------------------------------------------------------------------
+# PX4 modes (px4-offboard.md "HEARTBEAT and mode encoding", commander/px4_custom_mode.h)
+
+PX4_MAIN_MODES: Mapping[int, str] = {
+    1: "MANUAL",
+    2: "ALTCTL",
+    3: "POSCTL",
+    4: "AUTO",
+    5: "ACRO",
+    6: "OFFBOARD",
+    7: "STABILIZED",
+    8: "RATTITUDE",
+    9: "SIMPLE",
+    10: "TERMINATION",
+    11: "ALTITUDE_CRUISE",
+}
+PX4_AUTO_SUB_MODES: Mapping[int, str] = {
+    1: "READY",
+    2: "TAKEOFF",
+    3: "LOITER",
+    4: "MISSION",
+    5: "RTL",
+    6: "LAND",
+    8: "FOLLOW_TARGET",
+    9: "PRECLAND",
+    10: "VTOL_TAKEOFF",
+    **{10 + i: f"EXTERNAL{i}" for i in range(1, 9)},
+}
+PX4_POSCTL_SUB_MODES: Mapping[int, str] = {1: "ORBIT", 2: "SLOW"}
+PX4_MAIN_OFFBOARD = 6
+PX4_MAIN_POSCTL = 3
+PX4_MAIN_AUTO = 4
+PX4_SUB_AUTO_LOITER = 3
+
+
+@dataclass(frozen=True)
+class Px4Mode:
+    """A PX4 custom mode: ``main`` and ``sub`` mode numbers and a name like ``AUTO.LOITER``."""
+
+    main: int
+    sub: int
+    name: str
+
+
+def px4_custom_mode(main: int, sub: int = 0) -> int:
+    """HEARTBEAT ``custom_mode`` for a PX4 main/sub mode: ``main << 16 | sub << 24``."""
+    return (main & 0xFF) << 16 | (sub & 0xFF) << 24
+
+
+def decode_px4_mode(custom_mode: int) -> Px4Mode:
+    """Decode HEARTBEAT ``custom_mode`` (PX4) into main/sub/name; unknown values are named
+    ``UNKNOWN(main.sub)``."""
+    main = (custom_mode >> 16) & 0xFF
+    sub = (custom_mode >> 24) & 0xFF
+    base = PX4_MAIN_MODES.get(main)
+    if base is None:
+        return Px4Mode(main, sub, f"UNKNOWN({main}.{sub})")
+    subs = {PX4_MAIN_AUTO: PX4_AUTO_SUB_MODES, PX4_MAIN_POSCTL: PX4_POSCTL_SUB_MODES}.get(main)
+    if sub == 0 or subs is None:
+        name = base if sub == 0 else f"{base}.{sub}"
+    else:
+        name = f"{base}.{subs.get(sub, str(sub))}"
+    return Px4Mode(main, sub, name)
+
+
+def px4_mode_by_name(name: str) -> tuple[int, int]:
+    """(main, sub) for a name like ``OFFBOARD``, ``POSCTL`` or ``AUTO.LOITER``."""
+    base, _, sub_name = name.upper().partition(".")
+    mains = {v: k for k, v in PX4_MAIN_MODES.items()}
+    if base not in mains:
+        raise LinkError(f"unknown PX4 mode {name!r}")
+    main = mains[base]
+    if not sub_name:
+        return main, 0
+    subs = {PX4_MAIN_AUTO: PX4_AUTO_SUB_MODES, PX4_MAIN_POSCTL: PX4_POSCTL_SUB_MODES}.get(main, {})
+    inv = {v: k for k, v in subs.items()}
+    if sub_name not in inv:
+        raise LinkError(f"unknown PX4 sub mode {name!r}")
+    return main, inv[sub_name]
+
+
+def is_armed(base_mode: int) -> bool:
+    """HEARTBEAT ``base_mode`` armed bit (MAV_MODE_FLAG_SAFETY_ARMED = 128)."""
+    return bool(base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+# ----------------------------------------------------------------------------------------------
+# Whitelist and value checks
+
+
+def msgid_of(name: str) -> int:
+    """MAVLink message id for a message name of the common dialect (``ATTITUDE`` -> 30)."""
+    mid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name.upper()}", None)
+    if mid is None:
+        raise LinkError(f"unknown MAVLink message name {name!r}")
+    return int(mid)
+
+
+@dataclass(frozen=True)
+class AllowRule:
+    """Frames from ``sysid`` (and ``compid``, None = any) with a message in ``msg_names``
+    (None = any) are accepted."""
+
+    sysid: int
+    compid: int | None = None
+    msg_names: frozenset[str] | None = None
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.sysid <= 255:
+            raise LinkError(f"AllowRule.sysid {self.sysid} not in 1..255")
+        if self.msg_names is not None:
+            for n in self.msg_names:
+                msgid_of(n)
+
+    def msgids(self) -> frozenset[int] | None:
+        return None if self.msg_names is None else frozenset(msgid_of(n) for n in self.msg_names)
+
+
+#: What the companion needs from the autopilot (plus a few harmless status messages).
+AUTOPILOT_TELEMETRY: frozenset[str] = frozenset(
+    {
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "ATTITUDE",
+        "ATTITUDE_QUATERNION",
+        "LOCAL_POSITION_NED",
+        "EXTENDED_SYS_STATE",
+        "COMMAND_ACK",
+        "STATUSTEXT",
+        "ATTITUDE_TARGET",
+        "ALTITUDE",
+        "GLOBAL_POSITION_INT",
+        "HOME_POSITION",
+        "AUTOPILOT_VERSION",
+        "TIMESYNC",
+    }
+)
+
+
+def default_allow_rules(
+    autopilot_sysid: int, autopilot_compid: int, agv_sysid: int, agv_compid: int | None
+) -> tuple[AllowRule, ...]:
+    """Autopilot telemetry from (sysid, compid) plus FOLLOW_TARGET (and HEARTBEAT) from the AGV.
+    ``autopilot_compid`` 0 means any component of the autopilot's system."""
+    return (
+        AllowRule(autopilot_sysid, autopilot_compid or None, AUTOPILOT_TELEMETRY),
+        AllowRule(agv_sysid, agv_compid or None, frozenset({"FOLLOW_TARGET", "HEARTBEAT"})),
+    )
+
+
+#: Fields that legitimately carry NaN ("unset") per message.
+DEFAULT_NAN_ALLOWED: Mapping[str, frozenset[str]] = {
+    "COMMAND_LONG": frozenset(f"param{i}" for i in range(1, 8)),
+    "COMMAND_INT": frozenset(f"param{i}" for i in range(1, 5)),
+    "FOLLOW_TARGET": frozenset({"position_cov"}),  # others: see est_capabilities below
+    "ATTITUDE_QUATERNION": frozenset({"repr_offset_q"}),
+    "ALTITUDE": frozenset(
+        {
+            "altitude_monotonic",
+            "altitude_amsl",
+            "altitude_local",
+            "altitude_relative",
+            "altitude_terrain",
+            "bottom_clearance",
+        }
+    ),
+    "HOME_POSITION": frozenset({"q", "approach_x", "approach_y", "approach_z"}),
+}
+_FT_CAP_FIELDS = {0: ("alt",), 1: ("vel",), 2: ("acc",), 3: ("attitude_q", "rates")}
+
+
+@dataclass(frozen=True)
+class ValueLimits:
+    """Plausibility bounds on received values. A frame outside them is dropped and counted."""
+
+    quat_norm_tol: float = 1e-2
+    max_speed_m_s: float = 100.0
+    max_rate_rad_s: float = 50.0
+    nan_allowed: Mapping[str, frozenset[str]] = field(
+        default_factory=lambda: dict(DEFAULT_NAN_ALLOWED)
+    )
+
+
+def _floats(v: Any) -> list[float]:
+    if isinstance(v, float):
+        return [v]
+    if isinstance(v, list | tuple):
+        return [x for x in v if isinstance(x, float)]
+    return []
+
+
+def check_values(msg: Any, limits: ValueLimits) -> str | None:
+    """Reason a decoded message is implausible (``non_finite``, ``quaternion_norm``, ``speed``,
+    ``angular_rate``), or None when it is fine."""
+    name = msg.get_type()
+    allowed = set(limits.nan_allowed.get(name, frozenset()))
+    if name == "FOLLOW_TARGET":
+        caps = int(msg.est_capabilities)
+        for bit, names in _FT_CAP_FIELDS.items():
+            if not caps & (1 << bit):
+                allowed.update(names)
+    for fname in msg.get_fieldnames():
+        if fname in allowed:
+            continue
+        if not all(math.isfinite(x) for x in _floats(getattr(msg, fname))):
+            return "non_finite"
+
+    def qbad(q: Sequence[float]) -> bool:
+        return abs(math.sqrt(sum(x * x for x in q)) - 1.0) > limits.quat_norm_tol
+
+    def too_fast(v: Sequence[float], lim: float) -> bool:
+        return math.sqrt(sum(x * x for x in v)) > lim
+
+    if name == "ATTITUDE_QUATERNION":
+        if qbad((msg.q1, msg.q2, msg.q3, msg.q4)):
+            return "quaternion_norm"
+        if too_fast((msg.rollspeed, msg.pitchspeed, msg.yawspeed), limits.max_rate_rad_s):
+            return "angular_rate"
+    elif name == "ATTITUDE":
+        if too_fast((msg.rollspeed, msg.pitchspeed, msg.yawspeed), limits.max_rate_rad_s):
+            return "angular_rate"
+    elif name == "ATTITUDE_TARGET" and qbad(msg.q):
+        return "quaternion_norm"
+    elif name == "LOCAL_POSITION_NED":
+        if too_fast((msg.vx, msg.vy, msg.vz), limits.max_speed_m_s):
+            return "speed"
+    elif name == "FOLLOW_TARGET":
+        caps = int(msg.est_capabilities)
+        if caps & 2 and too_fast(msg.vel, limits.max_speed_m_s):
+            return "speed"
+        if caps & 8:
+            if qbad(msg.attitude_q):
+                return "quaternion_norm"
+            if too_fast(msg.rates, limits.max_rate_rad_s):
+                return "angular_rate"
+    return None
+
+
+# ----------------------------------------------------------------------------------------------
+# Signing
+
+
+def load_signing_key(path: str | Path) -> bytes:
+    """Read a 32-byte MAVLink 2 signing key: a file of exactly 32 raw bytes, or 64 hex
+    characters (whitespace around them ignored)."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise LinkError(f"signing key file {str(p)!r}: {e.strerror}") from e
+    if len(data) == 32:
+        return data
+    try:
+        text = data.decode("ascii").strip()
+        if len(text) == 64:
+            return bytes.fromhex(text)
+    except (UnicodeDecodeError, ValueError):
+        pass
+    raise LinkError(
+        f"signing key file {str(p)!r}: expected 32 raw bytes or 64 hex characters, "
+        f"got {len(data)} bytes"
+    )
+
+
+def signing_timestamp_now() -> int:
+    """MAVLink signing time: units of 10 us since 2015-01-01 (wall clock, as the protocol says)."""
+    return int((max(time.time(), _SIGNING_EPOCH_UNIX_S) - _SIGNING_EPOCH_UNIX_S) * 100_000)
+
+
+class SignatureVerifier:
+    """Verify incoming MAVLink 2 signatures: signature FIRST, then the per-stream timestamp.
+
+    Streams are keyed by (link_id, sysid, compid); a frame must be newer than the last accepted
+    one of its stream; a new stream must not be older than 60 s.
+    """
+
+    def __init__(self, key: bytes, allow_unsigned_msgids: Iterable[int] = ()) -> None:
+        if len(key) != 32:
+            raise LinkError("signing key must be 32 bytes")
+        self._key = key
+        self._allow_unsigned = frozenset(allow_unsigned_msgids)
+        self._streams: dict[tuple[int, int, int], int] = {}
+        self.max_timestamp_10us = signing_timestamp_now()
+
+    def check(self, raw: bytes, sysid: int, compid: int, msgid: int) -> str | None:
+        """Reason to reject ``raw`` (a whole MAVLink 2 frame), or None to accept it."""
+        if not raw[2] & mavlink2.MAVLINK_IFLAG_SIGNED:
+            return None if msgid in self._allow_unsigned else "unsigned"
+        if len(raw) < 10 + 2 + 13:
+            return "bad_signature"
+        digest = hashlib.sha256(self._key + raw[:-6]).digest()[:6]
+        if digest != raw[-6:]:
+            return "bad_signature"
+        link_id = raw[-13]
+        ts = int.from_bytes(raw[-12:-6], "little")
+        key = (link_id, sysid, compid)
+        last = self._streams.get(key)
+        if last is not None:
+            if ts <= last:
+                return "old_timestamp"
+        elif ts + _NEW_STREAM_MAX_AGE_10US < max(self.max_timestamp_10us, signing_timestamp_now()):
+            return "stale_stream"
+        self._streams[key] = ts
+        self.max_timestamp_10us = max(self.max_timestamp_10us, ts)
+        return None
+
+
+# ----------------------------------------------------------------------------------------------
+# Received frames
+
+
+@dataclass(frozen=True)
+class Received:
+    """One accepted MAVLink 2 frame. ``msg`` is the pymavlink message object (treat as
+    read-only), ``raw`` the exact bytes received, ``t_rx_ns`` the link clock at receipt."""
+
+    msg: Any
+    raw: bytes
+    t_rx_ns: int
+    src_sysid: int
+    src_compid: int
+    msgid: int
+    name: str
+    seq: int
+    signed: bool
+
+
+@dataclass(frozen=True)
+class Sent:
+    """One frame the link sent: ``raw`` bytes as written, ``t_tx_ns`` the link clock."""
+
+    msg: Any
+    raw: bytes
+    t_tx_ns: int
+    msgid: int
+    name: str
+
+
+def message_fields(msg: Any) -> dict[str, Any]:
+    """JSON-friendly decoded fields of a pymavlink message (bytes -> str, NaN kept as float)."""
+    out: dict[str, Any] = {}
+    for fname in msg.get_fieldnames():
+        v = getattr(msg, fname)
+        if isinstance(v, bytes | bytearray):
+            v = bytes(v).decode("utf-8", errors="replace")
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[fname] = v
+    return out
+
+
+_CLOSED = object()
+_DEDUP_WINDOW = 64
+
+
+class _DatagramProtocol(asyncio.DatagramProtocol):
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self._link._on_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        self._link._count("socket_error")
+        log.debug("MAVLink UDP socket error: %s", exc)
+
+
+class _StreamProtocol(asyncio.Protocol):
+    def __init__(self, link: MavlinkLink) -> None:
+        self._link = link
+
+    def data_received(self, data: bytes) -> None:
+        self._link._on_stream_data(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._link._on_connection_lost(exc)
+
+
+class MavlinkLink:
+    """An async MAVLink 2 link: ``async with MavlinkLink(url, ...) as link: async for rx in link``.
+
+    Parameters
+    ----------
+    url: connection string (see :func:`parse_connection_string`).
+    source_system, source_component: our ids in every frame we send.
+    target_system, target_component: the autopilot (targets of commands and setpoints; in
+        ``udpin`` mode the reply address is learned from its accepted frames).
+    allow: whitelist rules; default: any message from the target system/component.
+    limits: value plausibility bounds.
+    signing_key: 32-byte key enabling MAVLink 2 signing (outgoing signed, incoming verified,
+        unsigned incoming rejected unless its msgid is in ``allow_unsigned_msgids``).
+    queue_size: receive queue bound; the oldest frame is dropped when full.
+    clock_ns: the clock stamping ``t_rx_ns`` / ``t_tx_ns`` (default ``time.monotonic_ns``).
+    on_rx / on_tx / on_reject: observers called in the event loop thread for every accepted
+        frame, every sent frame, and every rejected frame ``(reason, raw_bytes, t_ns)``.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        source_system: int,
+        source_component: int,
+        target_system: int,
+        target_component: int,
+        allow: Sequence[AllowRule] | None = None,
+        limits: ValueLimits | None = None,
+        signing_key: bytes | None = None,
+        signing_link_id: int = 0,
+        allow_unsigned_msgids: Iterable[int] = (),
+        queue_size: int = 1024,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        on_rx: Callable[[Received], None] | None = None,
+        on_tx: Callable[[Sent], None] | None = None,
+        on_reject: Callable[[str, bytes, int], None] | None = None,
+    ) -> None:
+        self.endpoint = parse_connection_string(url)
+        for nm, v, lo in (
+            ("source_system", source_system, 1),
+            ("source_component", source_component, 1),
+            ("target_system", target_system, 1),
+            ("target_component", target_component, 0),
+        ):
+            if not lo <= v <= 255:
+                raise LinkError(f"{nm} = {v} not in {lo}..255")
+        if queue_size < 1:
+            raise LinkError("queue_size must be >= 1")
+        self.source_system = source_system
+        self.source_component = source_component
+        self.target_system = target_system
+        self.target_component = target_component
+        rules = (
+            allow if allow is not None else (AllowRule(target_system, target_component or None),)
+        )
+        self._rules = [(r.sysid, r.compid, r.msgids()) for r in rules]
+        self.limits = limits or ValueLimits()
+        self._clock_ns = clock_ns
+        self._on_rx, self._on_tx, self._on_reject = on_rx, on_tx, on_reject
+        self._queue_size = queue_size
+        self.counters: Counter[str] = Counter()
+        self._verifier = (
+            SignatureVerifier(signing_key, allow_unsigned_msgids) if signing_key else None
+        )
+        # Encoder: never used to parse (so pymavlink's own signature check never runs).
+        self._enc = mavlink2.MAVLink(None, srcSystem=source_system, srcComponent=source_component)
+        if signing_key:
+            self._enc.signing.secret_key = signing_key
+            self._enc.signing.sign_outgoing = True
+            self._enc.signing.link_id = signing_link_id
+            self._enc.signing.timestamp = signing_timestamp_now()
+        self._stream_parser: Any = None
+        self._recent: dict[tuple[int, int], deque[bytes]] = {}
+        self._queue: asyncio.Queue[Any] | None = None
+        self._transport: Any = None
+        self._serial_fd: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._peer: tuple[str, int] | None = None
+        self._closed = False
+        self._error: LinkError | None = None
+        self._t_open_ns = 0
+
+    @classmethod
+    def from_config(cls, mavlink_cfg: Any, target_cfg: Any, **kwargs: Any) -> MavlinkLink:
+        """Build from :class:`companion.config.MavlinkConfig` and ``TargetConfig`` (the AGV's
+        sysid/compid for FOLLOW_TARGET). Loads the signing key file if one is configured."""
+        key = (
+            load_signing_key(mavlink_cfg.signing_key_file) if mavlink_cfg.signing_key_file else None
+        )
+        kwargs.setdefault(
+            "allow",
+            default_allow_rules(
+                mavlink_cfg.target_system,
+                mavlink_cfg.target_component,
+                target_cfg.mavlink_sysid,
+                target_cfg.mavlink_compid,
+            ),
+        )
+        return cls(
+            mavlink_cfg.url,
+            source_system=mavlink_cfg.source_system,
+            source_component=mavlink_cfg.source_component,
+            target_system=mavlink_cfg.target_system,
+            target_component=mavlink_cfg.target_component,
+            signing_key=key,
+            **kwargs,
+        )
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    async def __aenter__(self) -> MavlinkLink:
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+    async def open(self) -> None:
+        """Open the transport (bind / connect / open the serial device)."""
+        self._loop = asyncio.get_running_loop()
+        self._queue = asyncio.Queue(maxsize=self._queue_size + 1)  # +1: room for the sentinel
+        self._t_open_ns = self._clock_ns()
+        ep = self.endpoint
+        try:
+            if ep.kind == "udpin":
+                self._transport, _ = await self._loop.create_datagram_endpoint(
+                    lambda: _DatagramProtocol(self),
+                    local_addr=(ep.host, ep.port),
+                    family=socket.AF_INET,
+                )
+            elif ep.kind == "udpout":
+                self._peer = (socket.gethostbyname(ep.host), ep.port)
+                self._transport, _ = await self._loop.create_datagram_endpoint(
+                    lambda: _DatagramProtocol(self),
+                    local_addr=("0.0.0.0", 0),
+                    family=socket.AF_INET,
+                )
+            elif ep.kind == "tcp":
+                self._stream_parser = self._new_parser()
+                self._transport, _ = await self._loop.create_connection(
+                    lambda: _StreamProtocol(self), ep.host, ep.port
+                )
+            else:
+                self._stream_parser = self._new_parser()
+                self._open_serial(ep)
+        except OSError as e:
+            raise LinkError(f"cannot open MAVLink link {ep}: {e}") from e
+        log.info("MAVLink link open: %s (local %s)", ep, self.local_address)
+
+    def _open_serial(self, ep: Endpoint) -> None:
+        assert self._loop is not None
+        fd = os.open(ep.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            attrs = termios.tcgetattr(fd)
+            speed = getattr(termios, f"B{ep.baud}")
+            # raw mode (cfmakeraw), 8N1, no flow control
+            attrs[0] &= ~(
+                termios.IGNBRK
+                | termios.BRKINT
+                | termios.PARMRK
+                | termios.ISTRIP
+                | termios.INLCR
+                | termios.IGNCR
+                | termios.ICRNL
+                | termios.IXON
+                | termios.IXOFF
+            )
+            attrs[1] &= ~termios.OPOST
+            attrs[2] &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | termios.CRTSCTS)
+            attrs[2] |= termios.CS8 | termios.CREAD | termios.CLOCAL
+            attrs[3] &= ~(
+                termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN
+            )
+            attrs[4] = attrs[5] = speed
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        except (termios.error, OSError) as e:
+            os.close(fd)
+            raise LinkError(f"cannot configure serial device {ep.device}: {e}") from e
+        self._serial_fd = fd
+        self._loop.add_reader(fd, self._on_serial_readable)
+
+    def close(self) -> None:
+        """Close the transport; a pending ``async for`` ends."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._transport is not None:
+            self._transport.close()
+        if self._serial_fd is not None:
+            if self._loop is not None:
+                self._loop.remove_reader(self._serial_fd)
+            os.close(self._serial_fd)
+            self._serial_fd = None
+        self._push(_CLOSED)
+
+    # -- properties -----------------------------------------------------------------------------
+
+    @property
+    def local_address(self) -> tuple[str, int] | None:
+        """Bound (host, port) of a UDP/TCP socket (useful with ``udpin:127.0.0.1:0``)."""
+        if self._transport is None:
+            return None
+        addr = self._transport.get_extra_info("sockname")
+        return (addr[0], addr[1]) if addr else None
+
+    @property
+    def peer_address(self) -> tuple[str, int] | None:
+        """Where frames are sent (udpin: learned from the autopilot's accepted frames)."""
+        return self._peer
+
+    @property
+    def has_peer(self) -> bool:
+        return self._peer is not None or self.endpoint.kind in ("tcp", "serial")
+
+    def boot_time_ms(self) -> int:
+        """Milliseconds since the link opened (``time_boot_ms`` of what we send)."""
+        return ((self._clock_ns() - self._t_open_ns) // 1_000_000) & 0xFFFFFFFF
+
+    # -- receive --------------------------------------------------------------------------------
+
+    def __aiter__(self) -> MavlinkLink:
+        return self
+
+    async def __anext__(self) -> Received:
+        if self._queue is None:
+            raise LinkError("link is not open")
+        item = await self._queue.get()
+        if item is _CLOSED:
+            self._push(_CLOSED)  # wake any other waiter too
+            if self._error is not None:
+                raise self._error
+            raise StopAsyncIteration
+        assert isinstance(item, Received)
+        return item
+
+    async def recv(self, timeout_s: float | None = None) -> Received:
+        """Next accepted frame; ``TimeoutError`` after ``timeout_s``; LinkError when closed."""
+        try:
+            return await asyncio.wait_for(self.__anext__(), timeout_s)
+        except StopAsyncIteration:
+            raise LinkError("link closed") from None
+
+    def pending(self) -> int:
+        """Frames waiting in the receive queue."""
+        return 0 if self._queue is None else self._queue.qsize()
+
+    def _count(self, reason: str, n: int = 1) -> None:
+        self.counters[reason] += n
+
+    def _push(self, item: Any) -> None:
+        q = self._queue
+        if q is None:
+            return
+        if item is not _CLOSED and q.qsize() >= self._queue_size:
+            q.get_nowait()
+            self._count("queue_overflow")
+        if q.full():  # only the sentinel can hit this
+            q.get_nowait()
+        q.put_nowait(item)
+
+    @staticmethod
+    def _new_parser() -> Any:
+        p = mavlink2.MAVLink(None)
+        p.robust_parsing = True
+        return p
+
+    def _on_datagram(self, data: bytes, addr: Any) -> None:
+        if self._closed:
+            return
+        self._count("rx_datagrams")
+        self._count("rx_bytes", len(data))
+        t = self._clock_ns()
+        parser = self._new_parser()  # fresh per datagram: one bad datagram cannot poison others
+        for m in self._parse(parser, data):
+            self._handle(m, t, addr)
+        if parser.buf_len() > 0:
+            self._reject("incomplete", bytes(parser.buf[parser.buf_index :]), t)
+
+    def _on_stream_data(self, data: bytes) -> None:
+        if self._closed:
+            return
+        self._count("rx_bytes", len(data))
+        t = self._clock_ns()
+        for m in self._parse(self._stream_parser, data):
+            self._handle(m, t, None)
+
+    def _on_serial_readable(self) -> None:
+        assert self._serial_fd is not None
+        try:
+            data = os.read(self._serial_fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError as e:
+            if e.errno == errno.EIO:  # the other end went away (pty closed, USB unplugged)
+                self._on_connection_lost(e)
+                return
+            raise
+        if data:
+            self._on_stream_data(data)
+
+    def _on_connection_lost(self, exc: Exception | None) -> None:
+        if not self._closed:
+            self._error = LinkError(f"MAVLink link {self.endpoint} lost: {exc or 'closed by peer'}")
+            log.warning("%s", self._error)
+            self.close()
+
+    def _parse(self, parser: Any, data: bytes) -> list[Any]:
+        try:
+            return parser.parse_buffer(data) or []
+        except Exception as e:  # hostile input must never unwind the event loop
+            self._reject("parser_error", data, self._clock_ns())
+            log.debug("pymavlink parser raised %r", e)
+            # a stream parser in an unknown state is replaced
+            if parser is self._stream_parser:
+                self._stream_parser = self._new_parser()
+            return []
+
+    def _reject(self, reason: str, raw: bytes, t_ns: int) -> None:
+        self._count(reason)
+        if self._on_reject is not None:
+            self._on_reject(reason, raw, t_ns)
+
+    def _allowed(self, sysid: int, compid: int, msgid: int) -> bool:
+        for s, c, ids in self._rules:
+            if s == sysid and (c is None or c == compid) and (ids is None or msgid in ids):
+                return True
+        return False
+
+    def _handle(self, m: Any, t_ns: int, addr: Any) -> None:
+        name = m.get_type()
+        raw = bytes(m.get_msgbuf())
+        if name == "BAD_DATA":
+            self._reject("bad_data", raw, t_ns)
+            return
+        if name.startswith("UNKNOWN_"):
+            self._reject("unknown_msgid", raw, t_ns)
+            return
+        if not raw or raw[0] != MAVLINK2_MAGIC:
+            self._reject("mavlink1", raw, t_ns)
+            return
+        sysid, compid, msgid = m.get_srcSystem(), m.get_srcComponent(), m.get_msgId()
+        if not self._allowed(sysid, compid, msgid):
+            self._reject("not_whitelisted", raw, t_ns)
+            return
+        if self._verifier is not None:
+            why = self._verifier.check(raw, sysid, compid, msgid)
+            if why is not None:
+                self._reject(why, raw, t_ns)
+                return
+            # keep our outgoing timestamps ahead of what we have seen (MAVLink signing rule)
+            self._enc.signing.timestamp = max(
+                self._enc.signing.timestamp, self._verifier.max_timestamp_10us + 1
+            )
+        recent = self._recent.setdefault((sysid, compid), deque(maxlen=_DEDUP_WINDOW))
+        if raw in recent:
+            self._reject("duplicate", raw, t_ns)
+            return
+        why = check_values(m, self.limits)
+        if why is not None:
+            self._reject(why, raw, t_ns)
+            return
+        recent.append(raw)
+        if (
+            self.endpoint.kind == "udpin"
+            and addr is not None
+            and sysid == self.target_system
+            and (self.target_component == 0 or compid == self.target_component)
+        ):
+            self._peer = (addr[0], addr[1])
+        rx = Received(
+            msg=m,
+            raw=raw,
+            t_rx_ns=t_ns,
+            src_sysid=sysid,
+            src_compid=compid,
+            msgid=msgid,
+            name=name,
+            seq=m.get_seq(),
+            signed=self._verifier is not None,
+        )
+        self._count("rx_accepted")
+        if self._on_rx is not None:
+            self._on_rx(rx)
+        self._push(rx)
+
+    # -- send -----------------------------------------------------------------------------------
+
+    @property
+    def mav(self) -> Any:
+        """The pymavlink encoder: ``link.mav.xxx_encode(...)`` builds a message for :meth:`send`."""
+        return self._enc
+
+    def send(self, msg: Any) -> bytes:
+        """Encode ``msg`` (MAVLink 2, our source ids, signed if configured), send it to the peer
+        and return the bytes sent. Raises :class:`NoPeerError` (udpin before the autopilot was
+        heard) or :class:`LinkError`."""
+        if self._closed or (self._transport is None and self._serial_fd is None):
+            raise LinkError("MAVLink link is not open")
+        kind = self.endpoint.kind
+        if kind in ("udpin", "udpout") and self._peer is None:
+            self._count("tx_no_peer")
+            raise NoPeerError(f"no autopilot heard yet on {self.endpoint}: nothing sent")
+        if self._verifier is not None:
+            self._enc.signing.timestamp = max(self._enc.signing.timestamp, signing_timestamp_now())
+        try:
+            raw = bytes(msg.pack(self._enc))
+        except Exception as e:  # struct.error / MAVError on out-of-range fields
+            raise LinkError(f"cannot encode {msg.get_type()}: {e}") from e
+        self._enc.seq = (self._enc.seq + 1) % 256
+        try:
+            if kind in ("udpin", "udpout"):
+                self._transport.sendto(raw, self._peer)
+            elif kind == "tcp":
+                self._transport.write(raw)
+            else:
+                assert self._serial_fd is not None
+                n = os.write(self._serial_fd, raw)
+                if n != len(raw):
+                    raise OSError(errno.EAGAIN, "short write")
+        except OSError as e:
+            self._count("tx_errors")
+            raise LinkError(f"send {msg.get_type()} on {self.endpoint}: {e}") from e
+        self._count("tx_frames")
+        if self._on_tx is not None:
+            self._on_tx(
+                Sent(
+                    msg=msg,
+                    raw=raw,
+                    t_tx_ns=self._clock_ns(),
+                    msgid=msg.get_msgId(),
+                    name=msg.get_type(),
+                )
+            )
+        return raw
+
+    def encode_attitude_target(
+        self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
+    ) -> Any:
+        """SET_ATTITUDE_TARGET with type_mask 7 (attitude + thrust, body rates ignored).
+
+        ``q_wxyz``: attitude of body FRD w.r.t. NED, w,x,y,z (normalised here; norm must be
+        within 10 % of 1); ``thrust_norm`` in [0, 1] along body -z.
+        """
+        q = [float(x) for x in q_wxyz]
+        thrust = float(thrust_norm)
+        if len(q) != 4 or not all(math.isfinite(x) for x in q):
+            raise LinkError(f"attitude setpoint q_wxyz must be 4 finite numbers, got {q_wxyz!r}")
+        n = math.sqrt(sum(x * x for x in q))
+        if not 0.9 <= n <= 1.1:
+            raise LinkError(f"attitude setpoint quaternion norm {n:.3f} is not ~1")
+        if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
+            raise LinkError(f"thrust_norm {thrust_norm!r} not in [0, 1]")
+        t_ms = self.boot_time_ms() if time_boot_ms is None else time_boot_ms
+        return self._enc.set_attitude_target_encode(
+            t_ms,
+            self.target_system,
+            self.target_component,
+            ATTITUDE_THRUST_TYPE_MASK,
+            [x / n for x in q],
+            0.0,
+            0.0,
+            0.0,
+            thrust,
+        )
+
+    def send_attitude_target(
+        self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
+    ) -> bytes:
+        """Send SET_ATTITUDE_TARGET (see :meth:`encode_attitude_target`); returns the bytes."""
+        return self.send(self.encode_attitude_target(q_wxyz, thrust_norm, time_boot_ms))
+
+    def send_command_long(
+        self, command: int, params: Sequence[float] = (), confirmation: int = 0
+    ) -> bytes:
+        """COMMAND_LONG to the target; ``params`` up to 7 values, the rest 0."""
+        if len(params) > 7:
+            raise LinkError("COMMAND_LONG takes at most 7 params")
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        return self.send(
+            self._enc.command_long_encode(
+                self.target_system, self.target_component, command, confirmation, *p
+            )
+        )
+
+    def send_set_mode(self, main_mode: int, sub_mode: int = 0, confirmation: int = 0) -> bytes:
+        """MAV_CMD_DO_SET_MODE: param1 = 1 (custom mode enabled), param2 = PX4 main mode,
+        param3 = sub mode (e.g. ``send_set_mode(PX4_MAIN_OFFBOARD)``)."""
+        return self.send_command_long(
+            MAV_CMD_DO_SET_MODE,
+            (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main_mode, sub_mode),
+            confirmation,
+        )
+
+    def send_arm(self, arm: bool = True, force: bool = False, confirmation: int = 0) -> bytes:
+        """MAV_CMD_COMPONENT_ARM_DISARM: param1 1 arm / 0 disarm, param2 21196 forces."""
+        return self.send_command_long(
+            MAV_CMD_COMPONENT_ARM_DISARM,
+            (1.0 if arm else 0.0, float(ARM_FORCE_MAGIC) if force else 0.0),
+            confirmation,
+        )
+
+    def send_heartbeat(self) -> bytes:
+        """HEARTBEAT as an onboard controller (type 18, autopilot INVALID 8, state ACTIVE)."""
+        return self.send(
+            self._enc.heartbeat_encode(
+                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+            )
+        )
