@@ -1,0 +1,573 @@
+"""Always-on MCAP flight log, written by a background thread so the control loop never blocks.
+
+``log*`` calls only validate cheap things and put an item on a bounded queue; JSON encoding,
+JPEG/PNG encoding (cv2) and ``mcap.writer.Writer`` calls all happen in the writer thread. When
+the queue is full the item is dropped and counted (a warning at most once per second).
+
+Durability: the current chunk is closed, the file flushed and ``os.fsync``-ed every
+``flush_interval_s`` (and whenever a chunk reaches ``chunk_size`` bytes), so a process killed
+at any time leaves a file that :mod:`companion.log_reader` salvages up to the last flush.
+
+Times: ``log_time_ns`` comes from the caller's clock; the logger never reads a clock for data
+(only to pace flushes and warnings). Every channel is JSON with a JSON schema
+(:mod:`companion.schemas`), so the file opens in Foxglove as is. Payload dicts and image arrays
+are NOT copied: do not mutate them after handing them over.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import enum
+import errno
+import json
+import logging
+import math
+import os
+import queue
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from mcap.writer import CompressionType, Writer
+
+from companion import CompanionError, __version__
+from companion import schemas as sch
+
+log = logging.getLogger(__name__)
+
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+_STOP = object()
+
+
+class McapLogError(CompanionError):
+    """The logger was misused (unknown schema, topic re-registered) or its writer failed."""
+
+
+@dataclass(frozen=True)
+class LoggerStats:
+    """Counters: ``enqueued`` accepted by ``log*``, ``written`` handed to the MCAP writer,
+    ``flushed`` written and fsync-ed, ``dropped`` (queue full or logger failed/closed),
+    ``errors`` (an item that could not be encoded)."""
+
+    enqueued: int
+    written: int
+    flushed: int
+    dropped: int
+    errors: int
+
+
+class _Sink:
+    """File wrapper counting bytes so ``tell()`` works on pipes too (the MCAP writer needs it)."""
+
+    def __init__(self, f: IO[bytes]) -> None:
+        self._f = f
+        self._n = 0
+        self.fsync_ok = True
+
+    def write(self, data: bytes) -> int:
+        self._f.write(data)
+        self._n += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._n
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def fsync(self) -> None:
+        if not self.fsync_ok:
+            return
+        try:
+            os.fsync(self._f.fileno())
+        except OSError as e:
+            if e.errno in (errno.EINVAL, errno.EROFS, errno.ENOTSUP, errno.ESPIPE):
+                self.fsync_ok = False  # a pipe or special file: nothing to sync
+                log.debug("fsync not supported on this log output: %s", e)
+            else:
+                raise
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def stamp(t_ns: int) -> dict[str, int]:
+    """Foxglove ``time`` ({sec, nsec}) of a non-negative time in ns."""
+    t = max(int(t_ns), 0)
+    return {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000}
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, bytes | bytearray | memoryview):
+        return base64.b64encode(bytes(o)).decode("ascii")
+    if dataclasses.is_dataclass(o) and not isinstance(o, type):
+        return {f.name: getattr(o, f.name) for f in dataclasses.fields(o)}
+    if isinstance(o, enum.Enum):
+        return o.value if isinstance(o.value, int | float | str) else o.name
+    if isinstance(o, set | frozenset | tuple):
+        return list(o)
+    if isinstance(o, Path):
+        return str(o)
+    if isinstance(o, Mapping):
+        return dict(o)
+    raise TypeError(f"cannot log a {type(o).__name__} as JSON")
+
+
+def _finite(o: Any) -> Any:
+    """Replace NaN/inf by None (JSON has no NaN), converting what _json_default knows."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_finite(v) for v in o]
+    if isinstance(o, str | int | bool) or o is None:
+        return o
+    return _finite(_json_default(o))
+
+
+def encode_json(payload: Any) -> bytes:
+    """Compact JSON; NaN/inf become null; numpy, bytes (base64) and dataclasses are handled."""
+    try:
+        text = json.dumps(payload, default=_json_default, allow_nan=False, separators=(",", ":"))
+    except ValueError:  # a non-finite float somewhere
+        text = json.dumps(_finite(payload), allow_nan=False, separators=(",", ":"))
+    return text.encode()
+
+
+def encode_image(
+    image: np.ndarray, encoding: str, log_time_ns: int, frame_id: str, jpeg_quality: int
+) -> tuple[str, bytes]:
+    """(schema name, JSON bytes) of a foxglove.CompressedImage (jpeg/png) or RawImage (raw)."""
+    import cv2
+
+    img = np.ascontiguousarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise McapLogError(f"image must be uint8 HxW or HxWx3 (BGR), got {img.dtype} {img.shape}")
+    ts = stamp(log_time_ns)
+    if encoding in ("jpeg", "png"):
+        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if encoding == "jpeg" else []
+        ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
+        if not ok:
+            raise McapLogError(f"cv2 could not encode a {encoding} image")
+        data = base64.b64encode(buf.tobytes()).decode("ascii")
+        msg = {"timestamp": ts, "frame_id": frame_id, "format": encoding, "data": data}
+        return sch.COMPRESSED_IMAGE, encode_json(msg)
+    h, w = img.shape[:2]
+    enc = "mono8" if img.ndim == 2 else "bgr8"
+    msg = {
+        "timestamp": ts, "frame_id": frame_id, "width": w, "height": h, "encoding": enc,
+        "step": w * (1 if img.ndim == 2 else 3),
+        "data": base64.b64encode(img.tobytes()).decode("ascii"),
+    }  # fmt: skip
+    return sch.RAW_IMAGE, encode_json(msg)
+
+
+IMAGE_ENCODINGS = ("jpeg", "png", "raw")
+
+
+class McapLogger:
+    """``with McapLogger(path, chunk_size, flush_interval_s, queue_size) as lg: lg.log(...)``.
+
+    Topics are registered lazily: the first ``log`` on a topic fixes its schema name (or call
+    :meth:`register`). Logging methods return False when the item was dropped. Thread-safe.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        chunk_size: int = 1 << 20,
+        flush_interval_s: float = 1.0,
+        queue_size: int = 4096,
+        *,
+        compression: str = "zstd",
+        jpeg_quality: int = 90,
+        extra_schemas: Mapping[str, Mapping[str, Any]] | None = None,
+    ) -> None:
+        if chunk_size < 1:
+            raise McapLogError("chunk_size must be >= 1 byte")
+        if not flush_interval_s > 0:
+            raise McapLogError("flush_interval_s must be > 0")
+        if queue_size < 1:
+            raise McapLogError("queue_size must be >= 1")
+        if compression not in _COMPRESSION:
+            raise McapLogError(f"compression {compression!r} not in {sorted(_COMPRESSION)}")
+        if not 1 <= jpeg_quality <= 100:
+            raise McapLogError("jpeg_quality must be in 1..100")
+        self.path = Path(path)
+        self.chunk_size = chunk_size
+        self.flush_interval_s = float(flush_interval_s)
+        self.queue_size = queue_size
+        self._compression = _COMPRESSION[compression]
+        self._jpeg_quality = jpeg_quality
+        self._extra = {k: dict(v) for k, v in (extra_schemas or {}).items()}
+        self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._lock = threading.Lock()
+        self._topics: dict[str, str] = {}
+        self._enqueued = self._written = self._flushed = self._dropped = self._errors = 0
+        self._last_warn = -math.inf
+        self._last_err_warn = -math.inf
+        self._failure: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self._sink: _Sink | None = None
+        self._open = False
+        self._closed = False
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def __enter__(self) -> McapLogger:
+        self.open()
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close(raise_on_failure=exc_type is None)
+
+    def open(self) -> None:
+        """Open the file (errors raised here) and start the writer thread."""
+        if self._open:
+            raise McapLogError("logger already open")
+        try:
+            f = open(self.path, "wb")  # noqa: SIM115 - owned by the writer thread, closed there
+        except OSError as e:
+            raise McapLogError(f"cannot open log file {str(self.path)!r}: {e.strerror}") from e
+        self._sink = _Sink(f)
+        self._open = True
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._thread.start()
+        log.info("MCAP log: %s", self.path)
+
+    def close(self, raise_on_failure: bool = True) -> None:
+        """Drain the queue, write the summary and footer, close the file. Raises
+        :class:`McapLogError` if the writer thread failed (unless ``raise_on_failure`` is False)."""
+        if not self._open or self._closed:
+            return
+        self._closed = True
+        assert self._thread is not None
+        while self._thread.is_alive():
+            try:
+                self._q.put(_STOP, timeout=0.1)
+                break
+            except queue.Full:
+                continue
+        self._thread.join()
+        if self._failure is not None and raise_on_failure:
+            raise McapLogError(f"MCAP writer failed: {self._failure!r}") from self._failure
+
+    # -- counters -------------------------------------------------------------------------------
+
+    @property
+    def stats(self) -> LoggerStats:
+        with self._lock:
+            return LoggerStats(
+                self._enqueued, self._written, self._flushed, self._dropped, self._errors
+            )
+
+    @property
+    def written(self) -> int:
+        return self._written
+
+    @property
+    def dropped(self) -> int:
+        return self._dropped
+
+    @property
+    def failure(self) -> BaseException | None:
+        """The exception that stopped the writer thread, if any."""
+        return self._failure
+
+    # -- logging API (any thread) ---------------------------------------------------------------
+
+    def register(self, topic: str, schema_name: str) -> None:
+        """Fix ``topic``'s schema. Re-registering with another schema is an error."""
+        if not topic:
+            raise McapLogError("empty topic")
+        if schema_name not in self._extra and not sch.known(schema_name):
+            raise McapLogError(f"unknown schema {schema_name!r} for topic {topic!r}")
+        with self._lock:
+            old = self._topics.setdefault(topic, schema_name)
+        if old != schema_name:
+            raise McapLogError(f"topic {topic!r} already uses schema {old!r}, not {schema_name!r}")
+
+    def log(
+        self,
+        topic: str,
+        log_time_ns: int,
+        payload: Mapping[str, Any] | bytes,
+        schema: str | None = None,
+        publish_time_ns: int | None = None,
+    ) -> bool:
+        """Log a JSON object (dict: encoded in the writer thread) or pre-encoded JSON bytes.
+        ``schema`` is required the first time a topic is used (unless registered)."""
+        self._ensure_topic(topic, schema)
+        kind = "bytes" if isinstance(payload, bytes | bytearray) else "json"
+        pub = None if publish_time_ns is None else int(publish_time_ns)
+        return self._put((kind, topic, int(log_time_ns), pub, payload))
+
+    def log_image(
+        self,
+        topic: str,
+        log_time_ns: int,
+        image: np.ndarray,
+        encoding: str = "jpeg",
+        frame_id: str = "camera",
+        stamp_ns: int | None = None,
+    ) -> bool:
+        """Log a uint8 mono (HxW) or BGR (HxWx3) image as foxglove.CompressedImage ("jpeg",
+        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw")."""
+        if encoding not in IMAGE_ENCODINGS:
+            raise McapLogError(f"image encoding {encoding!r} not in {IMAGE_ENCODINGS}")
+        self._ensure_topic(topic, sch.RAW_IMAGE if encoding == "raw" else sch.COMPRESSED_IMAGE)
+        t = int(log_time_ns)
+        item = (
+            "image",
+            topic,
+            t,
+            None,
+            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns),
+        )
+        return self._put(item)
+
+    def log_text(
+        self, topic: str, log_time_ns: int, message: str, level: str = "INFO", name: str = ""
+    ) -> bool:
+        """foxglove.Log text (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
+        if level not in sch.LOG_LEVELS:
+            raise McapLogError(f"log level {level!r} not in {sorted(sch.LOG_LEVELS)}")
+        msg = {
+            "timestamp": stamp(log_time_ns), "level": sch.LOG_LEVELS[level], "message": message,
+            "name": name, "file": "", "line": 0,
+        }  # fmt: skip
+        return self.log(topic, log_time_ns, msg, schema=sch.LOG)
+
+    def log_pose(
+        self,
+        topic: str,
+        log_time_ns: int,
+        frame_id: str,
+        position_m: Sequence[float],
+        q_wxyz: Sequence[float],
+    ) -> bool:
+        """foxglove.PoseInFrame (quaternion given w,x,y,z; written as Foxglove's x,y,z,w)."""
+        msg = {
+            "timestamp": stamp(log_time_ns),
+            "frame_id": frame_id,
+            "pose": {"position": _xyz(position_m), "orientation": _xyzw(q_wxyz)},
+        }
+        return self.log(topic, log_time_ns, msg, schema=sch.POSE_IN_FRAME)
+
+    def log_transform(
+        self,
+        topic: str,
+        log_time_ns: int,
+        parent_frame_id: str,
+        child_frame_id: str,
+        translation_m: Sequence[float],
+        q_wxyz: Sequence[float],
+    ) -> bool:
+        """foxglove.FrameTransform: the child frame's pose in the parent (q w,x,y,z)."""
+        msg = {
+            "timestamp": stamp(log_time_ns), "parent_frame_id": parent_frame_id,
+            "child_frame_id": child_frame_id, "translation": _xyz(translation_m),
+            "rotation": _xyzw(q_wxyz),
+        }  # fmt: skip
+        return self.log(topic, log_time_ns, msg, schema=sch.FRAME_TRANSFORM)
+
+    def log_mavlink(self, direction: str, item: Any, log_time_ns: int | None = None) -> bool:
+        """Log a :class:`companion.mavlink_link.Received` (``direction`` "in") or ``Sent``
+        ("out") on ``/mavlink/<direction>/<NAME>``; log time defaults to its link timestamp."""
+        if direction not in ("in", "out"):
+            raise McapLogError(f"direction {direction!r} is not 'in' or 'out'")
+        t_link = item.t_rx_ns if direction == "in" else item.t_tx_ns
+        topic = f"/mavlink/{direction}/{item.name}"
+        self._ensure_topic(topic, sch.MAVLINK_PREFIX + item.name)
+        t = int(t_link if log_time_ns is None else log_time_ns)
+        return self._put(("mavlink", topic, t, None, (direction, item)))
+
+    def log_config(
+        self, log_time_ns: int, toml_text: str, parsed: Mapping[str, Any], source: str = ""
+    ) -> bool:
+        """The configuration of this run on ``/config`` (TOML text + parsed dict), once at start."""
+        payload = {"source": source, "toml": toml_text, "config": parsed}
+        return self.log("/config", log_time_ns, payload, schema=sch.CONFIG)
+
+    # -- internals ------------------------------------------------------------------------------
+
+    def _ensure_topic(self, topic: str, schema: str | None) -> None:
+        cur = self._topics.get(topic)
+        if cur is not None and (schema is None or schema == cur):
+            return
+        if schema is None:
+            raise McapLogError(f"topic {topic!r} is new: give its schema name")
+        self.register(topic, schema)
+
+    def _put(self, item: tuple[Any, ...]) -> bool:
+        if not isinstance(item[2], int) or item[2] < 0 or (item[3] is not None and item[3] < 0):
+            raise McapLogError(f"log time must be a non-negative int (ns), got {item[2]!r}")
+        if not self._open or self._closed or self._failure is not None:
+            with self._lock:
+                self._dropped += 1
+            return False
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            now = time.monotonic()
+            with self._lock:
+                self._dropped += 1
+                warn = now - self._last_warn >= 1.0
+                if warn:
+                    self._last_warn = now
+                dropped = self._dropped
+            if warn:
+                log.warning(
+                    "MCAP log queue full (%d): %d items dropped so far", self.queue_size, dropped
+                )
+            return False
+        with self._lock:
+            self._enqueued += 1
+        return True
+
+    def _schema_text(self, name: str) -> bytes:
+        if name in self._extra:
+            return encode_json(self._extra[name])
+        return sch.schema_bytes(name)
+
+    def _run(self) -> None:
+        assert self._sink is not None
+        sink = self._sink
+        channels: dict[str, int] = {}
+        schema_ids: dict[str, int] = {}
+        writer: Writer | None = None
+        next_flush = time.monotonic() + self.flush_interval_s
+        try:
+            writer = Writer(sink, chunk_size=self.chunk_size, compression=self._compression)  # type: ignore[arg-type]
+            writer.start(profile="", library=f"companion-{__version__}")
+            self._flush(writer, sink)
+            while True:
+                timeout = max(0.0, next_flush - time.monotonic())
+                try:
+                    item = self._q.get(timeout=timeout)
+                except queue.Empty:
+                    item = None
+                if item is _STOP:
+                    break
+                if item is not None:
+                    self._write(writer, item, channels, schema_ids)
+                if time.monotonic() >= next_flush:
+                    self._flush(writer, sink)
+                    next_flush = time.monotonic() + self.flush_interval_s
+            writer.finish()
+            sink.flush()
+            sink.fsync()
+            with self._lock:
+                self._flushed = self._written
+        except BaseException as e:  # disk full, broken pipe...: stop logging, never the flight
+            self._failure = e
+            log.error("MCAP writer stopped: %r (%d items written)", e, self._written)
+            self._drain_after_failure()
+        finally:
+            try:
+                sink.close()
+            except OSError as e:
+                log.error("closing %s: %s", self.path, e)
+
+    def _drain_after_failure(self) -> None:
+        while True:
+            try:
+                item = self._q.get(timeout=0.05 if not self._closed else 0.0)
+            except queue.Empty:
+                if self._closed:
+                    return
+                continue
+            if item is _STOP:
+                return
+            with self._lock:
+                self._dropped += 1
+
+    def _flush(self, writer: Writer, sink: _Sink) -> None:
+        n = self._written
+        writer.flush()  # closes the open chunk, writes it, flushes the stream
+        sink.fsync()
+        with self._lock:
+            self._flushed = n
+
+    def _write(
+        self,
+        writer: Writer,
+        item: tuple[Any, ...],
+        channels: dict[str, int],
+        schema_ids: dict[str, int],
+    ) -> None:
+        kind, topic, t, pub, payload = item
+        try:
+            if kind == "json":
+                schema_name, data = self._topics[topic], encode_json(payload)
+            elif kind == "bytes":
+                schema_name, data = self._topics[topic], bytes(payload)
+            elif kind == "image":
+                image, enc, frame_id, stamp_ns = payload
+                schema_name, data = encode_image(image, enc, stamp_ns, frame_id, self._jpeg_quality)
+            else:
+                schema_name, data = self._topics[topic], encode_json(_mavlink_payload(*payload))
+        except (McapLogError, TypeError, ValueError, AttributeError) as e:
+            now = time.monotonic()
+            with self._lock:
+                self._errors += 1
+                warn = now - self._last_err_warn >= 1.0
+                if warn:
+                    self._last_err_warn = now
+            if warn:
+                log.warning("MCAP: cannot encode an item for %s: %s", topic, e)
+            return
+        cid = channels.get(topic)
+        if cid is None:
+            sid = schema_ids.get(schema_name)
+            if sid is None:
+                sid = writer.register_schema(
+                    schema_name, sch.SCHEMA_ENCODING, self._schema_text(schema_name)
+                )
+                schema_ids[schema_name] = sid
+            cid = writer.register_channel(topic, sch.MESSAGE_ENCODING, sid)
+            channels[topic] = cid
+        writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
+        with self._lock:
+            self._written += 1
+
+
+def _xyz(v: Sequence[float]) -> dict[str, float]:
+    x, y, z = (float(a) for a in v)
+    return {"x": x, "y": y, "z": z}
+
+
+def _xyzw(q_wxyz: Sequence[float]) -> dict[str, float]:
+    w, x, y, z = (float(a) for a in q_wxyz)
+    return {"x": x, "y": y, "z": z, "w": w}
+
+
+def _mavlink_payload(direction: str, item: Any) -> dict[str, Any]:
+    from companion.mavlink_link import message_fields
+
+    out: dict[str, Any] = {
+        "raw_b64": base64.b64encode(item.raw).decode("ascii"),
+        "fields": message_fields(item.msg),
+    }
+    if direction == "in":
+        out.update(
+            t_rx_ns=item.t_rx_ns, sysid=item.src_sysid, compid=item.src_compid, seq=item.seq,
+            signed=item.signed,
+        )  # fmt: skip
+    else:
+        out.update(t_tx_ns=item.t_tx_ns)
+    return out

@@ -1,0 +1,260 @@
+"""JSON schemas of every MCAP channel the companion writes (schema encoding ``jsonschema``,
+message encoding ``json``).
+
+Foxglove's well-known schemas (``foxglove.CompressedImage``, ``foxglove.RawImage``,
+``foxglove.Log``, ``foxglove.FrameTransform``, ``foxglove.PoseInFrame``) are written with their
+registry names so Foxglove shows images, logs and the 3-D scene without configuration; binary
+fields are base64 strings (``contentEncoding: base64``), times are ``{sec, nsec}``.
+Our own schemas are named ``companion.*``; MAVLink channels get one schema per message type,
+``companion.mavlink.<NAME>``, generated from pymavlink's message definitions.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Mapping
+from typing import Any
+
+from companion import CompanionError
+
+SCHEMA_ENCODING = "jsonschema"
+MESSAGE_ENCODING = "json"
+
+COMPRESSED_IMAGE = "foxglove.CompressedImage"
+RAW_IMAGE = "foxglove.RawImage"
+LOG = "foxglove.Log"
+FRAME_TRANSFORM = "foxglove.FrameTransform"
+POSE_IN_FRAME = "foxglove.PoseInFrame"
+MAVLINK_PREFIX = "companion.mavlink."
+PERCEPTION = "companion.Perception"
+CONTROLLER_STEP = "companion.ControllerStep"
+SAFETY_TRANSITION = "companion.SafetyTransition"
+CONFIG = "companion.Config"
+JSON = "companion.Json"
+
+#: foxglove.Log levels
+LOG_LEVELS: Mapping[str, int] = {
+    "UNKNOWN": 0,
+    "DEBUG": 1,
+    "INFO": 2,
+    "WARNING": 3,
+    "ERROR": 4,
+    "FATAL": 5,
+}
+
+
+class SchemaError(CompanionError):
+    """An unknown schema name."""
+
+
+def _time(desc: str) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "title": "time",
+        "description": desc,
+        "properties": {
+            "sec": {"type": "integer", "minimum": 0},
+            "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
+        },
+    }
+
+
+def _vec3(title: str, desc: str) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "title": title,
+        "description": desc,
+        "properties": {k: {"type": "number"} for k in ("x", "y", "z")},
+    }
+
+
+def _quat(desc: str) -> dict[str, Any]:
+    return {
+        "type": "object",
+        "title": "foxglove.Quaternion",
+        "description": desc + " (x, y, z, w)",
+        "properties": {k: {"type": "number"} for k in ("x", "y", "z", "w")},
+    }
+
+
+def _obj(title: str, desc: str, props: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    return {"title": title, "description": desc, "type": "object", "properties": props, **extra}
+
+
+_STR = {"type": "string"}
+_INT = {"type": "integer"}
+_NUM = {"type": "number"}
+_B64 = {"type": "string", "contentEncoding": "base64"}
+
+
+def _arr(item: dict[str, Any], n: int | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": "array", "items": item}
+    if n is not None:
+        out["minItems"] = out["maxItems"] = n
+    return out
+
+
+_STATIC: dict[str, dict[str, Any]] = {
+    COMPRESSED_IMAGE: _obj(
+        COMPRESSED_IMAGE,
+        "A compressed image",
+        {
+            "timestamp": _time("Timestamp of image"),
+            "frame_id": _STR,
+            "data": _B64,
+            "format": {**_STR, "description": "Image format: jpeg or png"},
+        },
+    ),
+    RAW_IMAGE: _obj(
+        RAW_IMAGE,
+        "A raw image",
+        {
+            "timestamp": _time("Timestamp of image"),
+            "frame_id": _STR,
+            "width": {"type": "integer", "minimum": 0},
+            "height": {"type": "integer", "minimum": 0},
+            "encoding": {**_STR, "description": "mono8, bgr8 or rgb8"},
+            "step": {"type": "integer", "minimum": 0, "description": "bytes per row"},
+            "data": _B64,
+        },
+    ),
+    LOG: _obj(
+        LOG,
+        "A log message",
+        {
+            "timestamp": _time("Timestamp of log message"),
+            "level": {
+                "description": "Log level",
+                "oneOf": [{"title": k, "const": v} for k, v in LOG_LEVELS.items()],
+            },
+            "message": _STR,
+            "name": _STR,
+            "file": _STR,
+            "line": {"type": "integer", "minimum": 0},
+        },
+    ),
+    FRAME_TRANSFORM: _obj(
+        FRAME_TRANSFORM,
+        "A transform between two reference frames in 3D space",
+        {
+            "timestamp": _time("Timestamp of transform"),
+            "parent_frame_id": _STR,
+            "child_frame_id": _STR,
+            "translation": _vec3("foxglove.Vector3", "Translation of the child in the parent (m)"),
+            "rotation": _quat("Rotation of the child frame relative to the parent"),
+        },
+    ),
+    POSE_IN_FRAME: _obj(
+        POSE_IN_FRAME,
+        "A timestamped pose in a reference frame",
+        {
+            "timestamp": _time("Timestamp of pose"),
+            "frame_id": _STR,
+            "pose": _obj(
+                "foxglove.Pose",
+                "Pose in 3D space",
+                {
+                    "position": _vec3("foxglove.Vector3", "Position (m)"),
+                    "orientation": _quat("Orientation"),
+                },
+            ),
+        },
+    ),
+    PERCEPTION: _obj(
+        PERCEPTION,
+        "One camera frame's perception result (fields from companion.perception; units in names)",
+        {"t_us": _INT, "frame_seq": _INT, "detected": {"type": "boolean"}},
+        additionalProperties=True,
+    ),
+    CONTROLLER_STEP: _obj(
+        CONTROLLER_STEP,
+        "One control step: state, RMPC solve status, command sent (units in field names)",
+        {"t_us": _INT, "success": {"type": "boolean"}, "status": _STR},
+        additionalProperties=True,
+    ),
+    SAFETY_TRANSITION: _obj(
+        SAFETY_TRANSITION,
+        "A safety supervisor state change",
+        {"t_us": _INT, "from_state": _STR, "to_state": _STR, "reason": _STR},
+        additionalProperties=True,
+    ),
+    CONFIG: _obj(
+        CONFIG,
+        "The configuration this run used, written once at start",
+        {"source": _STR, "toml": _STR, "config": {"type": "object"}},
+    ),
+    JSON: _obj(JSON, "Free-form JSON object", {}, additionalProperties=True),
+}
+
+
+_MAV_TYPES = {
+    "float": {"type": ["number", "null"]}, "double": {"type": ["number", "null"]}, "char": _STR,
+    **{t: _INT for t in ("int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32_t",
+                         "int64_t", "uint64_t", "uint8_t_mavlink_version")},
+}  # fmt: skip
+
+
+@functools.cache
+def mavlink_schema(name: str) -> dict[str, Any]:
+    """Schema ``companion.mavlink.<name>``: ``fields`` typed from pymavlink's definition, plus
+    the raw frame (base64), the link clock at receipt/sending and the source ids."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    msgid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
+    if msgid is None:
+        raise SchemaError(f"unknown MAVLink message {name!r}")
+    cls = mavlink2.mavlink_map[msgid]
+    fields: dict[str, Any] = {}
+    units = getattr(cls, "fieldunits_by_name", {})
+    for fname, ftype, alen in zip(cls.fieldnames, cls.fieldtypes, cls.array_lengths, strict=True):
+        base = _MAV_TYPES.get(ftype, {})
+        prop = dict(base) if (alen == 0 or ftype == "char") else _arr(base, alen)
+        if units.get(fname):
+            prop["description"] = f"[{units[fname]}]"
+        fields[fname] = prop
+    return _obj(
+        MAVLINK_PREFIX + name,
+        f"MAVLink {name} (#{msgid}); NaN/inf are written as null",
+        {
+            "t_rx_ns": {**_INT, "description": "link clock at receipt (ns)"},
+            "t_tx_ns": {**_INT, "description": "link clock at sending (ns)"},
+            "sysid": _INT,
+            "compid": _INT,
+            "seq": _INT,
+            "signed": {"type": "boolean"},
+            "raw_b64": {**_B64, "description": "the whole MAVLink 2 frame as on the wire"},
+            "fields": _obj(name, "decoded fields", fields),
+        },
+    )
+
+
+def known(name: str) -> bool:
+    """True when :func:`schema` can produce ``name``."""
+    if name in _STATIC:
+        return True
+    if name.startswith(MAVLINK_PREFIX):
+        try:
+            mavlink_schema(name[len(MAVLINK_PREFIX) :])
+        except SchemaError:
+            return False
+        return True
+    return False
+
+
+def schema(name: str) -> dict[str, Any]:
+    """The JSON schema called ``name`` (a copy-safe dict; do not mutate)."""
+    if name in _STATIC:
+        return _STATIC[name]
+    if name.startswith(MAVLINK_PREFIX):
+        return mavlink_schema(name[len(MAVLINK_PREFIX) :])
+    raise SchemaError(f"unknown schema {name!r}; known: {sorted(_STATIC)} and {MAVLINK_PREFIX}*")
+
+
+def schema_bytes(name: str) -> bytes:
+    """UTF-8 JSON text of :func:`schema` (the MCAP Schema record's data)."""
+    return json.dumps(schema(name), separators=(",", ":")).encode()
+
+
+def static_names() -> tuple[str, ...]:
+    return tuple(_STATIC)
