@@ -1,0 +1,542 @@
+"""The robust MPC of spec section 6 (Yang & Li 2024, problem (2)), solved with CasADi.
+
+Build once, then call :meth:`Rmpc.solve` every control step::
+
+    mpc = Rmpc(cfg.rmpc, cfg.camera, design_terminal(cfg.rmpc, cfg.camera))
+    res = mpc.solve(eta0, TargetMotion.constant(v_a, vdot_a, psidot_a, cfg.rmpc.horizon))
+    res.u0   # (4,) [r1, r2, r3 (m/s^2, virtual frame, z down), psidot_q (rad/s)]
+
+Each step sets the parameters, warm-starts from the previous solution shifted by one stage (the
+last stage filled with the terminal law) and solves the hard problem. If that fails (infeasible
+or not converged) a soft copy (L1 penalties on the tube, visibility and terminal rows) is solved
+and its input is returned with ``mode='recovery'``; if that fails too, the terminal law clipped to
+the input box is returned with ``mode='fallback'``. Every returned trajectory is finite and its
+solver status was checked; :func:`check_solution` re-evaluates every constraint independently.
+
+The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code cache in
+:mod:`companion.core.rmpc_cache`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike
+
+from companion import CompanionError
+from companion.config import CameraConfig, RmpcConfig
+from companion.core.dynamics import S_REF, euler_step, terminal_feedforward
+from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError, compiled_nlp
+from companion.core.rmpc_problem import (
+    NU,
+    NX,
+    Layout,
+    build_nlp,
+    centre,
+    image_point,
+    tube_bound,
+    visibility_radius,
+)
+from companion.core.terminal import TerminalDesign
+
+__all__ = [
+    "ConstraintViolation",
+    "Rmpc",
+    "RmpcBuildError",
+    "RmpcError",
+    "RmpcParameterError",
+    "RmpcResult",
+    "TargetMotion",
+    "check_solution",
+    "terminal_law",
+]
+
+log = logging.getLogger(__name__)
+
+FATROP_OPTIONS: dict[str, Any] = {"print_level": 0, "mu_init": 1e-4, "tol": 1e-6}
+"""mu_init 1e-4: the warm start is close to the solution, a large initial barrier undoes it."""
+IPOPT_OPTIONS: dict[str, Any] = {"print_level": 0, "sb": "yes"}
+RECOVERY_SOLVER = "ipopt"
+"""The soft copy is solved with ipopt whatever ``rmpc.solver`` says: with active L1 penalties
+the costates grow ~penalty-fold, the bilinear dynamics make fatrop's stage-wise Riccati
+indefinite and fatrop crawls under heavy regularisation (measured: 'edge' start, >300
+iterations, dual infeasibility stuck at ~1e-3) where ipopt converges in ~18 iterations."""
+ACCEPT_TOL = 1e-6
+"""Largest constraint residual (g rows and bounds, solver units) a 'success' may carry."""
+
+
+class RmpcError(CompanionError):
+    """Root of the RMPC's errors."""
+
+
+class RmpcParameterError(RmpcError, ValueError):
+    """A per-step parameter (eta0, target motion) is malformed or not finite: do not command."""
+
+
+def _ro(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class TargetMotion:
+    """Target motion over the horizon, in the virtual frame ``v`` (spec 4), one row per stage.
+
+    ``v_a_m_s`` (N, 2): ``[v_ax, v_ay]``; ``vdot_a_m_s2`` (N, 2): their time derivatives as seen
+    in the rotating frame ``v``; ``psidot_a_rad_s`` (N,): the target's yaw rate. Row ``n`` is
+    used by stage ``n`` (``n = 0..N-1``); the state box at ``n = N`` uses row ``N-1``.
+    Not to be confused with :class:`companion.core.state.TargetMotion` (one instant).
+    """
+
+    v_a_m_s: np.ndarray
+    vdot_a_m_s2: np.ndarray
+    psidot_a_rad_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.v_a_m_s, dtype=float)
+        vd = np.asarray(self.vdot_a_m_s2, dtype=float)
+        pd = np.asarray(self.psidot_a_rad_s, dtype=float)
+        if v.ndim != 2 or v.shape[1] != 2 or vd.shape != v.shape or pd.shape != (v.shape[0],):
+            raise RmpcParameterError(
+                "TargetMotion: need v_a_m_s (N,2), vdot_a_m_s2 (N,2), psidot_a_rad_s (N,); got "
+                f"{v.shape}, {vd.shape}, {pd.shape}"
+            )
+        for name, a in (("v_a_m_s", v), ("vdot_a_m_s2", vd), ("psidot_a_rad_s", pd)):
+            if not np.all(np.isfinite(a)):
+                raise RmpcParameterError(f"TargetMotion.{name}: not finite ({a.tolist()})")
+        object.__setattr__(self, "v_a_m_s", _ro(v))
+        object.__setattr__(self, "vdot_a_m_s2", _ro(vd))
+        object.__setattr__(self, "psidot_a_rad_s", _ro(pd))
+
+    @property
+    def horizon(self) -> int:
+        return int(self.v_a_m_s.shape[0])
+
+    @classmethod
+    def constant(
+        cls, v_a_m_s: ArrayLike, vdot_a_m_s2: ArrayLike, psidot_a_rad_s: float, horizon: int
+    ) -> TargetMotion:
+        """The same motion at every stage."""
+        return cls(
+            v_a_m_s=np.tile(np.asarray(v_a_m_s, dtype=float).reshape(1, 2), (horizon, 1)),
+            vdot_a_m_s2=np.tile(np.asarray(vdot_a_m_s2, dtype=float).reshape(1, 2), (horizon, 1)),
+            psidot_a_rad_s=np.full(horizon, float(psidot_a_rad_s)),
+        )
+
+    def stage(self, n: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(v_a, vdot_a, psidot_a)`` of stage ``n``."""
+        return self.v_a_m_s[n], self.vdot_a_m_s2[n], float(self.psidot_a_rad_s[n])
+
+    def packed(self) -> np.ndarray:
+        """The NLP parameter vector: per stage ``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a]``."""
+        return np.column_stack([self.v_a_m_s, self.vdot_a_m_s2, self.psidot_a_rad_s]).ravel()
+
+
+@dataclass(frozen=True)
+class ConstraintViolation:
+    """One violated constraint: what, at which stage, by how much (its natural units)."""
+
+    constraint: str
+    stage: int
+    amount: float
+
+
+@dataclass(frozen=True)
+class RmpcResult:
+    """The outcome of one RMPC step.
+
+    ``success``: a solver converged and its trajectory passed the residual check ('optimal'
+    or 'recovery'); ``mode``: 'optimal' (hard problem), 'recovery' (soft copy), 'fallback'
+    (terminal law clipped to U); ``status``: the return status of the solve that produced the
+    result (``hard_status``: that of the hard attempt); ``cost``: its objective;
+    ``iterations`` and ``solve_time_s``: summed over the solves of this step (CasADi's internal
+    wall time ``t_wall_total``, NaN if unavailable); ``u0`` (4,): the input to apply;
+    ``eta_pred`` (N+1, 7), ``u_pred`` (N, 4): the predicted trajectory;
+    ``max_soft_violation``: largest slack of the recovery solve in the squared-row units
+    (0 otherwise); ``active_groups``: constraint groups in the problem; ``target``: the motion
+    the step was solved for (for :func:`check_solution`).
+    """
+
+    success: bool
+    mode: str
+    status: str
+    hard_status: str
+    cost: float
+    iterations: int
+    solve_time_s: float
+    u0: np.ndarray
+    eta_pred: np.ndarray
+    u_pred: np.ndarray
+    max_soft_violation: float
+    active_groups: tuple[str, ...]
+    target: TargetMotion
+
+
+def terminal_law(
+    eta: ArrayLike, v_a: ArrayLike, vdot_a: ArrayLike, psidot_a: float,
+    k: np.ndarray, u_max: ArrayLike,
+) -> np.ndarray:
+    """``u_f = K eta + Gamma`` (spec 7) clipped to ``|u| <= u_max`` (4,).
+
+    ``K`` maps ``eta`` to ``u_e``; ``Gamma`` is evaluated at the law's own (unclipped) yaw rate
+    ``psidot_q = K_4 eta + psidot_a``, so that ``u_e = K eta`` before clipping.
+    """
+    e = np.asarray(eta, dtype=float)
+    ke = np.asarray(k, dtype=float) @ e
+    psidot_q = float(ke[3] + psidot_a)
+    u = ke + terminal_feedforward(np.asarray(v_a), np.asarray(vdot_a), psidot_a, psidot_q)
+    umax = np.asarray(u_max, dtype=float)
+    return np.clip(u, -umax, umax)
+
+
+def _state_offset(v_a: np.ndarray) -> np.ndarray:
+    """``col(s, v_q) - eta_e`` = ``[s_r, v_a, 0]`` (7,)."""
+    return np.array([*S_REF, v_a[0], v_a[1], 0.0])
+
+
+class _Solver:
+    """One compiled NLP (hard or soft) with its bounds template."""
+
+    def __init__(
+        self, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign, soft: bool,
+        solver: str,
+    ) -> None:
+        nlp, layout = build_nlp(rmpc, camera, terminal, soft)
+        self.layout: Layout = layout
+        self.kind = "soft" if soft else "hard"
+        self.solver_name = solver
+        opts: dict[str, Any] = {"print_time": False, "record_time": True}
+        if solver == "fatrop":
+            opts |= {
+                "structure_detection": "auto",
+                "equality": list(layout.equality),
+                "fatrop": FATROP_OPTIONS | {"max_iter": rmpc.max_iter},
+            }
+        else:
+            opts |= {"ipopt": IPOPT_OPTIONS | {"max_iter": rmpc.max_iter}}
+        name = f"rmpc_{self.kind}"
+        symbolic = ca.nlpsol(name, solver, nlp, opts)
+        self.compiled: CompiledNlp | None = None
+        if rmpc.jit:
+            self.compiled = compiled_nlp(symbolic, rmpc.cache_dir, f"{solver}_{self.kind}")
+            try:
+                self.solver = ca.nlpsol(name, solver, str(self.compiled.library), opts)
+            except RuntimeError as exc:
+                raise RmpcBuildError(f"loading {self.compiled.library}: {exc}") from exc
+        else:
+            self.solver = symbolic
+        # bounds templates (the parts that never change)
+        nw, ng = layout.n_w, layout.n_g
+        self.lbx = np.full(nw, -np.inf)
+        self.ubx = np.full(nw, np.inf)
+        umax = np.asarray(rmpc.u_max, dtype=float)
+        self.lbx[layout.u_index] = -umax
+        self.ubx[layout.u_index] = umax
+        self.lbx[layout.slack_index] = 0.0
+        self.lbg = np.zeros(ng)
+        self.ubg = np.zeros(ng)
+        for row in layout.rows:
+            self.lbg[row.g_index] = -np.inf
+            self.ubg[row.g_index] = row.upper
+        self.eta_max = np.asarray(rmpc.eta_max, dtype=float)
+        self.eq_rows = layout.gap_index.ravel()
+        self.ineq_rows = np.array([row.g_index for row in layout.rows], dtype=int)
+
+    def bounds(self, eta0: np.ndarray, target: TargetMotion) -> tuple[np.ndarray, np.ndarray]:
+        lay = self.layout
+        lbx = self.lbx.copy()
+        ubx = self.ubx.copy()
+        big_n = lay.horizon
+        v = np.vstack([target.v_a_m_s, target.v_a_m_s[-1:]])  # (N+1, 2), stage N holds N-1
+        off = np.zeros((big_n + 1, NX))
+        off[:, :4] = S_REF
+        off[:, 4:6] = v
+        lbx[lay.x_index[1:]] = -self.eta_max - off[1:]
+        ubx[lay.x_index[1:]] = self.eta_max - off[1:]
+        lbx[lay.x_index[0]] = eta0
+        ubx[lay.x_index[0]] = eta0
+        return lbx, ubx
+
+    def solve(
+        self, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray
+    ) -> tuple[bool, str, dict[str, Any], np.ndarray, float, int, float]:
+        """Solve; return (accepted, status, stats, w, cost, iterations, t_wall_s)."""
+        try:
+            sol = self.solver(x0=w0, p=par, lbx=lbx, ubx=ubx, lbg=self.lbg, ubg=self.ubg)
+        except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
+            log.warning("RMPC %s solve raised: %s", self.kind, exc)
+            return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
+        st = self.solver.stats()
+        status = _status_string(st)
+        w = np.asarray(sol["x"], dtype=float).ravel()
+        g = np.asarray(sol["g"], dtype=float).ravel()
+        cost = float(sol["f"])
+        it = int(st.get("iter_count", 0))
+        t = float(st.get("t_wall_total", float("nan")))
+        ok = bool(st.get("success", False))
+        if ok and not (np.all(np.isfinite(w)) and np.all(np.isfinite(g)) and np.isfinite(cost)):
+            ok, status = False, f"{status} (non-finite iterate)"
+        if ok:
+            resid = max(
+                float(np.max(np.abs(g[self.eq_rows]), initial=0.0)),
+                float(np.max(g[self.ineq_rows] - self.ubg[self.ineq_rows], initial=0.0)),
+                float(np.max(lbx - w, initial=0.0)),
+                float(np.max(w - ubx, initial=0.0)),
+            )
+            if resid > ACCEPT_TOL:
+                ok, status = False, f"{status} (residual {resid:.3g} > {ACCEPT_TOL:g})"
+        return ok, status, st, w, cost, it, t
+
+
+def _status_string(st: dict[str, Any]) -> str:
+    rs = st.get("return_status", "unknown")
+    if isinstance(rs, str):
+        return rs
+    # fatrop reports an integer flag; CasADi's unified status names it
+    return f"{st.get('unified_return_status', 'SOLVER_RET_UNKNOWN')} (flag {rs})"
+
+
+class Rmpc:
+    """The RMPC of spec 6, built (and compiled, or loaded from the cache) once.
+
+    ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
+    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start).
+    """
+
+    def __init__(self, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign) -> None:
+        self.cfg = rmpc
+        self.camera = camera
+        self.terminal = terminal
+        self.horizon = rmpc.horizon
+        self.u_max = np.asarray(rmpc.u_max, dtype=float)
+        self.k = np.asarray(terminal.k, dtype=float)
+        self.groups = tuple(
+            name
+            for name, on in (
+                ("tube", rmpc.enable_tube),
+                ("visibility", rmpc.enable_visibility),
+                ("terminal", rmpc.enable_terminal),
+            )
+            if on
+        )
+        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver)
+        self._soft = (
+            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER)
+            if self.groups
+            else None
+        )
+        self._prev: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def compiled(self) -> tuple[CompiledNlp | None, CompiledNlp | None]:
+        """The compiled libraries (hard, soft); ``compiled_now`` False means a cache hit."""
+        return self._hard.compiled, self._soft.compiled if self._soft else None
+
+    def reset(self) -> None:
+        """Forget the warm start (e.g. after the target was lost)."""
+        self._prev = None
+
+    # ------------------------------------------------------------------------------------
+    def solve(self, eta0: ArrayLike, target: TargetMotion) -> RmpcResult:
+        """One RMPC step from the measured error ``eta0`` (7,) for ``target`` (N rows).
+
+        Raises :class:`RmpcParameterError` if ``eta0`` or ``target`` is malformed or not
+        finite (nothing reaches the solver). Never returns NaN.
+        """
+        e0 = np.asarray(eta0, dtype=float).reshape(-1)
+        if e0.shape != (NX,):
+            raise RmpcParameterError(f"eta0: need 7 values, got shape {np.shape(eta0)}")
+        if not np.all(np.isfinite(e0)):
+            raise RmpcParameterError(f"eta0: not finite ({e0.tolist()})")
+        if not isinstance(target, TargetMotion) or target.horizon != self.horizon:
+            raise RmpcParameterError(f"target: need a TargetMotion with {self.horizon} rows")
+        par = target.packed()
+        eta_g, u_g = self._guess(e0, target)
+
+        lay = self._hard.layout
+        lbx, ubx = self._hard.bounds(e0, target)
+        w0 = self._pack(lay, eta_g, u_g)
+        ok, status, _, w, cost, iters, t_wall = self._hard.solve(w0, par, lbx, ubx)
+        hard_status = status
+        if ok:
+            eta_p, u_p = self._unpack(lay, w)
+            self._prev = (eta_p, u_p)
+            return RmpcResult(True, "optimal", status, hard_status, cost, iters, t_wall,
+                              _ro(u_p[0]), _ro(eta_p), _ro(u_p), 0.0, self.groups, target)
+        log.info("RMPC hard problem failed (%s): trying the soft copy", status)
+        if self._soft is not None:
+            slay = self._soft.layout
+            slbx, subx = self._soft.bounds(e0, target)
+            sw0 = self._pack(slay, eta_g, u_g)
+            sw0[slay.slack_index] = self._slack_guess(slay, eta_g, u_g)
+            sok, sstatus, _, sw, scost, sit, st_wall = self._soft.solve(sw0, par, slbx, subx)
+            iters += sit
+            t_wall += st_wall
+            if sok:
+                eta_p, u_p = self._unpack(slay, sw)
+                self._prev = (eta_p, u_p)
+                slack = float(np.max(sw[slay.slack_index], initial=0.0))
+                return RmpcResult(True, "recovery", sstatus, hard_status, scost, iters, t_wall,
+                                  _ro(u_p[0]), _ro(eta_p), _ro(u_p), max(slack, 0.0),
+                                  self.groups, target)
+            status = sstatus
+            log.warning("RMPC soft copy failed too (%s): terminal-law fallback", sstatus)
+        eta_f, u_f = self._rollout(e0, target)
+        self._prev = None
+        return RmpcResult(False, "fallback", status, hard_status, float("nan"), iters, t_wall,
+                          _ro(u_f[0]), _ro(eta_f), _ro(u_f), 0.0, self.groups, target)
+
+    def check(self, result: RmpcResult, tol: float = 1e-6) -> list[ConstraintViolation]:
+        """:func:`check_solution` with this controller's configuration."""
+        return check_solution(result, self.cfg, self.camera, self.terminal, tol=tol)
+
+    # ------------------------------------------------------------------------------------
+    def _law(self, eta: np.ndarray, target: TargetMotion, n: int) -> np.ndarray:
+        v_a, vdot_a, psidot_a = target.stage(n)
+        return terminal_law(eta, v_a, vdot_a, psidot_a, self.k, self.u_max)
+
+    def _step(self, eta: np.ndarray, u: np.ndarray, target: TargetMotion, n: int) -> np.ndarray:
+        v_a, vdot_a, psidot_a = target.stage(n)
+        return np.asarray(
+            euler_step(eta, u, v_a, vdot_a, psidot_a, self.cfg.desired_depth_m, self.cfg.dt_s)
+        )
+
+    def _rollout(self, eta0: np.ndarray, target: TargetMotion) -> tuple[np.ndarray, np.ndarray]:
+        """The clipped terminal law rolled out on the nominal model (finite by construction
+        for finite inputs; clipped to the state box's scale so it can never overflow)."""
+        big_n = self.horizon
+        eta = np.zeros((big_n + 1, NX))
+        u = np.zeros((big_n, NU))
+        eta[0] = eta0
+        for n in range(big_n):
+            u[n] = self._law(eta[n], target, n)
+            eta[n + 1] = self._step(eta[n], u[n], target, n)
+        if not (np.all(np.isfinite(eta)) and np.all(np.isfinite(u))):  # pragma: no cover
+            eta = np.tile(eta0, (big_n + 1, 1))
+            u = np.zeros((big_n, NU))
+        return eta, u
+
+    def _guess(self, eta0: np.ndarray, target: TargetMotion) -> tuple[np.ndarray, np.ndarray]:
+        """Previous solution shifted by one stage (last stage: terminal law), else a rollout."""
+        if self._prev is None:
+            return self._rollout(eta0, target)
+        eta_p, u_p = self._prev
+        big_n = self.horizon
+        eta = np.empty_like(eta_p)
+        u = np.empty_like(u_p)
+        eta[0] = eta0
+        eta[1:big_n] = eta_p[2:]
+        u[: big_n - 1] = u_p[1:]
+        u[big_n - 1] = self._law(eta_p[big_n], target, big_n - 1)
+        eta[big_n] = self._step(eta_p[big_n], u[big_n - 1], target, big_n - 1)
+        return eta, u
+
+    @staticmethod
+    def _pack(lay: Layout, eta: np.ndarray, u: np.ndarray) -> np.ndarray:
+        w = np.zeros(lay.n_w)
+        w[lay.x_index] = eta
+        w[lay.u_index] = u
+        return w
+
+    @staticmethod
+    def _unpack(lay: Layout, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return w[lay.x_index].copy(), w[lay.u_index].copy()
+
+    def _slack_guess(self, lay: Layout, eta: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Slacks that make the guess feasible for the soft rows (plus a small interior gap)."""
+        out = np.zeros(len(lay.slack_index))
+        i = 0
+        for row in lay.rows:
+            val = _row_value(row.kind, eta[row.stage], u[row.stage] if row.stage < len(u)
+                             else None, self.terminal.p, self.cfg, self.camera)
+            out[i] = max(val - row.upper, 0.0) + 1e-3
+            i += 1
+        return out
+
+
+def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarray,
+               rmpc: RmpcConfig, camera: CameraConfig) -> float:
+    """The squared-form value of one path row (as in the NLP), evaluated with numpy."""
+    if kind in ("tube", "terminal_set"):
+        return float(eta @ p_mat @ eta)
+    pu, pn = image_point(eta)
+    if kind == "terminal_visibility":
+        return float(pu**2 + pn**2)
+    assert u is not None
+    mu, mn = centre(u, rmpc, camera)
+    return float((pu - mu) ** 2 + (pn - mn) ** 2)
+
+
+def check_solution(
+    result: RmpcResult,
+    rmpc: RmpcConfig,
+    camera: CameraConfig,
+    terminal: TerminalDesign,
+    tol: float = 1e-6,
+    groups: tuple[str, ...] | None = None,
+) -> list[ConstraintViolation]:
+    """Every constraint of spec 6 evaluated on ``result``'s trajectory with numpy.
+
+    Independent of the solver: dynamics (max |gap| per stage), input box, absolute state box
+    (n = 1..N; ``eta(0)`` is the measurement), and the groups in ``groups`` (default: the
+    result's active groups): tube ``|eta(n)|_P <= X(n)`` (n = 0..N-1), visibility
+    ``|p(n) - M(u(n))| <= r_v - n rho e^{L(n-1) delta}`` (n = 1..N-1), terminal
+    ``|eta(N)|_P <= eps`` and ``|p(N)| <= gamma``. Amounts are in natural units (not squared);
+    a constraint counts as violated when it exceeds its bound by more than ``tol``.
+    """
+    groups = result.active_groups if groups is None else groups
+    eta, u, tgt = result.eta_pred, result.u_pred, result.target
+    big_n = rmpc.horizon
+    p_mat = np.asarray(terminal.p, dtype=float)
+    eta_max = np.asarray(rmpc.eta_max, dtype=float)
+    u_max = np.asarray(rmpc.u_max, dtype=float)
+    out: list[ConstraintViolation] = []
+
+    def add(name: str, n: int, amount: float) -> None:
+        if not amount <= tol:  # also catches NaN
+            out.append(ConstraintViolation(name, n, float(amount)))
+
+    if eta.shape != (big_n + 1, NX) or u.shape != (big_n, NU):
+        return [ConstraintViolation("shape", -1, float("inf"))]
+    for n in range(big_n):
+        v_a, vdot_a, psidot_a = tgt.stage(n)
+        nxt = euler_step(eta[n], u[n], v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s)
+        add("dynamics", n, float(np.max(np.abs(eta[n + 1] - nxt))))
+        add("input", n, float(np.max(np.abs(u[n]) - u_max)))
+    for n in range(1, big_n + 1):
+        absolute = eta[n] + _state_offset(tgt.v_a_m_s[min(n, big_n - 1)])
+        add("state", n, float(np.max(np.abs(absolute) - eta_max)))
+    norm_p = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", eta, p_mat, eta), 0.0))
+    if "tube" in groups:
+        for n in range(big_n):
+            add("tube", n, float(norm_p[n] - tube_bound(rmpc, n)))
+    if "visibility" in groups:
+        for n in range(1, big_n):
+            pu, pn = image_point(eta[n])
+            mu, mn = centre(u[n], rmpc, camera)
+            dist = float(np.hypot(pu - mu, pn - mn))
+            add("visibility", n, dist - visibility_radius(rmpc, terminal, n))
+    if "terminal" in groups:
+        add("terminal_set", big_n, float(norm_p[big_n] - rmpc.eps))
+        pu, pn = image_point(eta[big_n])
+        add("terminal_visibility", big_n, float(np.hypot(pu, pn) - terminal.gamma))
+    if not (np.all(np.isfinite(result.u0)) and np.allclose(result.u0, u[0])):
+        out.append(ConstraintViolation("u0", 0, float("inf")))
+    return out
+
+
+def visibility_margin(
+    result: RmpcResult, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign
+) -> np.ndarray:
+    """``(r_v - n rho e^{..}) - |p(n) - M(u(n))|`` for n = 1..N-1 (N-1,): 0 means binding."""
+    out = np.zeros(rmpc.horizon - 1)
+    for n in range(1, rmpc.horizon):
+        pu, pn = image_point(result.eta_pred[n])
+        mu, mn = centre(result.u_pred[n], rmpc, camera)
+        out[n - 1] = visibility_radius(rmpc, terminal, n) - float(np.hypot(pu - mu, pn - mn))
+    return out

@@ -1,0 +1,101 @@
+"""Compiled NLP functions for the RMPC, cached on disk (so a restart does not recompile).
+
+CasADi generates the C code of the NLP oracle (``nlp_f``, ``nlp_g``, ``nlp_grad_f``,
+``nlp_jac_g``, ``nlp_hess_l``) with ``Function.generate_dependencies``; the library compiled from
+it is stored as ``<cache_dir>/rmpc_<key>.so`` where ``key`` hashes the generated source, the
+CasADi version and the compiler flags. So the key changes whenever the problem (horizon,
+weights, terminal matrix, camera, constraint groups ...) changes, and only then.
+Compilation goes through CasADi's own ``shell`` importer into a process-unique temporary name
+that is renamed atomically, so concurrent processes never load a half-written library.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+
+from companion import CompanionError
+
+log = logging.getLogger(__name__)
+
+COMPILER_FLAGS = ("-O1",)
+"""gcc flags: -O1 compiles the ~2 MB source in ~7 s; -O2 doubles that for no measured gain."""
+
+
+class RmpcBuildError(CompanionError):
+    """The RMPC could not be generated, compiled or loaded."""
+
+
+@dataclass(frozen=True)
+class CompiledNlp:
+    """Where the compiled oracle of one NLP lives and whether this process compiled it."""
+
+    library: Path
+    key: str
+    compiled_now: bool
+
+
+def cache_key(source: str) -> str:
+    """SHA-256 (first 24 hex digits) of the generated C source, CasADi version and flags."""
+    h = hashlib.sha256()
+    h.update(source.encode())
+    h.update(ca.__version__.encode())
+    h.update(" ".join(COMPILER_FLAGS).encode())
+    return h.hexdigest()[:24]
+
+
+def compiled_nlp(solver: ca.Function, cache_dir: str, tag: str) -> CompiledNlp:
+    """The shared library holding ``solver``'s oracle functions, compiling it on a cache miss.
+
+    ``solver`` is an ``nlpsol`` built from symbolic expressions (not yet compiled); ``tag`` is
+    a short file-name prefix (``"hard"``, ``"soft"``).
+    """
+    directory = Path(cache_dir).expanduser()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RmpcBuildError(f"rmpc.cache_dir: cannot create {directory}: {exc}") from exc
+    with tempfile.TemporaryDirectory(prefix="rmpc_gen_") as tmp:
+        # generate_dependencies writes into the current directory when given a bare name
+        src_path = Path(tmp) / f"rmpc_{tag}.c"
+        cwd = os.getcwd()
+        try:
+            os.chdir(tmp)
+            solver.generate_dependencies(src_path.name)
+        finally:
+            os.chdir(cwd)
+        source = src_path.read_text()
+        key = cache_key(source)
+        library = directory / f"rmpc_{tag}_{key}.so"
+        if library.exists():
+            log.debug("RMPC %s: cache hit %s", tag, library)
+            return CompiledNlp(library=library, key=key, compiled_now=False)
+        log.info("RMPC %s: compiling %s (one-off, a few seconds)", tag, library.name)
+        name = f"rmpc_{tag}_{key}.tmp{os.getpid()}"
+        try:
+            importer = ca.Importer(
+                str(src_path),
+                "shell",
+                {
+                    "flags": list(COMPILER_FLAGS),
+                    "directory": str(directory) + os.sep,
+                    "name": name,
+                    "temp_suffix": False,
+                    "cleanup": False,
+                },
+            )
+        except RuntimeError as exc:
+            raise RmpcBuildError(f"RMPC {tag}: compilation failed: {exc}") from exc
+        built = Path(importer.library())
+        del importer  # unloads the temporary library before the rename
+        os.replace(built, library)
+        obj = directory / f"{name}.o"
+        if obj.exists():
+            obj.unlink()
+        return CompiledNlp(library=library, key=key, compiled_now=True)
