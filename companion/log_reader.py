@@ -1,0 +1,404 @@
+"""Read a companion MCAP log robustly, including files cut short by a crash or power loss.
+
+Opening indexes the file once:
+
+* intact file: the summary (footer, chunk indexes, channels) is read with the normal seeking
+  reader (``mcap.reader.SeekingReader``) and every chunk's CRC is checked;
+* otherwise (no footer, unreadable summary): SALVAGE. The data section is walked record by
+  record with mcap's record parsers; each complete chunk whose CRC and decompression check out
+  is kept, a corrupt chunk is skipped and counted, and the walk stops at the first incomplete
+  record (the truncation point). :attr:`LogReader.recovery` says what came back.
+
+Iteration (:meth:`LogReader.messages`) yields :class:`LogMessage` in log-time order (ties in file
+order), merging chunks with a heap like mcap's own reader, so memory stays bounded by the chunks
+overlapping in time. JSON channels are decoded to dicts; foxglove images to numpy arrays.
+"""
+
+from __future__ import annotations
+
+import base64
+import heapq
+import io
+import json
+import logging
+import struct
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import breakup_chunk
+
+from companion import CompanionError
+from companion import schemas as sch
+
+log = logging.getLogger(__name__)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEAD = struct.Struct("<BQ")
+#: What a damaged chunk may raise while being decompressed, CRC-checked or parsed.
+_CHUNK_ERRORS = (
+    McapError, ValueError, struct.error, RuntimeError, EOFError, IndexError, KeyError,
+    zstandard.ZstdError,
+)  # fmt: skip
+
+
+class LogReadError(CompanionError):
+    """A log file cannot be read at all (missing, unreadable)."""
+
+
+class NotMcapError(LogReadError):
+    """The file is not an MCAP file (wrong magic)."""
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """One channel's content: message count and log-time range (ns)."""
+
+    topic: str
+    schema_name: str
+    message_encoding: str
+    count: int
+    first_log_time_ns: int | None
+    last_log_time_ns: int | None
+
+    @property
+    def duration_s(self) -> float:
+        if self.first_log_time_ns is None or self.last_log_time_ns is None:
+            return 0.0
+        return (self.last_log_time_ns - self.first_log_time_ns) * 1e-9
+
+    @property
+    def rate_hz(self) -> float:
+        """Mean message rate, (count - 1) / duration; 0 with fewer than 2 messages."""
+        d = self.duration_s
+        return (self.count - 1) / d if self.count > 1 and d > 0 else 0.0
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """What reading the file recovered.
+
+    ``salvaged``: the summary could not be used, the data section was walked instead;
+    ``truncated``: the file ends before its footer; ``messages``: messages readable;
+    ``corrupt_chunks``: chunks skipped (CRC or decompression failure); ``orphan_messages``:
+    messages whose channel definition was lost; ``bytes_used`` / ``bytes_total``: where the walk
+    stopped; ``stop_reason``: why it stopped early ("" when the file is complete).
+    """
+
+    salvaged: bool
+    truncated: bool
+    messages: int
+    corrupt_chunks: int
+    orphan_messages: int
+    first_log_time_ns: int | None
+    last_log_time_ns: int | None
+    bytes_used: int
+    bytes_total: int
+    stop_reason: str
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    """One logged message. ``data``: the decoded JSON object (for images without the base64
+    ``data`` field), None for non-JSON channels; ``image``: the decoded picture of a
+    foxglove.CompressedImage / RawImage (HxW or HxWx3 uint8, BGR), else None; ``raw``: the
+    message bytes as stored."""
+
+    topic: str
+    log_time_ns: int
+    publish_time_ns: int
+    schema_name: str
+    data: dict[str, Any] | None
+    image: np.ndarray | None
+    raw: bytes
+
+
+@dataclass(frozen=True)
+class _ChunkRef:
+    offset: int  # of the chunk record's opcode byte
+    start_ns: int
+    end_ns: int
+
+
+class LogReader:
+    """``with LogReader(path) as r: r.recovery, r.channels, for m in r.messages(): ...``"""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._f: BinaryIO = open(self.path, "rb")  # noqa: SIM115 - closed by close()
+        except OSError as e:
+            raise LogReadError(f"cannot open log {str(self.path)!r}: {e.strerror}") from e
+        try:
+            self._size = self.path.stat().st_size
+            if self._f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                raise NotMcapError(f"{str(self.path)!r} is not an MCAP file (bad magic)")
+            self._schemas: dict[int, Schema] = {}
+            self._channels: dict[int, Channel] = {}
+            self._chunks: list[_ChunkRef] = []
+            self._loose: list[Message] = []
+            self._index()
+        except BaseException:
+            self._f.close()
+            raise
+
+    def __enter__(self) -> LogReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._f.close()
+
+    # -- indexing -------------------------------------------------------------------------------
+
+    def _index(self) -> None:
+        counts: dict[int, list[int]] = {}  # channel id -> [count, first, last]
+        self._corrupt = 0
+        self._orphans = 0
+        summary = None
+        try:
+            self._f.seek(0)
+            summary = SeekingReader(self._f, validate_crcs=True).get_summary()
+        except (McapError, ValueError, struct.error, OSError) as e:
+            log.info("%s: summary unusable (%s): salvaging", self.path, e)
+        if summary is not None and (summary.chunk_indexes or summary.statistics):
+            self._salvaged, self._truncated = False, False
+            self._schemas.update(summary.schemas)
+            self._channels.update(summary.channels)
+            refs = [
+                _ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time)
+                for ci in summary.chunk_indexes
+            ]
+            for ref in refs:
+                msgs = self._read_chunk(ref.offset, learn=False)
+                if msgs is not None:
+                    self._chunks.append(ref)
+                    self._tally(msgs, counts)
+            self._bytes_used, self._stop = self._size, ""
+        else:
+            self._salvaged = True
+            self._walk(counts)
+        self._counts = counts
+
+    def _tally(self, msgs: Iterable[Message], counts: dict[int, list[int]]) -> None:
+        for m in msgs:
+            if m.channel_id not in self._channels:
+                self._orphans += 1
+                continue
+            c = counts.get(m.channel_id)
+            if c is None:
+                counts[m.channel_id] = [1, m.log_time, m.log_time]
+            else:
+                c[0] += 1
+                c[1] = min(c[1], m.log_time)
+                c[2] = max(c[2], m.log_time)
+
+    def _read_chunk(self, offset: int, learn: bool) -> list[Message] | None:
+        """Messages of the chunk record at ``offset`` (None if it is damaged). ``learn``:
+        record the schemas and channels defined inside it."""
+        try:
+            self._f.seek(offset)
+            opcode, length = _RECORD_HEAD.unpack(self._f.read(_RECORD_HEAD.size))
+            if opcode != Opcode.CHUNK:
+                raise McapError(f"no chunk at offset {offset}")
+            body = self._f.read(length)
+            if len(body) != length:
+                raise McapError("chunk cut short")
+            chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+            records = breakup_chunk(chunk, validate_crc=True)
+        except _CHUNK_ERRORS as e:
+            self._corrupt += 1
+            log.warning("%s: skipping damaged chunk at byte %d: %s", self.path, offset, e)
+            return None
+        out: list[Message] = []
+        for r in records:
+            if isinstance(r, Message):
+                out.append(r)
+            elif learn and isinstance(r, Schema):
+                self._schemas[r.id] = r
+            elif learn and isinstance(r, Channel):
+                self._channels[r.id] = r
+        return out
+
+    def _walk(self, counts: dict[int, list[int]]) -> None:
+        """Salvage: walk the data section record by record."""
+        pos = len(MCAP_MAGIC)
+        self._truncated, self._stop = True, "end of file before the footer"
+        while True:
+            self._f.seek(pos)
+            head = self._f.read(_RECORD_HEAD.size)
+            if len(head) < _RECORD_HEAD.size:
+                if head:
+                    self._stop = f"incomplete record header at byte {pos}"
+                break
+            opcode, length = _RECORD_HEAD.unpack(head)
+            end = pos + _RECORD_HEAD.size + length
+            if end > self._size:
+                self._stop = f"record at byte {pos} runs past the end of the file"
+                break
+            if opcode == Opcode.FOOTER:
+                self._truncated, self._stop = False, ""
+                pos = end
+                break
+            if opcode == Opcode.CHUNK:
+                msgs = self._read_chunk(pos, learn=True)
+                if msgs is not None:
+                    if msgs:
+                        start = min(m.log_time for m in msgs)
+                        stop = max(m.log_time for m in msgs)
+                        self._chunks.append(_ChunkRef(pos, start, stop))
+                    self._tally(msgs, counts)
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
+                body = self._f.read(length)
+                try:
+                    stream = ReadDataStream(io.BytesIO(body))
+                    if opcode == Opcode.SCHEMA:
+                        s = Schema.read(stream)
+                        self._schemas[s.id] = s
+                    elif opcode == Opcode.CHANNEL:
+                        c = Channel.read(stream)
+                        self._channels[c.id] = c
+                    else:
+                        m = Message.read(stream, length)
+                        self._loose.append(m)
+                        self._tally([m], counts)
+                except _CHUNK_ERRORS as e:
+                    self._stop = f"damaged record at byte {pos}: {e}"
+                    break
+            pos = end
+        self._bytes_used = pos
+
+    # -- results --------------------------------------------------------------------------------
+
+    @property
+    def recovery(self) -> Recovery:
+        n = sum(c[0] for c in self._counts.values())
+        firsts = [c[1] for c in self._counts.values()]
+        lasts = [c[2] for c in self._counts.values()]
+        return Recovery(
+            salvaged=self._salvaged,
+            truncated=self._truncated,
+            messages=n,
+            corrupt_chunks=self._corrupt,
+            orphan_messages=self._orphans,
+            first_log_time_ns=min(firsts) if firsts else None,
+            last_log_time_ns=max(lasts) if lasts else None,
+            bytes_used=self._bytes_used,
+            bytes_total=self._size,
+            stop_reason=self._stop,
+        )
+
+    @property
+    def channels(self) -> list[ChannelInfo]:
+        """Every channel defined in the readable part, sorted by topic."""
+        out = []
+        for cid, ch in self._channels.items():
+            c = self._counts.get(cid)
+            out.append(
+                ChannelInfo(
+                    topic=ch.topic,
+                    schema_name=self._schema_name(ch),
+                    message_encoding=ch.message_encoding,
+                    count=c[0] if c else 0,
+                    first_log_time_ns=c[1] if c else None,
+                    last_log_time_ns=c[2] if c else None,
+                )
+            )
+        return sorted(out, key=lambda i: i.topic)
+
+    def _schema_name(self, ch: Channel) -> str:
+        s = self._schemas.get(ch.schema_id)
+        return s.name if s is not None else ""
+
+    def messages(
+        self,
+        topics: Iterable[str] | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        decode: bool = True,
+    ) -> Iterator[LogMessage]:
+        """Messages in log-time order (ties: file order), optionally only ``topics`` and
+        ``start_ns <= log_time < end_ns``. ``decode=False`` skips JSON and image decoding."""
+        wanted = None if topics is None else set(topics)
+        heap: list[tuple[int, int, int, Any]] = []
+        for ref in self._chunks:
+            if end_ns is not None and ref.start_ns >= end_ns:
+                continue
+            if start_ns is not None and ref.end_ns < start_ns:
+                continue
+            heapq.heappush(heap, (ref.start_ns, ref.offset, -1, ref))
+        for i, m in enumerate(self._loose):
+            heapq.heappush(heap, (m.log_time, -1, i, m))
+        while heap:
+            item = heapq.heappop(heap)[3]
+            if isinstance(item, _ChunkRef):
+                msgs = self._read_chunk(item.offset, learn=False) or []
+                for i, m in enumerate(msgs):
+                    heapq.heappush(heap, (m.log_time, item.offset, i, m))
+                continue
+            m = item
+            ch = self._channels.get(m.channel_id)
+            if ch is None or (wanted is not None and ch.topic not in wanted):
+                continue
+            if (start_ns is not None and m.log_time < start_ns) or (
+                end_ns is not None and m.log_time >= end_ns
+            ):
+                continue
+            yield self._decode(ch, m, decode)
+
+    def _decode(self, ch: Channel, m: Message, decode: bool) -> LogMessage:
+        schema_name = self._schema_name(ch)
+        data: dict[str, Any] | None = None
+        image: np.ndarray | None = None
+        if decode and ch.message_encoding == sch.MESSAGE_ENCODING:
+            try:
+                data = json.loads(m.data)
+            except (ValueError, UnicodeDecodeError) as e:
+                log.warning(
+                    "%s: undecodable JSON on %s at %d: %s", self.path, ch.topic, m.log_time, e
+                )
+            if isinstance(data, dict) and schema_name in (sch.COMPRESSED_IMAGE, sch.RAW_IMAGE):
+                image = _decode_image(schema_name, data)
+                data.pop("data", None)
+        return LogMessage(
+            topic=ch.topic,
+            log_time_ns=m.log_time,
+            publish_time_ns=m.publish_time,
+            schema_name=schema_name,
+            data=data if isinstance(data, dict) else None,
+            image=image,
+            raw=bytes(m.data),
+        )
+
+
+def _decode_image(schema_name: str, msg: dict[str, Any]) -> np.ndarray | None:
+    import cv2
+
+    try:
+        buf = base64.b64decode(msg.get("data", ""), validate=True)
+        if schema_name == sch.COMPRESSED_IMAGE:
+            img = cv2.imdecode(np.frombuffer(buf, np.uint8), cv2.IMREAD_UNCHANGED)
+            return img if isinstance(img, np.ndarray) else None
+        h, w, step = int(msg["height"]), int(msg["width"]), int(msg["step"])
+        ch = {"mono8": 1, "bgr8": 3, "rgb8": 3}[msg["encoding"]]
+        rows = np.frombuffer(buf, np.uint8)[: h * step].reshape(h, step)[:, : w * ch]
+        return rows.reshape(h, w, ch) if ch == 3 else rows.reshape(h, w)
+    except (ValueError, KeyError, TypeError) as e:
+        log.warning("undecodable image: %s", e)
+        return None
+
+
+def read_log(path: str | Path, decode: bool = True) -> tuple[Recovery, list[LogMessage]]:
+    """Convenience: the recovery report and every message, in log-time order."""
+    with LogReader(path) as r:
+        return r.recovery, list(r.messages(decode=decode))
