@@ -450,12 +450,11 @@ class Rmpc:
     def _slack_guess(self, lay: Layout, eta: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Slacks that make the guess feasible for the soft rows (plus a small interior gap)."""
         out = np.zeros(len(lay.slack_index))
-        i = 0
-        for row in lay.rows:
-            val = _row_value(row.kind, eta[row.stage], u[row.stage] if row.stage < len(u)
-                             else None, self.terminal.p, self.cfg, self.camera)
+        for i, row in enumerate(lay.rows):
+            u_n = u[row.stage] if row.stage < len(u) else None
+            val = _row_value(row.kind, eta[row.stage], u_n, self.terminal.p, self.cfg,
+                             self.camera)
             out[i] = max(val - row.upper, 0.0) + 1e-3
-            i += 1
         return out
 
 

@@ -1,0 +1,292 @@
+"""The RMPC of spec section 6: solutions are checked constraint by constraint, not trusted.
+
+The compiled solver is built once per session (the first run ever compiles for ~25 s and
+caches the libraries under ``rmpc.cache_dir``; later runs and processes load them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from companion import CompanionError
+from companion.config import Config, load_config
+from companion.core.dynamics import input_error
+from companion.core.rmpc import (
+    Rmpc,
+    RmpcParameterError,
+    RmpcResult,
+    TargetMotion,
+    check_solution,
+    terminal_law,
+    visibility_margin,
+)
+from companion.core.rmpc_scenario import closed_loop, horizon_motion, initial_error, paper_agv
+from companion.core.terminal import TerminalDesign, design_terminal
+
+ROOT = Path(__file__).resolve().parents[2]
+PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
+YAW_OFFSET_POSE = ((-0.2, 0.4, -3.2), -np.pi / 8)
+EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
+ETA0_PAPER = np.array([0.0159, -0.2230, 0.6, 0.3927, -0.1307, -0.0541, 0.0])
+RHO = 1e-4
+HARD = ("dynamics", "input", "state")
+
+
+@pytest.fixture(scope="module")
+def cfg() -> Config:
+    return load_config()
+
+
+@pytest.fixture(scope="module")
+def design(cfg: Config) -> TerminalDesign:
+    return design_terminal(cfg.rmpc, cfg.camera)
+
+
+@pytest.fixture(scope="module")
+def mpc(cfg: Config, design: TerminalDesign) -> Rmpc:
+    return Rmpc(cfg.rmpc, cfg.camera, design)
+
+
+@pytest.fixture()
+def fresh(mpc: Rmpc) -> Rmpc:
+    mpc.reset()
+    return mpc
+
+
+def _norm_p(eta: np.ndarray, design: TerminalDesign) -> float:
+    return float(np.sqrt(eta @ design.p @ eta))
+
+
+def _cost(res: RmpcResult, cfg: Config, design: TerminalDesign) -> float:
+    q, r = np.diag(cfg.rmpc.q_diag), np.diag(cfg.rmpc.r_diag)
+    total = 0.0
+    for n in range(cfg.rmpc.horizon):
+        v_a, vdot_a, psidot_a = res.target.stage(n)
+        ue = input_error(res.u_pred[n], v_a, vdot_a, psidot_a)
+        total += res.eta_pred[n] @ q @ res.eta_pred[n] + ue @ r @ ue
+    return float(total + res.eta_pred[-1] @ design.p @ res.eta_pred[-1])
+
+
+# ---------------------------------------------------------------------------------------------
+def test_scenario_initial_states_match_the_spec() -> None:
+    """The pose -> eta_e(0) helper reproduces the paper's initial error (spec 8)."""
+    eta0 = initial_error(*PAPER_POSE)
+    assert np.allclose(eta0, ETA0_PAPER, atol=1e-4)
+    tm = horizon_motion(0.0, PAPER_POSE[1], 16, 0.05)
+    assert np.allclose(tm.v_a_m_s[0], [0.1307, 0.0541], atol=1e-4)
+    yaw = initial_error(*YAW_OFFSET_POSE)
+    assert yaw[3] == pytest.approx(np.pi / 4 + np.pi / 8)  # 1.178 rad
+    assert np.allclose(yaw[4:6], [-0.0541, -0.1307], atol=1e-4)
+
+
+def test_paper_initial_state_is_optimal_and_every_constraint_holds(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign
+) -> None:
+    tm = horizon_motion(0.0, PAPER_POSE[1], cfg.rmpc.horizon, cfg.rmpc.dt_s)
+    res = fresh.solve(ETA0_PAPER, tm)
+    assert res.success and res.mode == "optimal", res.status
+    assert res.active_groups == ("tube", "visibility", "terminal")
+    assert check_solution(res, cfg.rmpc, cfg.camera, design) == []
+    assert np.array_equal(res.eta_pred[0], ETA0_PAPER)
+    assert np.all(np.abs(res.u0) <= np.asarray(cfg.rmpc.u_max) + 1e-9)
+    # the reported cost is the objective of the returned trajectory (independent re-evaluation)
+    assert res.cost == pytest.approx(_cost(res, cfg, design), rel=1e-9)
+    assert res.iterations > 0 and res.solve_time_s > 0
+    # optimality oracle: no worse than the terminal law rolled out, whenever that is feasible
+    law = fresh._rollout(ETA0_PAPER, tm)
+    alt = dataclasses.replace(res, eta_pred=law[0], u_pred=law[1], u0=law[1][0])
+    if check_solution(alt, cfg.rmpc, cfg.camera, design) == []:
+        assert res.cost <= _cost(alt, cfg, design) + 1e-9
+
+
+def test_unconstrained_mpc_near_the_origin_is_the_lqr(cfg: Config, design: TerminalDesign) -> None:
+    """Oracle: with the terminal cost the DARE's P, the unconstrained MPC of the linearised
+    model IS the LQR: u_e(0) = K eta, cost = eta' P eta (to second order near the origin)."""
+    rc = dataclasses.replace(cfg.rmpc, enable_tube=False, enable_visibility=False,
+                             enable_terminal=False, jit=False)
+    m = Rmpc(rc, cfg.camera, design)
+    tm = TargetMotion.constant([0.0, 0.0], [0.0, 0.0], 0.0, rc.horizon)
+    rng = np.random.default_rng(3)
+    for scale in (1e-3, 1e-4):
+        eta = rng.normal(size=7) * scale
+        res = m.solve(eta, tm)
+        assert res.mode == "optimal"
+        ue0 = input_error(res.u0, *tm.stage(0))
+        assert np.allclose(ue0, design.k @ eta, atol=1e-3 * scale)
+        assert res.cost == pytest.approx(float(eta @ design.p @ eta), rel=1e-2)
+        m.reset()
+
+
+def test_closed_loop_paper_every_constraint_holds_and_enters_omega(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign
+) -> None:
+    steps = 300
+    loop = closed_loop(fresh, ETA0_PAPER, steps, RHO, seed=7)
+    modes = [s.result.mode for s in loop]
+    assert modes == ["optimal"] * steps
+    for s in loop:
+        assert check_solution(s.result, cfg.rmpc, cfg.camera, design) == [], s.t_s
+    norms = np.array([_norm_p(s.eta, design) for s in loop])
+    entered = int(np.argmax(norms <= cfg.rmpc.eps))
+    assert norms[entered] <= cfg.rmpc.eps and entered < 100
+    assert np.all(norms[entered:] <= cfg.rmpc.eps)
+    assert norms[-1] < 0.1 * cfg.rmpc.eps  # and keeps converging
+    # on the paper path the visibility constraint never binds (spec 8's reference loop)
+    margins = [visibility_margin(s.result, cfg.rmpc, cfg.camera, design).min() for s in loop]
+    assert min(margins) > 0.2
+
+
+def test_forced_solver_failure_falls_back_to_the_clipped_terminal_law(
+    cfg: Config, design: TerminalDesign
+) -> None:
+    rc = dataclasses.replace(cfg.rmpc, max_iter=1)
+    m = Rmpc(rc, cfg.camera, design)
+    assert all(c is not None and not c.compiled_now for c in m.compiled)  # same code: cache hit
+    tm = horizon_motion(0.0, PAPER_POSE[1], rc.horizon, rc.dt_s)
+    res = m.solve(ETA0_PAPER, tm)
+    assert res.mode == "fallback" and not res.success
+    expected = terminal_law(ETA0_PAPER, *tm.stage(0), design.k, rc.u_max)
+    assert np.array_equal(res.u0, expected)
+    assert np.all(np.isfinite(res.u0)) and np.all(np.abs(res.u0) <= np.asarray(rc.u_max))
+    assert np.all(np.isfinite(res.eta_pred)) and np.all(np.isfinite(res.u_pred))
+    # the law really is the clip of K eta + Gamma: unclipped entries give u_e = K eta
+    raw_ue = input_error(res.u0, *tm.stage(0))
+    unclipped = np.abs(res.u0) < np.asarray(rc.u_max)
+    if unclipped[3]:
+        assert np.allclose(raw_ue[unclipped], (design.k @ ETA0_PAPER)[unclipped])
+
+
+def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign
+) -> None:
+    eta0 = initial_error(*YAW_OFFSET_POSE)
+    assert eta0[3] == pytest.approx(1.178, abs=1e-3)
+    loop = closed_loop(fresh, eta0, 200, RHO, seed=11)
+    modes = [s.result.mode for s in loop]
+    assert "fallback" not in modes
+    assert modes[0] == "recovery" and loop[0].result.max_soft_violation > 0
+    first_opt = modes.index("optimal")
+    assert modes[first_opt:] == ["optimal"] * (len(modes) - first_opt)
+    for s in loop:
+        bad = check_solution(s.result, cfg.rmpc, cfg.camera, design)
+        if s.result.mode == "recovery":
+            # dynamics, inputs and the state box stay hard in the soft copy
+            assert [v for v in bad if v.constraint in HARD] == []
+        else:
+            assert bad == []
+    norms = np.array([_norm_p(s.eta, design) for s in loop])
+    assert np.all(norms[-50:] <= cfg.rmpc.eps) and norms[-1] < 0.2 * norms[0]
+
+
+def test_edge_start_makes_the_visibility_constraint_bind(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign
+) -> None:
+    """UAV at (-1, 0, -3.2) m, psi0 = pi/4 (spec 8 'edge'): the circle constraint is active."""
+    eta0 = initial_error(*EDGE_POSE)
+    assert np.allclose(eta0, [0.5 / np.sqrt(2), -0.5 / np.sqrt(2), 0.6, 0.0,
+                              -0.1 * np.sqrt(2), 0.0, 0.0], atol=1e-9)
+    loop = closed_loop(fresh, eta0, 120, RHO, seed=5)
+    modes = [s.result.mode for s in loop]
+    assert "fallback" not in modes and modes[-1] == "optimal"
+    binding = [
+        s for s in loop
+        if s.result.mode == "optimal"
+        and visibility_margin(s.result, cfg.rmpc, cfg.camera, design).min() < 1e-6
+    ]
+    assert binding, "visibility never binds on the edge start"
+    for s in loop:
+        bad = check_solution(s.result, cfg.rmpc, cfg.camera, design)
+        assert bad == [] if s.result.mode == "optimal" else all(v.constraint not in HARD
+                                                                for v in bad)
+    # without the constraint the optimum leaves the circle at the same state
+    rc = dataclasses.replace(cfg.rmpc, enable_visibility=False, jit=False)
+    free = Rmpc(rc, cfg.camera, design)
+    s0 = binding[0]
+    psi_q = paper_agv(s0.t_s).yaw_rad - s0.eta[3]
+    res = free.solve(s0.eta, horizon_motion(s0.t_s, psi_q, rc.horizon, rc.dt_s))
+    assert res.mode in ("optimal", "recovery")
+    assert visibility_margin(res, cfg.rmpc, cfg.camera, design).min() < -1e-3
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_parameters_raise_before_the_solver(fresh: Rmpc, bad: float) -> None:
+    tm = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, fresh.horizon)
+    eta = ETA0_PAPER.copy()
+    eta[2] = bad
+    calls = fresh._hard.solver.stats().get("n_call_total")
+    with pytest.raises(RmpcParameterError, match="eta0") as exc:
+        fresh.solve(eta, tm)
+    assert isinstance(exc.value, CompanionError)
+    with pytest.raises(RmpcParameterError, match="v_a_m_s"):
+        TargetMotion.constant([bad, 0.0], [0.0, 0.0], 0.0, fresh.horizon)
+    with pytest.raises(RmpcParameterError, match="psidot_a"):
+        TargetMotion.constant([0.1, 0.0], [0.0, 0.0], bad, fresh.horizon)
+    with pytest.raises(RmpcParameterError):
+        fresh.solve(ETA0_PAPER, TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, 3))
+    assert fresh._hard.solver.stats().get("n_call_total") == calls
+
+
+def test_check_solution_catches_tampered_trajectories(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign
+) -> None:
+    tm = horizon_motion(0.0, PAPER_POSE[1], cfg.rmpc.horizon, cfg.rmpc.dt_s)
+    res = fresh.solve(ETA0_PAPER, tm)
+    assert check_solution(res, cfg.rmpc, cfg.camera, design) == []
+    u = res.u_pred.copy()
+    u[3, 0] = 1.6  # outside |r1| <= 1.5, and breaks the dynamics from stage 3 on
+    bad = check_solution(dataclasses.replace(res, u_pred=u), cfg.rmpc, cfg.camera, design)
+    kinds = {(v.constraint, v.stage) for v in bad}
+    assert ("input", 3) in kinds and ("dynamics", 3) in kinds
+    assert next(v.amount for v in bad if v.constraint == "input") == pytest.approx(0.1)
+    eta = res.eta_pred.copy()
+    eta[-1] = eta[-1] * 0 + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    names = {v.constraint for v in check_solution(dataclasses.replace(res, eta_pred=eta),
+                                                  cfg.rmpc, cfg.camera, design)}
+    assert {"terminal_visibility", "terminal_set", "dynamics"} <= names
+
+
+@settings(
+    max_examples=25, deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+@given(
+    eta=st.lists(st.floats(-0.08, 0.08), min_size=7, max_size=7),
+    v=st.lists(st.floats(-0.3, 0.3), min_size=2, max_size=2),
+    psidot=st.floats(-0.05, 0.05),
+)
+def test_any_small_error_gives_a_checked_finite_answer(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign, eta: list[float], v: list[float],
+    psidot: float,
+) -> None:
+    fresh.reset()
+    tm = TargetMotion.constant(v, [0.0, 0.0], psidot, cfg.rmpc.horizon)
+    res = fresh.solve(np.array(eta), tm)
+    assert np.all(np.isfinite(res.u0)) and np.all(np.abs(res.u0) <= np.asarray(cfg.rmpc.u_max))
+    assert res.mode == "optimal", res.status  # inside the tube: the hard problem is feasible
+    assert check_solution(res, cfg.rmpc, cfg.camera, design) == []
+
+
+@pytest.mark.slow
+def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> None:
+    hard, soft = mpc.compiled
+    assert hard is not None and soft is not None and hard.library.exists()
+    code = (
+        "import json; from companion.config import load_config;"
+        "from companion.core.terminal import design_terminal;"
+        "from companion.core.rmpc import Rmpc; c = load_config();"
+        "m = Rmpc(c.rmpc, c.camera, design_terminal(c.rmpc, c.camera));"
+        "print(json.dumps([[str(x.library), x.compiled_now] for x in m.compiled]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120, check=True)
+    libs = json.loads(out.stdout.strip().splitlines()[-1])
+    assert libs == [[str(hard.library), False], [str(soft.library), False]]
