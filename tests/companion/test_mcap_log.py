@@ -1,0 +1,251 @@
+"""McapLogger on real files (and a real FIFO to stall the writer), read back with mcap's own
+reader and with companion.log_reader."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import shutil
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion import schemas as sch
+from companion.log_reader import LogReader
+from companion.mavlink_link import Received, Sent
+from companion.mcap_log import McapLogError, McapLogger, encode_json
+
+
+def _image(h: int = 60, w: int = 80) -> np.ndarray:
+    """A smooth BGR test picture (JPEG-friendly) with a sharp-edged square."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.stack([xx * 255 // w, yy * 255 // h, (xx + yy) * 255 // (w + h)], axis=-1)
+    img = img.astype(np.uint8)
+    img[20:40, 30:50] = (255, 255, 255)
+    return img
+
+
+def _mavlink_items() -> tuple[Received, Sent]:
+    ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    raw_in = bytes(ap.attitude_quaternion_encode(5, 1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3).pack(ap))
+    msg_in = mavlink2.MAVLink(None).parse_buffer(raw_in)[0]
+    rx = Received(msg_in, raw_in, 123, 1, 1, 31, "ATTITUDE_QUATERNION", 0, False)
+    me = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
+    out = me.command_long_encode(1, 1, 176, 0, 1, 6, 0, 0, 0, 0, math.nan)
+    raw_out = bytes(out.pack(me))
+    tx = Sent(out, raw_out, 456, 76, "COMMAND_LONG")
+    return rx, tx
+
+
+def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    img = _image()
+    gray = img[:, :, 1].copy()
+    rx, tx = _mavlink_items()
+    steps: list[dict[str, Any]] = []
+    with McapLogger(path, chunk_size=2048, flush_interval_s=0.05, queue_size=10_000) as lg:
+        lg.log_config(0, "[control]\nrate_hz = 20.0\n", {"control": {"rate_hz": 20.0}}, "x.toml")
+        for k in range(200):
+            step = {
+                "t_us": 50_000 * k, "success": k % 7 != 0, "status": "Solve_Succeeded",
+                "u": np.array([0.1 * k, -0.2, math.nan, math.inf]), "k": np.int64(k),
+            }  # fmt: skip
+            steps.append(step)
+            assert lg.log("/control/step", 50_000_000 * k + 10, step, schema=sch.CONTROLLER_STEP)
+        for k in range(20):
+            # images logged later in the queue but stamped earlier: readers must re-order
+            assert lg.log_image("/camera/jpeg", 50_000_000 * k, img, "jpeg")
+            assert lg.log_image("/camera/raw", 50_000_000 * k + 1, gray, "raw")
+        assert lg.log_image("/camera/png", 7, img, "png")
+        assert lg.log_text("/log", 11, "offboard engaged", "WARNING", "safety")
+        assert lg.log_pose("/uav/pose", 12, "ned", [1.0, 2.0, -3.0], [0.5, 0.5, 0.5, 0.5])
+        assert lg.log_transform("/tf", 13, "ned", "uav", [1, 2, 3], [1, 0, 0, 0])
+        assert lg.log_mavlink("in", rx)
+        assert lg.log_mavlink("out", tx, log_time_ns=999)
+        assert lg.log("/pre", 14, b'{"already":"json"}', schema=sch.JSON)
+    st = lg.stats
+    total = 1 + 200 + 40 + 1 + 6
+    assert (st.enqueued, st.written, st.flushed, st.dropped, st.errors) == (total,) * 3 + (0, 0)
+
+    # --- mcap's own reader: counts, schemas, encodings, JSON -----------------------------------
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == total
+        by_topic = {c.topic: c for c in summary.channels.values()}
+        counts = summary.statistics.channel_message_counts
+        assert counts[by_topic["/control/step"].id] == 200
+        assert counts[by_topic["/camera/jpeg"].id] == 20
+        expect_schema = {
+            "/config": sch.CONFIG, "/control/step": sch.CONTROLLER_STEP,
+            "/camera/jpeg": sch.COMPRESSED_IMAGE, "/camera/raw": sch.RAW_IMAGE,
+            "/camera/png": sch.COMPRESSED_IMAGE, "/log": sch.LOG, "/uav/pose": sch.POSE_IN_FRAME,
+            "/tf": sch.FRAME_TRANSFORM, "/mavlink/in/ATTITUDE_QUATERNION":
+            "companion.mavlink.ATTITUDE_QUATERNION", "/mavlink/out/COMMAND_LONG":
+            "companion.mavlink.COMMAND_LONG", "/pre": sch.JSON,
+        }  # fmt: skip
+        assert set(by_topic) == set(expect_schema)
+        for topic, ch in by_topic.items():
+            schema = summary.schemas[ch.schema_id]
+            assert ch.message_encoding == "json" and schema.encoding == "jsonschema"
+            assert schema.name == expect_schema[topic]
+            assert json.loads(schema.data)["title"] == schema.name
+        mine = [
+            (ch.topic, m.log_time, json.loads(m.data))
+            for _, ch, m in reader.iter_messages(log_time_order=True)
+        ]
+    times = [t for _, t, _ in mine]
+    assert times == sorted(times)
+    ctrl = [d for topic, _, d in mine if topic == "/control/step"]
+    assert ctrl[3] == {
+        "t_us": 150_000, "success": True, "status": "Solve_Succeeded",
+        "u": [0.30000000000000004, -0.2, None, None], "k": 3,
+    }  # fmt: skip
+    assert [d["t_us"] for d in ctrl] == [s["t_us"] for s in steps]
+    jpeg = next(d for topic, _, d in mine if topic == "/camera/jpeg")
+    assert jpeg["format"] == "jpeg" and jpeg["timestamp"] == {"sec": 0, "nsec": 0}
+    dec = cv2.imdecode(np.frombuffer(base64.b64decode(jpeg["data"]), np.uint8), cv2.IMREAD_COLOR)
+    assert dec.shape == img.shape and np.abs(dec.astype(int) - img).mean() < 3.0
+    mav_in = next(d for topic, _, d in mine if topic.startswith("/mavlink/in/"))
+    assert base64.b64decode(mav_in["raw_b64"]) == rx.raw
+    assert mav_in["t_rx_ns"] == 123 and mav_in["sysid"] == 1
+    assert mav_in["fields"]["rollspeed"] == pytest.approx(0.1)
+    reparsed = mavlink2.MAVLink(None).parse_buffer(base64.b64decode(mav_in["raw_b64"]))[0]
+    assert reparsed.q1 == 1.0
+    mav_out = next((t, d) for topic, t, d in mine if topic.startswith("/mavlink/out/"))
+    assert mav_out[0] == 999 and mav_out[1]["fields"]["param7"] is None  # NaN -> null
+    assert mav_out[1]["t_tx_ns"] == 456
+    pose = next(d for topic, _, d in mine if topic == "/uav/pose")
+    assert pose["pose"]["orientation"] == {"x": 0.5, "y": 0.5, "z": 0.5, "w": 0.5}
+    log_msg = next(d for topic, _, d in mine if topic == "/log")
+    assert (log_msg["level"], log_msg["name"]) == (3, "safety")
+
+    # --- our reader: same messages in the same order, images decoded ---------------------------
+    with LogReader(path) as r:
+        assert not r.recovery.salvaged and not r.recovery.truncated
+        assert r.recovery.messages == total
+        ours = list(r.messages())
+    assert [(m.topic, m.log_time_ns) for m in ours] == [(t, lt) for t, lt, _ in mine]
+    assert [m.data for m in ours if m.topic == "/control/step"] == ctrl
+    raw_imgs = [m.image for m in ours if m.topic == "/camera/raw"]
+    assert len(raw_imgs) == 20 and all(np.array_equal(i, gray) for i in raw_imgs)
+    png = next(m for m in ours if m.topic == "/camera/png")
+    assert np.array_equal(png.image, img) and png.data is not None and "data" not in png.data
+    jp = next(m for m in ours if m.topic == "/camera/jpeg")
+    assert jp.image is not None and np.abs(jp.image.astype(int) - img).mean() < 3.0
+
+
+def test_misuse_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(McapLogError, match="cannot open"):
+        McapLogger(tmp_path / "no" / "such" / "dir.mcap").open()
+    with pytest.raises(McapLogError):
+        McapLogger(tmp_path / "x.mcap", chunk_size=0)
+    with McapLogger(tmp_path / "x.mcap") as lg:
+        with pytest.raises(McapLogError, match="unknown schema"):
+            lg.log("/a", 1, {}, schema="nope.Nope")
+        with pytest.raises(McapLogError, match="give its schema"):
+            lg.log("/b", 1, {})
+        lg.log("/c", 1, {}, schema=sch.JSON)
+        with pytest.raises(McapLogError, match="already uses"):
+            lg.log("/c", 2, {}, schema=sch.PERCEPTION)
+        lg.log("/c", 3, {"ok": True})  # schema known from the first use
+        with pytest.raises(McapLogError, match="non-negative"):
+            lg.log("/c", -1, {})
+        with pytest.raises(McapLogError, match="encoding"):
+            lg.log_image("/img", 1, _image(), "gif")
+        # a bad image or a non-serialisable payload is counted, the logger keeps going
+        assert lg.log_image("/img", 2, np.zeros((4, 4), np.float32))
+        assert lg.log("/c", 4, {"bad": object()})
+        assert lg.log("/c", 5, {"after": 1})
+    assert (lg.stats.errors, lg.stats.written) == (2, 3)
+    assert not lg.log("/c", 6, {})  # closed: dropped
+    assert lg.dropped == 1
+
+
+def test_encode_json_handles_numpy_and_non_finite() -> None:
+    out = json.loads(encode_json({"a": np.float32(1.5), "b": [math.nan, 1.0], "c": b"\x00\x01"}))
+    assert out == {"a": 1.5, "b": [None, 1.0], "c": "AAE="}
+
+
+def test_full_queue_drops_and_counts_without_blocking(tmp_path: Path) -> None:
+    """The writer is stalled on purpose: it writes into a FIFO nobody reads (yet)."""
+    fifo = tmp_path / "stall.mcap"
+    os.mkfifo(fifo)
+    rfd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # a reader exists but does not read
+    pad = base64.b64encode(os.urandom(3000)).decode()
+    lg = McapLogger(fifo, chunk_size=512, flush_interval_s=0.05, queue_size=16, compression="none")
+    lg.open()
+    attempts = 0
+    t0 = time.monotonic()
+    while lg.dropped < 100 and attempts < 20_000:
+        lg.log("/pad", attempts, {"i": attempts, "pad": pad}, schema=sch.JSON)
+        attempts += 1
+    elapsed = time.monotonic() - t0
+    st = lg.stats
+    assert st.dropped >= 100, "the stalled writer never filled the queue"
+    assert st.enqueued + st.dropped == attempts
+    assert st.written < st.enqueued  # the writer is stuck in a write
+    assert elapsed < 10.0  # every call returned although the writer is blocked
+
+    got = bytearray()
+
+    def drain() -> None:
+        os.set_blocking(rfd, True)
+        while chunk := os.read(rfd, 1 << 16):
+            got.extend(chunk)
+
+    reader = threading.Thread(target=drain)
+    reader.start()
+    lg.close()
+    reader.join(10.0)
+    os.close(rfd)
+    out = tmp_path / "drained.mcap"
+    out.write_bytes(bytes(got))
+    with LogReader(out) as r:
+        assert not r.recovery.truncated
+        idx = [m.data["i"] for m in r.messages() if m.data is not None]
+    assert lg.stats.written == lg.stats.enqueued == len(idx)
+    assert idx == sorted(idx) and len(set(idx)) == len(idx)
+
+
+def test_flushed_data_is_readable_while_the_logger_is_still_open(tmp_path: Path) -> None:
+    path = tmp_path / "live.mcap"
+    with McapLogger(path, chunk_size=1 << 20, flush_interval_s=0.05) as lg:
+        for i in range(300):
+            lg.log("/seq", i, {"i": i}, schema=sch.JSON)
+        deadline = time.monotonic() + 5.0
+        while lg.stats.flushed < 300 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert lg.stats.flushed == 300
+        snap = tmp_path / "snapshot.mcap"
+        shutil.copyfile(path, snap)  # what a power cut right now would leave
+        with LogReader(snap) as r:
+            rec = r.recovery
+            seq = [m.data["i"] for m in r.messages() if m.data is not None]
+    assert rec.truncated and rec.salvaged and rec.messages == 300
+    assert seq == list(range(300))
+
+
+def test_writer_failure_stops_logging_not_the_caller(tmp_path: Path) -> None:
+    lg = McapLogger("/dev/full", chunk_size=256, flush_interval_s=0.01)
+    lg.open()
+    deadline = time.monotonic() + 5.0
+    i = 0
+    while lg.failure is None and time.monotonic() < deadline:
+        lg.log("/x", i, {"i": i}, schema=sch.JSON)
+        i += 1
+        time.sleep(0.001)
+    assert isinstance(lg.failure, OSError)
+    assert not lg.log("/x", i, {"i": i}, schema=sch.JSON)  # dropped, no exception
+    with pytest.raises(McapLogError, match="writer failed"):
+        lg.close()
