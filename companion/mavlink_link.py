@@ -919,7 +919,7 @@ class MavlinkLink:
             msgid=msgid,
             name=name,
             seq=m.get_seq(),
-            signed=self._verifier is not None,
+            signed=self._verifier is not None and bool(raw[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
         )
         self._count("rx_accepted")
         if self._on_rx is not None:

@@ -468,7 +468,7 @@ class McapLogger:
                 if time.monotonic() >= next_flush:
                     self._flush(writer, sink)
                     next_flush = time.monotonic() + self.flush_interval_s
-            writer.finish()
+            writer.finish()  # type: ignore[no-untyped-call]
             sink.flush()
             sink.fsync()
             with self._lock:
@@ -498,7 +498,7 @@ class McapLogger:
 
     def _flush(self, writer: Writer, sink: _Sink) -> None:
         n = self._written
-        writer.flush()  # closes the open chunk, writes it, flushes the stream
+        writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk, flushes the stream
         sink.fsync()
         with self._lock:
             self._flushed = n

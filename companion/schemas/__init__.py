@@ -188,7 +188,7 @@ _STATIC: dict[str, dict[str, Any]] = {
 }
 
 
-_MAV_TYPES = {
+_MAV_TYPES: dict[str, dict[str, Any]] = {
     "float": {"type": ["number", "null"]}, "double": {"type": ["number", "null"]}, "char": _STR,
     **{t: _INT for t in ("int8_t", "uint8_t", "int16_t", "uint16_t", "int32_t", "uint32_t",
                          "int64_t", "uint64_t", "uint8_t_mavlink_version")},

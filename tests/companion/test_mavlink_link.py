@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
@@ -615,3 +617,32 @@ def test_struct_layout_of_custom_mode_matches_px4_union() -> None:
     # px4_custom_mode is a union {uint16 reserved; uint8 main_mode; uint8 sub_mode} (LE)
     data = struct.pack("<HBB", 0, 4, 3)
     assert px4_custom_mode(4, 3) == struct.unpack("<I", data)[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Properties of the per-datagram parser (hypothesis drives the receive path directly)
+
+_GOOD = Peer.__new__(Peer)  # an encoder only, no socket
+_GOOD.mav = mavlink2.MAVLink(None, srcSystem=AP_SYS, srcComponent=AP_COMP)
+
+
+@settings(max_examples=300, deadline=None)
+@given(junk=st.binary(max_size=300), garbage=st.binary(max_size=40), t_ms=st.integers(0, 2**32 - 1))
+def test_property_garbage_never_raises_and_never_hides_the_next_datagram(
+    junk: bytes, garbage: bytes, t_ms: int
+) -> None:
+    link = MavlinkLink("udpin:127.0.0.1:0", **link_kwargs())
+    delivered: list[Received] = []
+    link._on_rx = delivered.append
+    link._on_datagram(junk, ("127.0.0.1", 1))  # any bytes at all: no exception
+    assert link.counters["rx_accepted"] <= 1  # (a valid frame by pure chance is possible)
+    n0 = len(delivered)
+    # a good frame in the NEXT datagram is always delivered, whatever came before
+    good = _GOOD.pack(_GOOD.att(t_ms))
+    link._on_datagram(good, ("127.0.0.1", 1))
+    assert len(delivered) == n0 + 1 and delivered[-1].msg.time_boot_ms == t_ms
+    # and after marker-free garbage in the same datagram as well
+    clean = bytes(b for b in garbage if b not in (0xFD, 0xFE))
+    good2 = _GOOD.pack(_GOOD.att((t_ms + 1) % 2**32))
+    link._on_datagram(clean + good2, ("127.0.0.1", 1))
+    assert len(delivered) == n0 + 2
