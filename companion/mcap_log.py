@@ -226,6 +226,18 @@ class McapLogger:
         self._open = False
         self._closed = False
 
+    @classmethod
+    def from_config(cls, logging_cfg: Any, path: str | Path) -> McapLogger:
+        """From :class:`companion.config.LoggingConfig` (chunk size, flush interval, queue size);
+        the caller picks ``path`` (e.g. under ``logging_cfg.dir``) and passes
+        ``logging_cfg.image_encoding`` to :meth:`log_image`."""
+        return cls(
+            path,
+            chunk_size=logging_cfg.chunk_size_bytes,
+            flush_interval_s=logging_cfg.flush_interval_s,
+            queue_size=logging_cfg.queue_size,
+        )
+
     # -- lifecycle ------------------------------------------------------------------------------
 
     def __enter__(self) -> McapLogger:
@@ -395,6 +407,12 @@ class McapLogger:
         self._ensure_topic(topic, sch.MAVLINK_PREFIX + item.name)
         t = int(t_link if log_time_ns is None else log_time_ns)
         return self._put(("mavlink", topic, t, None, (direction, item)))
+
+    def log_rejected(self, reason: str, raw: bytes, t_rx_ns: int) -> bool:
+        """A frame the MAVLink link rejected (its ``on_reject`` callback) on
+        ``/mavlink/rejected``: reason, bytes (base64), link receive time."""
+        payload = {"reason": reason, "raw_b64": raw, "t_rx_ns": int(t_rx_ns)}
+        return self.log("/mavlink/rejected", int(t_rx_ns), payload, schema=sch.MAVLINK_REJECTED)
 
     def log_config(
         self, log_time_ns: int, toml_text: str, parsed: Mapping[str, Any], source: str = ""

@@ -31,6 +31,7 @@ PERCEPTION = "companion.Perception"
 CONTROLLER_STEP = "companion.ControllerStep"
 SAFETY_TRANSITION = "companion.SafetyTransition"
 CONFIG = "companion.Config"
+MAVLINK_REJECTED = "companion.MavlinkRejected"
 JSON = "companion.Json"
 
 #: foxglove.Log levels
@@ -183,6 +184,15 @@ _STATIC: dict[str, dict[str, Any]] = {
         CONFIG,
         "The configuration this run used, written once at start",
         {"source": _STR, "toml": _STR, "config": {"type": "object"}},
+    ),
+    MAVLINK_REJECTED: _obj(
+        MAVLINK_REJECTED,
+        "A received MAVLink frame the link rejected, and why",
+        {
+            "reason": _STR,
+            "raw_b64": {**_B64, "description": "the rejected bytes"},
+            "t_rx_ns": {**_INT, "description": "link clock at receipt (ns)"},
+        },
     ),
     JSON: _obj(JSON, "Free-form JSON object", {}, additionalProperties=True),
 }

@@ -24,6 +24,8 @@ from companion.log_reader import LogReader
 from companion.mavlink_link import Received, Sent
 from companion.mcap_log import McapLogError, McapLogger, encode_json
 
+ROOT = Path(__file__).resolve().parents[2]
+
 
 def _image(h: int = 60, w: int = 80) -> np.ndarray:
     """A smooth BGR test picture (JPEG-friendly) with a sharp-edged square."""
@@ -72,8 +74,9 @@ def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
         assert lg.log_mavlink("in", rx)
         assert lg.log_mavlink("out", tx, log_time_ns=999)
         assert lg.log("/pre", 14, b'{"already":"json"}', schema=sch.JSON)
+        assert lg.log_rejected("bad_signature", b"\xfd\x00", 15)
     st = lg.stats
-    total = 1 + 200 + 40 + 1 + 6
+    total = 1 + 200 + 40 + 1 + 7
     assert (st.enqueued, st.written, st.flushed, st.dropped, st.errors) == (total,) * 3 + (0, 0)
 
     # --- mcap's own reader: counts, schemas, encodings, JSON -----------------------------------
@@ -93,6 +96,7 @@ def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
             "/tf": sch.FRAME_TRANSFORM, "/mavlink/in/ATTITUDE_QUATERNION":
             "companion.mavlink.ATTITUDE_QUATERNION", "/mavlink/out/COMMAND_LONG":
             "companion.mavlink.COMMAND_LONG", "/pre": sch.JSON,
+            "/mavlink/rejected": sch.MAVLINK_REJECTED,
         }  # fmt: skip
         assert set(by_topic) == set(expect_schema)
         for topic, ch in by_topic.items():
@@ -127,6 +131,8 @@ def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
     assert mav_out[1]["t_tx_ns"] == 456
     pose = next(d for topic, _, d in mine if topic == "/uav/pose")
     assert pose["pose"]["orientation"] == {"x": 0.5, "y": 0.5, "z": 0.5, "w": 0.5}
+    rej = next(d for topic, _, d in mine if topic == "/mavlink/rejected")
+    assert rej == {"reason": "bad_signature", "raw_b64": "/QA=", "t_rx_ns": 15}
     log_msg = next(d for topic, _, d in mine if topic == "/log")
     assert (log_msg["level"], log_msg["name"]) == (3, "safety")
 
@@ -143,6 +149,16 @@ def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
     assert np.array_equal(png.image, img) and png.data is not None and "data" not in png.data
     jp = next(m for m in ours if m.topic == "/camera/jpeg")
     assert jp.image is not None and np.abs(jp.image.astype(int) - img).mean() < 3.0
+
+
+def test_from_config_uses_the_logging_table(tmp_path: Path) -> None:
+    from companion.config import load_config
+
+    cfg = load_config(ROOT / "config" / "paper.toml").logging
+    lg = McapLogger.from_config(cfg, tmp_path / "c.mcap")
+    assert (lg.chunk_size, lg.flush_interval_s, lg.queue_size) == (
+        cfg.chunk_size_bytes, cfg.flush_interval_s, cfg.queue_size,
+    )  # fmt: skip
 
 
 def test_misuse_is_a_clear_error(tmp_path: Path) -> None:
