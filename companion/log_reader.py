@@ -171,7 +171,11 @@ class LogReader:
             summary = SeekingReader(self._f, validate_crcs=True).get_summary()
         except (McapError, ValueError, struct.error, OSError) as e:
             log.info("%s: summary unusable (%s): salvaging", self.path, e)
-        if summary is not None and (summary.chunk_indexes or summary.statistics):
+        usable = summary is not None and (
+            bool(summary.chunk_indexes)
+            or (summary.statistics is not None and summary.statistics.message_count == 0)
+        )  # an unchunked file (messages outside chunks) is walked instead
+        if summary is not None and usable:
             self._salvaged, self._truncated = False, False
             self._schemas.update(summary.schemas)
             self._channels.update(summary.channels)

@@ -833,11 +833,9 @@ class MavlinkLink:
             data = os.read(self._serial_fd, 4096)
         except BlockingIOError:
             return
-        except OSError as e:
-            if e.errno == errno.EIO:  # the other end went away (pty closed, USB unplugged)
-                self._on_connection_lost(e)
-                return
-            raise
+        except OSError as e:  # EIO: the other end went away (pty closed, USB unplugged)
+            self._on_connection_lost(e)
+            return
         if data:
             self._on_stream_data(data)
 

@@ -178,11 +178,14 @@ def test_unchunked_file_from_another_writer(tmp_path: Path) -> None:
     for i in range(10):
         w.add_message(cid, log_time=10 - i, data=b'{"i": %d}' % i, publish_time=0)
     w.finish()
-    path = tmp_path / "plain.mcap"
-    path.write_bytes(buf.getvalue()[:-40])  # drop the footer: forces the salvage walk
-    rec, msgs = read_log(path)
-    assert rec.salvaged and rec.messages == 10
-    assert [m.data["i"] for m in msgs if m.data] == list(range(9, -1, -1))  # log-time order
+    whole = tmp_path / "plain.mcap"
+    whole.write_bytes(buf.getvalue())
+    cut = tmp_path / "plain_cut.mcap"
+    cut.write_bytes(buf.getvalue()[:-40])  # no footer
+    for path, truncated in ((whole, False), (cut, True)):
+        rec, msgs = read_log(path)
+        assert rec.salvaged and rec.truncated == truncated and rec.messages == 10
+        assert [m.data["i"] for m in msgs if m.data] == list(range(9, -1, -1))  # log-time order
 
 
 def test_not_an_mcap_file(tmp_path: Path) -> None:
