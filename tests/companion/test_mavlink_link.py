@@ -646,3 +646,52 @@ def test_property_garbage_never_raises_and_never_hides_the_next_datagram(
     good2 = _GOOD.pack(_GOOD.att((t_ms + 1) % 2**32))
     link._on_datagram(clean + good2, ("127.0.0.1", 1))
     assert len(delivered) == n0 + 2
+
+
+def test_from_config_whitelists_autopilot_telemetry_and_the_agv(tmp_path: Path) -> None:
+    from companion.config import load_config
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = load_config(root / "config" / "paper.toml", overrides=["mavlink.url='udpin:127.0.0.1:0'"])
+    ap, agv, spoof = Peer(), Peer(cfg.target.mavlink_sysid, cfg.target.mavlink_compid), Peer(99)
+    ft = dict(
+        timestamp=1, est_capabilities=2, lat=0, lon=0, alt=0.0, vel=[0.5, 0.0, 0.0],
+        acc=[0.0] * 3, attitude_q=[1.0, 0, 0, 0], rates=[0.0] * 3, position_cov=[0.0] * 3,
+        custom_state=0,
+    )  # fmt: skip
+
+    async def main() -> list[str]:
+        async with MavlinkLink.from_config(cfg.mavlink, cfg.target) as link:
+            assert (link.source_system, link.source_component) == (1, 191)
+            addr = link.local_address
+            assert addr is not None
+            for p in (spoof, agv, ap):
+                p.sock.sendto(p.pack(p.mav.follow_target_encode(**ft)), addr)
+                await asyncio.sleep(0.005)
+            ap.sock.sendto(ap.pack(ap.att(3)), addr)
+            got = [(await link.recv(2.0)).name for _ in range(2)]
+            assert link.counters["not_whitelisted"] == 2  # sysid 99, and FOLLOW_TARGET from PX4
+            return got
+
+    assert run(main()) == ["FOLLOW_TARGET", "ATTITUDE_QUATERNION"]
+
+
+def test_udpout_receives_replies_and_third_party_errors_are_link_errors() -> None:
+    autopilot = Peer()
+
+    async def main() -> None:
+        port = autopilot.sock.getsockname()[1]
+        async with MavlinkLink(f"udpout:127.0.0.1:{port}", **link_kwargs()) as link:
+            link.send_heartbeat()
+            _, link_addr = autopilot.sock.recvfrom(512)
+            autopilot.sock.sendto(autopilot.pack(autopilot.att(77)), link_addr)
+            assert (await link.recv(2.0)).msg.time_boot_ms == 77
+            with pytest.raises(LinkError, match="cannot encode"):
+                link.send_command_long(70_000)  # does not fit the uint16 command field
+            with pytest.raises(LinkError, match="at most 7"):
+                link.send_command_long(176, [0.0] * 8)
+        with pytest.raises(LinkError, match="cannot open"):
+            async with MavlinkLink("serial:/dev/does-not-exist:57600", **link_kwargs()):
+                pass
+
+    run(main())
