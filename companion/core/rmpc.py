@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike
 
 from companion import CompanionError
 from companion.config import CameraConfig, RmpcConfig
-from companion.core.dynamics import S_REF, euler_step, terminal_feedforward
+from companion.core.dynamics import S_REF, euler_step, input_error, terminal_feedforward
 from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError, compiled_nlp
 from companion.core.rmpc_problem import (
     NU,
@@ -331,6 +331,8 @@ class Rmpc:
             else None
         )
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        # sqrt((P^-1)_44): |eta|_P >= |se4| / this (see _infeasibility_certificate)
+        self._se4_scale = float(np.sqrt(np.linalg.inv(np.asarray(terminal.p))[3, 3]))
 
     @property
     def compiled(self) -> tuple[CompiledNlp | None, CompiledNlp | None]:
@@ -359,9 +361,13 @@ class Rmpc:
         eta_g, u_g = self._guess(e0, target)
 
         lay = self._hard.layout
-        lbx, ubx = self._hard.bounds(e0, target)
-        w0 = self._pack(lay, eta_g, u_g)
-        ok, status, _, w, cost, iters, t_wall = self._hard.solve(w0, par, lbx, ubx)
+        certificate = self._infeasibility_certificate(e0, target)
+        if certificate is None:
+            lbx, ubx = self._hard.bounds(e0, target)
+            w0 = self._pack(lay, eta_g, u_g)
+            ok, status, _, w, cost, iters, t_wall = self._hard.solve(w0, par, lbx, ubx)
+        else:  # provably infeasible: do not spend the solver's iterations on finding out
+            ok, status, w, cost, iters, t_wall = False, certificate, np.zeros(0), 0.0, 0, 0.0
         hard_status = status
         if ok:
             eta_p, u_p = self._unpack(lay, w)
@@ -388,8 +394,44 @@ class Rmpc:
             log.warning("RMPC soft copy failed too (%s): terminal-law fallback", sstatus)
         eta_f, u_f = self._rollout(e0, target)
         self._prev = None
-        return RmpcResult(False, "fallback", status, hard_status, float("nan"), iters, t_wall,
+        return RmpcResult(False, "fallback", status, hard_status,
+                          self._objective(eta_f, u_f, target), iters, t_wall,
                           _ro(u_f[0]), _ro(eta_f), _ro(u_f), 0.0, self.groups, target)
+
+    def _objective(self, eta: np.ndarray, u: np.ndarray, target: TargetMotion) -> float:
+        """The hard problem's cost of a trajectory (numpy)."""
+        q, r = np.asarray(self.cfg.q_diag), np.asarray(self.cfg.r_diag)
+        total = 0.0
+        for n in range(self.horizon):
+            ue = np.asarray(input_error(u[n], *target.stage(n)))
+            total += float(eta[n] @ (q * eta[n]) + ue @ (r * ue))
+        return total + float(eta[-1] @ self.terminal.p @ eta[-1])
+
+    def _infeasibility_certificate(self, eta0: np.ndarray, target: TargetMotion) -> str | None:
+        """A proof that the hard problem is infeasible, or None (no proof: try the solver).
+
+        Two exact arguments: (1) ``eta(0)`` is fixed, so ``|eta0|_P > X(0)`` violates the
+        tube at n = 0. (2) The yaw error is decoupled and linear, ``se4(n+1) = se4(n) +
+        (psidot_a(n) - psidot_q(n)) delta`` with ``|psidot_q| <= u_max[3]``, so ``se4(n)`` lies
+        in a known interval; and ``min {eta' P eta : eta_4 = c} = c^2 / (P^-1)_44``, so the
+        tube (n <= N-1) or terminal set (n = N) is out of reach once that interval stays
+        farther than ``X(n) sqrt((P^-1)_44)`` from 0.
+        """
+        tube, term = "tube" in self.groups, "terminal" in self.groups
+        if not (tube or term):
+            return None
+        if tube and float(eta0 @ self.terminal.p @ eta0) > tube_bound(self.cfg, 0) ** 2:
+            return "infeasible: |eta0|_P > X(0)"
+        dt = self.cfg.dt_s
+        drift = eta0[3] + np.concatenate([[0.0], np.cumsum(target.psidot_a_rad_s) * dt])
+        reach = np.arange(self.horizon + 1) * dt * self.u_max[3]
+        gap = np.maximum(np.abs(drift) - reach, 0.0)  # smallest |se4(n)| reachable
+        for n in range(1, self.horizon + 1):
+            if (n < self.horizon and not tube) or (n == self.horizon and not term):
+                continue
+            if gap[n] > tube_bound(self.cfg, n) * self._se4_scale * (1.0 + 1e-9):
+                return f"infeasible: yaw error cannot reach the tube at n = {n}"
+        return None
 
     def check(self, result: RmpcResult, tol: float = 1e-6) -> list[ConstraintViolation]:
         """:func:`check_solution` with this controller's configuration."""

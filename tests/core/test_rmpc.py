@@ -174,6 +174,16 @@ def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
     modes = [s.result.mode for s in loop]
     assert "fallback" not in modes
     assert modes[0] == "recovery" and loop[0].result.max_soft_violation > 0
+    # the first steps carry a proof of infeasibility (yaw error out of reach); check the proof
+    # against the hard solver itself, and against the soft copy (zero slack would contradict it)
+    assert loop[0].result.hard_status.startswith("infeasible: yaw error")
+    hard, tm0 = fresh._hard, loop[0].result.target
+    w0 = fresh._pack(hard.layout, *fresh._rollout(eta0, tm0))
+    ok, status, *_ = hard.solve(w0, tm0.packed(), *hard.bounds(eta0, tm0))
+    assert not ok, status
+    for s in loop:
+        if s.result.hard_status.startswith("infeasible"):
+            assert s.result.mode == "recovery" and s.result.max_soft_violation > 1e-6
     first_opt = modes.index("optimal")
     assert modes[first_opt:] == ["optimal"] * (len(modes) - first_opt)
     for s in loop:
@@ -220,6 +230,7 @@ def test_edge_start_makes_the_visibility_constraint_bind(
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_non_finite_parameters_raise_before_the_solver(fresh: Rmpc, bad: float) -> None:
     tm = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, fresh.horizon)
+    assert fresh.solve(ETA0_PAPER, tm).mode == "optimal"
     eta = ETA0_PAPER.copy()
     eta[2] = bad
     calls = fresh._hard.solver.stats().get("n_call_total")
