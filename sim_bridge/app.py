@@ -290,7 +290,8 @@ class SimBridge:
         if mtype == "SET_ATTITUDE_TARGET":
             self._setpoints += 1
             sp = AttitudeTarget(
-                type_mask=int(msg.type_mask), q_wxyz=tuple(float(v) for v in msg.q),
+                type_mask=int(msg.type_mask),
+                q_wxyz=(float(msg.q[0]), float(msg.q[1]), float(msg.q[2]), float(msg.q[3])),
                 body_rates_rad_s=(float(msg.body_roll_rate), float(msg.body_pitch_rate),
                                   float(msg.body_yaw_rate)),
                 thrust_norm=float(msg.thrust))
@@ -315,7 +316,7 @@ class SimBridge:
         else:
             params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x),
                       float(msg.y), float(msg.z))
-        params = tuple(float(p) for p in params)
+        params = tuple(float(p) for p in params)  # type: ignore[assignment]
         after: int | None = None
         if cmd == CMD_REQUEST_MESSAGE:
             mid = int(params[0]) if math.isfinite(params[0]) else -1

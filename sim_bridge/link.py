@@ -103,7 +103,7 @@ class MavUdpLink:
         except OSError as e:
             raise LinkError(f"{self.name}: cannot bind UDP {self.local_host}:{self.local_port}"
                             f" ({e.strerror})") from e
-        self._transport = transport  # type: ignore[assignment]
+        self._transport = transport
         self.port = transport.get_extra_info("sockname")[1]
         return self
 

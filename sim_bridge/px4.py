@@ -122,7 +122,8 @@ class Mode(enum.Enum):
 
     @property
     def is_auto(self) -> bool:
-        return self.value[0] == 4
+        main: int = self.value[0]
+        return main == 4
 
 
 OBL_RC_ACT = {0: Mode.POSCTL, 1: Mode.ALTCTL, 2: Mode.STABILIZED, 3: Mode.AUTO_RTL,

@@ -250,8 +250,9 @@ class VehicleModel:
                             thrust_norm: float) -> Vec:
         """``R(q) [0, 0, -g T / T_hover]`` (m/s^2, NED)."""
         p = self.params
-        return rot_from_euler(roll, pitch, yaw) @ np.array(
+        out: Vec = rot_from_euler(roll, pitch, yaw) @ np.array(
             [0.0, 0.0, -p.g_m_s2 * thrust_norm / p.hover_thrust])
+        return out
 
     def step(self, s: VehicleState, cmd: AttitudeCommand, duration_s: float) -> VehicleState:
         n = max(1, round(duration_s / self.dt_s))
