@@ -185,3 +185,31 @@ def test_rtl_returns_home_and_lands() -> None:
     r.run(25.0)
     assert r.px4.landed
     assert math.hypot(r.s.pos_ned_m[0], r.s.pos_ned_m[1]) < 0.6
+
+
+@pytest.mark.parametrize(("p1", "p2", "p3", "mode"), [
+    (1, 1, 0, Mode.MANUAL), (1, 2, 0, Mode.ALTCTL), (1, 3, 0, Mode.POSCTL),
+    (1, 5, 0, Mode.ACRO), (1, 7, 0, Mode.STABILIZED), (1, 4, 3, Mode.AUTO_LOITER),
+    (1, 4, 5, Mode.AUTO_RTL), (1, 4, 6, Mode.AUTO_LAND),
+    (64 | 16 | 8, 0, 0, Mode.POSCTL), (64 | 16, 0, 0, Mode.STABILIZED), (64, 0, 0, Mode.MANUAL),
+    (129, 3, 0, Mode.POSCTL),  # MAVSDK sets the armed flag too when armed
+])
+def test_do_set_mode_forms(p1: float, p2: float, p3: float, mode: Mode) -> None:
+    r = Rig()
+    start = Mode.ALTCTL if mode is Mode.STABILIZED else Mode.STABILIZED
+    assert r.cmd(176, 1, start.value[0], 0) == ACCEPTED  # so that each case is a change
+    assert r.cmd(176, p1, p2, p3) == ACCEPTED
+    assert r.px4.mode is mode
+    main, sub = mode.value
+    assert r.px4.custom_mode == (main << 16) | (sub << 24)
+
+
+@pytest.mark.parametrize(("p1", "p2", "p3"), [
+    (1, 4, 4),  # AUTO.MISSION without a mission
+    (1, 9, 0), (1, math.nan, 0), (math.nan, 3, 0), (4, 0, 0), (0, 0, 0),
+    (1, 4, 2),  # AUTO.TAKEOFF while flying
+])
+def test_do_set_mode_rejections(p1: float, p2: float, p3: float) -> None:
+    r = Rig()
+    assert r.cmd(176, p1, p2, p3) == TEMPORARILY_REJECTED
+    assert r.px4.mode is Mode.POSCTL
