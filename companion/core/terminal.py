@@ -47,7 +47,9 @@ class TerminalDesign:
     """Everything the RMPC and the certificate need from the offline design (spec 6, 7).
 
     ``p`` (7x7) and ``k`` (4x7): terminal cost/set matrix and terminal gain (``u_e = K eta``);
-    ``kappa``: largest value with ``A_K' P A_K - (1 - kappa) P <= -(Q + K' R K)`` (0 if none);
+    ``kappa``: decay margin with ``A_K' P A_K - (1 - kappa) P <= -(Q + K' R K)``: the largest
+    such value (0 if none) for 'dare' or a scaled P, the design's for 'lmi', the configured one
+    for 'given' (if > 0; the certificate checks it);
     ``eps``: terminal level (``Omega = {|eta|_P <= eps}``); ``gamma``: terminal visibility radius;
     ``r_v``: visibility circle radius; ``lipschitz_l``: L of Remark 1 (1/s).
     """
@@ -126,24 +128,39 @@ def design_terminal(rmpc: RmpcConfig, camera: CameraConfig) -> TerminalDesign:
     q = np.diag(rmpc.q_diag)
     r = np.diag(rmpc.r_diag)
     tc = rmpc.terminal
+    phi_max, theta_max = tilt_limits(rmpc.u_max, rmpc.g_m_s2)
+    gamma = terminal_visibility_radius(
+        phi_max, theta_max, camera.visible_half_m, camera.focal_length_m
+    )
+    kappa: float | None = None  # None: the largest the decay inequality allows
     if tc.method == "given":
         k = np.array(tc.k_matrix, dtype=float)
         p = np.array(tc.p_matrix, dtype=float)
+        kappa = tc.kappa if tc.kappa > 0 else None
     elif tc.method == "dare":
         lqr = dare_terminal(a, b, q, r)
         k, p = lqr.k, lqr.p
     else:
-        raise NotImplementedError("rmpc.terminal.method 'lmi': see companion.core.certificate")
-    p = tc.p_scale * p
-    phi_max, theta_max = tilt_limits(rmpc.u_max, rmpc.g_m_s2)
+        # Remark 2: LMI design aimed at the certificate (companion.core.certificate).
+        from companion.core.certificate import lmi_certified_design, paper_path_feedforward_bound
+
+        lmi = lmi_certified_design(
+            a, b, q, r, eps=rmpc.eps, u_max=rmpc.u_max,
+            gamma_ff_bound=paper_path_feedforward_bound(), gamma=gamma,
+            kappa=tc.kappa if tc.kappa > 0 else 4e-4,
+        )
+        k, p, kappa = lmi.k, lmi.p, lmi.kappa
+    if tc.p_scale != 1.0:
+        p = tc.p_scale * p
+        kappa = None  # a scaled P has its own margin
+    if kappa is None:
+        kappa = max(0.0, decay_margin(a, b, k, p, q, r))
     return TerminalDesign(
         p=p,
         k=k,
-        kappa=max(0.0, decay_margin(a, b, k, p, q, r)),
+        kappa=kappa,
         eps=rmpc.eps,
-        gamma=terminal_visibility_radius(
-            phi_max, theta_max, camera.visible_half_m, camera.focal_length_m
-        ),
+        gamma=gamma,
         r_v=camera.r_v,
         lipschitz_l=rmpc.lipschitz_l,
         method=tc.method,
