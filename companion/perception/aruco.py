@@ -21,6 +21,7 @@ from companion.perception._types import (
     Rejection,
     to_gray,
 )
+from companion.perception.edges import EdgeSettings, refine_quad
 from companion.perception.plausibility import QuadLimits, check_quad, signed_area
 
 
@@ -36,8 +37,12 @@ class ArucoDetector:
     """Detects marker ``marker_id`` of ``dictionary`` (corners refined with CORNER_REFINE_SUBPIX).
 
     Other ids are ignored (reported as rejections). Two markers with the configured id make
-    the frame ambiguous: rejected. ``quality`` is 1.0 for a decoded marker that passes the
-    plausibility checks (cv2.aruco gives no finer score).
+    the frame ambiguous: rejected. ``refine_edges``: after cv2's CORNER_REFINE_SUBPIX, fit
+    lines to the marker's outer edges (black border against the white quiet zone, see
+    :mod:`companion.perception.edges`) and intersect them: measured median corner error
+    0.23 -> ~0.05 px. Where that fails (no quiet zone, cells under 4 px) cv2's corners are
+    kept and the detection is flagged ``"subpix corners"``. ``quality``: 1.0 with edge-fitted
+    corners, 0.8 with cv2's.
     """
 
     def __init__(
@@ -48,6 +53,7 @@ class ArucoDetector:
         *,
         limits: QuadLimits | None = None,
         subpix_window_px: int = 5,
+        refine_edges: bool = True,
     ) -> None:
         if not size_m > 0:
             raise PerceptionError("aruco_size_m: must be > 0")
@@ -63,6 +69,9 @@ class ArucoDetector:
         params.cornerRefinementMinAccuracy = 0.01
         self._detector = cv2.aruco.ArucoDetector(dict_, params)
         self.marker_id = int(marker_id)
+        self.refine_edges = refine_edges
+        self._cells = int(dict_.markerSize) + 2
+        self._edge_settings = EdgeSettings()
         self.size_m = float(size_m)
         self.limits = limits or QuadLimits(expected_aspect=1.0)
         h = size_m / 2
@@ -107,8 +116,27 @@ class ArucoDetector:
         if reason is not None:
             rejections.append(Rejection(reason, pts))
             return DetectionReport(None, tuple(rejections), reason, len(ids))
-        det = Detection(pts, 1.0, abs(signed_area(pts)), self.marker_id)
+        quality, flags = 0.8, ("subpix corners",)
+        if self.refine_edges:
+            refined = self._refine(gray, pts)
+            if refined is not None:
+                pts, quality, flags = refined, 1.0, ()
+        det = Detection(pts, quality, abs(signed_area(pts)), self.marker_id, flags)
         return DetectionReport(det, tuple(rejections), "", len(ids))
+
+    def _refine(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> FloatArray | None:
+        side_px = float(np.min(np.linalg.norm(np.roll(pts, -1, axis=0) - pts, axis=1)))
+        if side_px / self._cells < 4.0:
+            return None  # the border cell is too thin to hold the inside plateau
+        got = refine_quad(gray, pts, self._edge_settings, bright_inside=False)
+        if got is None:
+            return None
+        refined, fits = got
+        if float(np.max(np.linalg.norm(refined - pts, axis=1))) > 1.5:
+            return None
+        if min(f.valid_fraction for f in fits) < 0.5:
+            return None
+        return refined
 
 
 __all__ = ["ArucoDetector", "aruco_dictionary"]

@@ -29,6 +29,7 @@ from companion.perception._types import (
     Rejection,
     to_gray,
 )
+from companion.perception.edges import EdgeFit, EdgeSettings, refine_quad
 from companion.perception.plausibility import (
     QuadLimits,
     check_quad,
@@ -77,14 +78,6 @@ class RectangleSettings:
             raise PerceptionError("refine_passes: must be >= 1")
 
 
-@dataclass(frozen=True)
-class _EdgeFit:
-    point: FloatArray  # a point on the line (col, row)
-    direction: FloatArray  # unit direction
-    rms_px: float
-    valid_fraction: float
-
-
 class RectangleDetector:
     """Finds the target rectangle's four corners with sub-pixel accuracy.
 
@@ -110,6 +103,10 @@ class RectangleDetector:
         self.length_m = float(length_m)
         self.width_m = float(width_m)
         self.settings = settings or RectangleSettings()
+        s = self.settings
+        self._edge_settings = EdgeSettings(
+            s.profile_half_px, s.profile_step_px, s.min_contrast, s.max_samples_per_edge
+        )
         aspect = max(length_m, width_m) / min(length_m, width_m)
         self.limits = limits or QuadLimits(expected_aspect=aspect)
         pts = np.array(
@@ -190,11 +187,14 @@ class RectangleDetector:
         fill = area / max(quad_area, 1e-9)
         if not s.min_fill <= fill <= 1.0 / s.min_fill:
             return Rejection(f"not quadrilateral-shaped: fill {fill:.2f}", quad)
+        reason = check_quad(quad, w, h, lim)
+        if reason is not None:  # cheap and clearer before the refinement
+            return Rejection(reason, quad)
         ordered = order_target_corners(quad, self.width_m <= self.length_m, hint)
         corners = ordered
-        fits: list[_EdgeFit] = []
+        fits: list[EdgeFit] = []
         for _ in range(s.refine_passes):
-            refined = self._refine(gray, corners)
+            refined = refine_quad(gray, corners, self._edge_settings)
             if refined is None:
                 return Rejection("edges not measurable (low contrast or too short)", ordered)
             corners, fits = refined
@@ -213,103 +213,13 @@ class RectangleDetector:
             flags = ("near border",)
         return Detection(corners, quality, abs(signed_area(corners)), None, flags)
 
-    def _refine(
-        self, gray: npt.NDArray[np.uint8], corners: FloatArray
-    ) -> tuple[FloatArray, list[_EdgeFit]] | None:
-        fits = []
-        for i in range(4):
-            fit = self._fit_edge(gray, corners[i], corners[(i + 1) % 4])
-            if fit is None:
-                return None
-            fits.append(fit)
-        out = np.empty((4, 2))
-        for i in range(4):
-            p = _intersect(fits[(i - 1) % 4], fits[i])
-            if p is None:
-                return None
-            out[i] = p
-        return out, fits
-
-    def _fit_edge(
-        self, gray: npt.NDArray[np.uint8], a: FloatArray, b: FloatArray
-    ) -> _EdgeFit | None:
-        """Sub-pixel line through the edge from ``a`` to ``b`` (clockwise polygon)."""
-        s = self.settings
-        d = b - a
-        length = float(np.hypot(d[0], d[1]))
-        r = s.profile_half_px
-        margin = 1.5 * r + 1.0
-        if length < 2 * margin + 4:
-            return None
-        t = d / length
-        normal_out = np.array([t[1], -t[0]])  # outward for a clockwise-on-screen polygon
-        n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
-        along = np.linspace(margin, length - margin, n_samples)
-        ks = np.arange(-r, r + 1e-9, s.profile_step_px)
-        base = a[None, :] + along[:, None] * t[None, :]
-        pts = base[:, None, :] + ks[None, :, None] * normal_out[None, None, :]
-        mapx = pts[..., 0].astype(np.float32)
-        mapy = pts[..., 1].astype(np.float32)
-        prof = cv2.remap(
-            gray, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        ).astype(np.float64)
-        inside = prof[:, ks <= -1.5].mean(axis=1)
-        out_sel = (ks >= 1.5) & (ks <= 2.5)
-        outside = prof[:, out_sel].mean(axis=1)
-        level = 0.5 * (inside + outside)
-        contrast = inside - outside
-        # first crossing of `level` from inside (k = -r) outwards, nearest to k = 0
-        above = prof >= level[:, None]
-        cross = above[:, :-1] & ~above[:, 1:]
-        offsets = np.full(n_samples, np.nan)
-        mid = (ks[:-1] + ks[1:]) / 2
-        for j in range(n_samples):
-            if contrast[j] < s.min_contrast:
-                continue
-            idx = np.flatnonzero(cross[j])
-            if idx.size == 0:
-                continue
-            i = idx[np.argmin(np.abs(mid[idx]))]
-            v0, v1 = prof[j, i], prof[j, i + 1]
-            frac = (v0 - level[j]) / (v0 - v1) if v0 != v1 else 0.5
-            offsets[j] = ks[i] + frac * s.profile_step_px
-        ok = np.isfinite(offsets)
-        if ok.sum() < max(4, 0.3 * n_samples):
-            return None
-        edge_pts = base[ok] + offsets[ok, None] * normal_out[None, :]
-        fit = _tls_line(edge_pts)
-        # one outlier pass: texture or a side face can fool a few profiles
-        res = np.abs((edge_pts - fit[0]) @ np.array([-fit[1][1], fit[1][0]]))
-        mad = float(np.median(res)) * 1.4826 + 0.05
-        keep = res <= max(3.0 * mad, 0.3)
-        if keep.sum() >= 4 and not keep.all():
-            fit = _tls_line(edge_pts[keep])
-            res = np.abs((edge_pts[keep] - fit[0]) @ np.array([-fit[1][1], fit[1][0]]))
-        rms = float(np.sqrt(np.mean(res**2)))
-        valid = float(keep.sum()) / n_samples
-        return _EdgeFit(fit[0], fit[1], rms, valid)
-
-
-def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Total-least-squares line: (centroid, unit direction)."""
-    c = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
-    return c, vt[0]
-
-
-def _intersect(e1: _EdgeFit, e2: _EdgeFit) -> FloatArray | None:
-    m = np.column_stack([e1.direction, -e2.direction])
-    if abs(float(np.linalg.det(m))) < 1e-6:
-        return None
-    ts = np.linalg.solve(m, e2.point - e1.point)
-    return np.asarray(e1.point + ts[0] * e1.direction, dtype=np.float64)
-
 
 def _approx_quad(contour: npt.NDArray[np.int32]) -> FloatArray | None:
     """Four vertices approximating a blob's convex hull, or ``None``."""
     hull = cv2.convexHull(contour)
     peri = cv2.arcLength(hull, True)
-    for frac in (0.02, 0.03, 0.04, 0.015, 0.05, 0.01, 0.07):
+    # the smallest tolerance that yields 4 vertices keeps them closest to the true corners
+    for frac in (0.005, 0.01, 0.015, 0.02, 0.03, 0.04, 0.05, 0.07):
         poly = cv2.approxPolyDP(hull, frac * peri, True)
         if len(poly) == 4:
             return poly.reshape(4, 2).astype(np.float64)
