@@ -191,7 +191,8 @@ def terminal_law(
     psidot_q = float(ke[3] + psidot_a)
     u = ke + terminal_feedforward(np.asarray(v_a), np.asarray(vdot_a), psidot_a, psidot_q)
     umax = np.asarray(u_max, dtype=float)
-    return np.clip(u, -umax, umax)
+    out: np.ndarray = np.clip(u, -umax, umax)
+    return out
 
 
 def _state_offset(v_a: np.ndarray) -> np.ndarray:

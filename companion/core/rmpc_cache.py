@@ -45,7 +45,7 @@ def cache_key(source: str) -> str:
     """SHA-256 (first 24 hex digits) of the generated C source, CasADi version and flags."""
     h = hashlib.sha256()
     h.update(source.encode())
-    h.update(ca.__version__.encode())
+    h.update(str(getattr(ca, "__version__", "?")).encode())
     h.update(" ".join(COMPILER_FLAGS).encode())
     return h.hexdigest()[:24]
 

@@ -171,8 +171,8 @@ def build_nlp(
         gap = xs[n + 1] - euler_step(
             x, u, v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s
         )
-        # slacks of stage n must sit between u_n and x_{n+1}: add the path rows' slacks first,
-        # but the gap rows must precede the path rows in g (fatrop's structure detection).
+        # g: the gap rows of stage n come before its path rows (fatrop's structure detection);
+        # w: the path rows' slacks are appended right after u_n, i.e. before x_{n+1}.
         gap_index[n] = np.arange(n_g, n_g + NX)
         g.append(gap)
         equality.extend([True] * NX)
