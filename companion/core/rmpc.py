@@ -428,7 +428,7 @@ class Rmpc:
         reach = np.arange(self.horizon + 1) * dt * self.u_max[3]
         gap = np.maximum(np.abs(drift) - reach, 0.0)  # smallest |se4(n)| reachable
         for n in range(1, self.horizon + 1):
-            if (n < self.horizon and not tube) or (n == self.horizon and not term):
+            if n < self.horizon and not tube:
                 continue
             if gap[n] > tube_bound(self.cfg, n) * self._se4_scale * (1.0 + 1e-9):
                 return f"infeasible: yaw error cannot reach the tube at n = {n}"
@@ -526,7 +526,7 @@ def check_solution(
 
     Independent of the solver: dynamics (max |gap| per stage), input box, absolute state box
     (n = 1..N; ``eta(0)`` is the measurement), and the groups in ``groups`` (default: the
-    result's active groups): tube ``|eta(n)|_P <= X(n)`` (n = 0..N-1), visibility
+    result's active groups): tube ``|eta(n)|_P <= X(n)`` (n = 0..N, X(N) = eps), visibility
     ``|p(n) - M(u(n))| <= r_v - n rho e^{L(n-1) delta}`` (n = 1..N-1), terminal
     ``|eta(N)|_P <= eps`` and ``|p(N)| <= gamma``. Amounts are in natural units (not squared);
     a constraint counts as violated when it exceeds its bound by more than ``tol``.
@@ -563,8 +563,9 @@ def check_solution(
             mu, mn = centre(u[n], rmpc, camera)
             dist = float(np.hypot(pu - mu, pn - mn))
             add("visibility", n, dist - visibility_radius(rmpc, terminal, n))
-    if "terminal" in groups:
+    if "terminal" in groups or "tube" in groups:  # X(N) = eps
         add("terminal_set", big_n, float(norm_p[big_n] - rmpc.eps))
+    if "terminal" in groups:
         pu, pn = image_point(eta[big_n])
         add("terminal_visibility", big_n, float(np.hypot(pu, pn) - terminal.gamma))
     if not (np.all(np.isfinite(result.u0)) and np.allclose(result.u0, u[0])):

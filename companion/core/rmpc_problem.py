@@ -16,10 +16,11 @@ input and state boxes are bounds on ``w``. Parameters ``p`` (5 N): per stage
 
 Groups (RmpcConfig switches):
 
-- ``tube``: ``eta(n)' P eta(n) <= X(n)^2``, ``X(n) = ((N-n) H + n)/N eps`` for n = 0..N-1;
+- ``tube``: ``eta(n)' P eta(n) <= X(n)^2``, ``X(n) = ((N-n) H + n)/N eps`` for n = 0..N
+  (the row at n = N, ``X(N) = eps``, is the terminal set and is shared with ``terminal``);
 - ``visibility``: ``|p(n) - M(u(n))|^2 <= (r_v - n rho e^{L (n-1) delta})^2`` for n = 1..N-1,
   ``p(n) = [se1, se2]/s3``, ``s3 = se3 + 1``, ``M`` the mapped visible-area centre;
-- ``terminal``: ``eta(N)' P eta(N) <= eps^2`` (Omega, = X(N)^2) and ``|p(N)|^2 <= gamma^2``.
+- ``terminal``: ``eta(N)' P eta(N) <= eps^2`` (Omega) and ``|p(N)|^2 <= gamma^2``.
 
 The soft copy subtracts a slack ``>= 0`` from each of these rows and adds
 ``recovery_penalty * slack`` to the cost (an exact L1 penalty); dynamics, input bounds and the
@@ -143,10 +144,15 @@ def build_nlp(
                 items.append(
                     ("visibility", "visibility", val, visibility_radius(rmpc, terminal, n) ** 2)
                 )
-        elif rmpc.enable_terminal:
-            items.append(("terminal", "terminal_set", ca.bilin(p_mat, x, x), rmpc.eps**2))
-            pu, pn = image_point(x)
-            items.append(("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2))
+        else:
+            if rmpc.enable_tube or rmpc.enable_terminal:  # X(N) = eps: the tube ends in Omega
+                group = "terminal" if rmpc.enable_terminal else "tube"
+                items.append((group, "terminal_set", ca.bilin(p_mat, x, x), rmpc.eps**2))
+            if rmpc.enable_terminal:
+                pu, pn = image_point(x)
+                items.append(
+                    ("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2)
+                )
         for group, kind, val, upper in items:
             s_idx: int | None = None
             if soft:

@@ -301,3 +301,36 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
                          text=True, timeout=120, check=True)
     libs = json.loads(out.stdout.strip().splitlines()[-1])
     assert libs == [[str(hard.library), False], [str(soft.library), False]]
+
+
+@pytest.mark.parametrize(
+    ("tube", "vis", "term"),
+    [(True, True, True), (True, False, False), (False, True, False), (False, False, True),
+     (False, False, False)],
+)
+def test_constraint_groups_switch_exactly_their_rows(
+    cfg: Config, design: TerminalDesign, tube: bool, vis: bool, term: bool
+) -> None:
+    from companion.core.rmpc_problem import build_nlp
+
+    rc = dataclasses.replace(cfg.rmpc, enable_tube=tube, enable_visibility=vis,
+                             enable_terminal=term)
+    big_n = rc.horizon
+    for soft in (False, True):
+        nlp, lay = build_nlp(rc, cfg.camera, design, soft=soft)
+        kinds = sorted((r.kind, r.stage) for r in lay.rows)
+        expected = sorted(
+            [("tube", n) for n in range(big_n) if tube]
+            + [("visibility", n) for n in range(1, big_n) if vis]
+            + ([("terminal_set", big_n)] if tube or term else [])
+            + ([("terminal_visibility", big_n)] if term else [])
+        )
+        assert kinds == expected
+        assert lay.n_g == 7 * big_n + len(expected) == nlp["g"].shape[0]
+        assert len(lay.slack_index) == (len(expected) if soft else 0)
+        assert lay.n_w == 11 * big_n + 7 + len(lay.slack_index) == nlp["x"].shape[0]
+        # OCP order: x_n, u_n (slacks), x_{n+1}; the gap rows of stage n precede its path rows
+        assert np.all(np.diff(lay.x_index[:, 0]) > 0) and np.all(lay.u_index[:, 0] ==
+                                                                 lay.x_index[:-1, 0] + 7)
+        assert all(lay.equality[i] for i in lay.gap_index.ravel())
+        assert sum(lay.equality) == 7 * big_n
