@@ -168,10 +168,18 @@ class ControlConfig:
     hover_thrust: float = field(metadata=_check(_unit))
     thrust_min: float = field(metadata=_check(_nonneg))
     thrust_max: float = field(metadata=_check(_unit))
+    # Whose clock stamps frames and telemetry: "receipt" (local monotonic clock on arrival:
+    # a real vehicle) or "autopilot" (source stamps: frames and telemetry share the
+    # autopilot's boot clock, as the emulator's do; needed in lockstep).
+    time_source: str = "receipt"
 
     def __post_init__(self) -> None:
         if not self.thrust_min < self.hover_thrust < self.thrust_max:
             raise ConfigError("control: need thrust_min < hover_thrust < thrust_max")
+        if self.time_source not in ("receipt", "autopilot"):
+            raise ConfigError(
+                f"control.time_source: {self.time_source!r} is not 'receipt' or 'autopilot'"
+            )
 
 
 @dataclass(frozen=True)
@@ -190,6 +198,9 @@ class OffboardConfig:
     mode_retry_s: float = field(metadata=_check(_positive))
     arm: bool
     exit_mode: str
+    # Ask for OFFBOARD again after PX4 left it on its own (failsafe). Off on a real vehicle:
+    # the companion must not fight the pilot.
+    reengage: bool = False
 
     def __post_init__(self) -> None:
         if self.exit_mode not in ("hold", "position"):
@@ -216,9 +227,9 @@ class LoggingConfig:
     queue_size: int = field(metadata=_check(_positive))
 
     def __post_init__(self) -> None:
-        if self.image_encoding not in ("jpeg", "raw"):
+        if self.image_encoding not in ("png", "jpeg", "raw"):
             raise ConfigError(
-                f"logging.image_encoding: {self.image_encoding!r} is not 'jpeg' or 'raw'"
+                f"logging.image_encoding: {self.image_encoding!r} is not 'png', 'jpeg' or 'raw'"
             )
 
 

@@ -23,8 +23,9 @@ from companion.config import Config
 from companion.core.dynamics import terminal_feedforward
 from companion.core.geometry import euler_zyx_from_quat, rectangle_corners_m, wrap_pi
 from companion.core.moments import DegenerateTargetError, a_star
-from companion.core.prediction import HorizonMotion, predict_target_motion
+from companion.core.prediction import predict_target_motion
 from companion.core.reacquire import reacquire_input
+from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
 from companion.core.state import ErrorState, MeasurementError, build_error_state
 from companion.core.terminal import TerminalDesign, design_terminal
@@ -198,13 +199,13 @@ class ControlPipeline:
         # 3. solve while the state is valid
         rmpc_res = None
         solver_ok = True
-        motion: HorizonMotion | None = None
+        motion: TargetMotion | None = None
         if es is not None:
             motion = predict_target_motion(
                 vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
                 cfg.rmpc.horizon, cfg.rmpc.dt_s)
             if self.force_solver_failure:
-                rmpc_res = self.rmpc.fallback(es.eta_e, motion, reason="injected failure")
+                rmpc_res = self._fallback(es.eta_e, motion, "injected failure")
             else:
                 rmpc_res = self.rmpc.solve(es.eta_e, motion)
             solver_ok = rmpc_res.mode != "fallback"
@@ -226,7 +227,7 @@ class ControlPipeline:
         if level is SafetyLevel.TRACKING and rmpc_res is not None:
             u = np.asarray(rmpc_res.u0, dtype=float)
         elif level is SafetyLevel.TERMINAL and es is not None and motion is not None:
-            u = self.rmpc.fallback(es.eta_e, motion, reason="safety terminal").u0
+            u = self._fallback(es.eta_e, motion, "safety terminal").u0
         elif level is SafetyLevel.REACQUIRE and att is not None and kin is not None:
             u = self._reacquire(store, kin, yaw)
         if u is not None:
@@ -252,6 +253,14 @@ class ControlPipeline:
         )
 
     # ------------------------------------------------------------------------------------------
+
+    def _fallback(self, eta: np.ndarray, motion: TargetMotion, why: str) -> RmpcResult:
+        """The terminal law ``K eta + Gamma`` clipped to U (spec 7), as a 'fallback' result."""
+        v_a, vdot_a, psidot_a = motion.stage(0)
+        u0 = terminal_law(eta, v_a, vdot_a, psidot_a, self.terminal.k, self.cfg.rmpc.u_max)
+        n = self.cfg.rmpc.horizon
+        return RmpcResult(False, "fallback", why, why, math.nan, 0, 0.0, u0,
+                          np.tile(eta, (n + 1, 1)), np.tile(u0, (n, 1)), 0.0, (), motion)
 
     def _yaw_reference(self) -> float:
         """Yaw the next setpoint builds on: the previous yaw setpoint, re-synced to the measured

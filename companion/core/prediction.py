@@ -9,28 +9,10 @@ stage's ``v_a`` and ``vdot_a`` are then expressed in that stage's virtual frame 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from companion.core.geometry import rot_z
-
-
-@dataclass(frozen=True)
-class HorizonMotion:
-    """``v_a_m_s`` (N, 2), ``vdot_a_m_s2`` (N, 2), ``psidot_a_rad_s`` (N,): virtual frame."""
-
-    v_a_m_s: np.ndarray
-    vdot_a_m_s2: np.ndarray
-    psidot_a_rad_s: np.ndarray
-
-    def __post_init__(self) -> None:
-        for name in ("v_a_m_s", "vdot_a_m_s2", "psidot_a_rad_s"):
-            a = np.array(getattr(self, name), dtype=float)
-            if not np.all(np.isfinite(a)):
-                raise ValueError(f"HorizonMotion.{name}: non-finite value")
-            a.setflags(write=False)
-            object.__setattr__(self, name, a)
+from companion.core.rmpc import TargetMotion
 
 
 def predict_target_motion(
@@ -40,7 +22,7 @@ def predict_target_motion(
     yaw_q_rad: float,
     horizon: int,
     dt_s: float,
-) -> HorizonMotion:
+) -> TargetMotion:
     """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
 
     ``v_a_ned_m_s``, ``a_a_ned_m_s2`` (3,): the target's velocity/acceleration now (NED);
@@ -70,4 +52,4 @@ def predict_target_motion(
         # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
         vdot_out[n] = rzt @ a_ned + w * np.array([v_v[1], -v_v[0]])
         v_out[n] = v_v
-    return HorizonMotion(v_out, vdot_out, np.full(horizon, w))
+    return TargetMotion(v_out, vdot_out, np.full(horizon, w))

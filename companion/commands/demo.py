@@ -1,0 +1,136 @@
+"""``companion demo``: the emulator and the companion as two processes on loopback, in lockstep.
+
+They meet only on sockets (docs/wire.md), exactly as the companion meets a real PX4. The demo
+picks free ports, starts ``python -m sim_bridge --lockstep`` and ``python -m companion run``,
+waits for the flight, then scores it from the log (ground truth recorded on ``/truth``) into
+``DIR/report.json`` and the report figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from companion import CompanionError
+from companion.config import DEFAULT_CONFIG, load_config
+from companion.reporting import build_report
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("demo", help="fly a scenario: emulator + companion in lockstep")
+    p.add_argument("--scenario", default="paper",
+                   help="[sim.scenarios.NAME] of the config: paper, edge, yaw-offset, ...")
+    p.add_argument("--duration", type=float, default=None,
+                   help="simulated seconds (default: sim.duration_s, one AGV period)")
+    p.add_argument("--no-visibility", action="store_true",
+                   help="switch the RMPC's visibility constraints off (for comparison)")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="companion config override (repeatable)")
+    p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1")
+    p.add_argument("--out", type=Path, default=None, help="output dir (default out/SCENARIO)")
+    p.add_argument("--no-plots", action="store_true", help="report.json only")
+    p.set_defaults(func=_run)
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
+                  overrides: list[str], faults: list[str]) -> tuple[list[str], list[str]]:
+    """The two command lines (emulator, companion) of a lockstep flight on free ports."""
+    p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = (free_port() for _ in range(6))
+    p_frame = free_port(socket.SOCK_STREAM)
+    sim = [
+        sys.executable, "-m", "sim_bridge", "--config", str(config), "--scenario", scenario,
+        "--lockstep", "--duration", f"{duration_s}", "--bind", "127.0.0.1",
+        "--offboard-port", str(p_sim), "--offboard-remote", f"127.0.0.1:{p_comp}",
+        "--gcs-port", str(p_gcs), "--gcs-remote", f"127.0.0.1:{p_gcs_remote}",
+        "--agv-port", str(p_agv), "--frame-port", str(p_frame),
+        "--truth-remote", f"127.0.0.1:{p_truth}",
+    ]
+    comp = [
+        sys.executable, "-m", "companion", "run", "--config", str(config),
+        "--set", 'control.time_source="autopilot"', "--set", "offboard.arm=true",
+        "--set", "offboard.reengage=true",
+        *[a for o in overrides for a in ("--set", o)],
+        *[a for f in faults for a in ("--inject-fault", f)],
+        "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",
+        "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
+        "--duration", f"{duration_s}",
+    ]
+    return sim, comp
+
+
+def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
+             overrides: list[str], faults: list[str], plots: bool = True) -> dict[str, Any]:
+    cfg = load_config(config, overrides)  # fail early, in this process, on a bad config
+    if duration_s is None:
+        import tomllib
+
+        duration_s = float(tomllib.loads(config.read_text()).get("sim", {})
+                           .get("duration_s", 251.0))
+    out.mkdir(parents=True, exist_ok=True)
+    sim_cmd, comp_cmd = demo_commands(config, scenario, duration_s, out, overrides, faults)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    t0 = time.monotonic()
+    with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
+        comp = subprocess.Popen(comp_cmd, stdout=comp_log, stderr=subprocess.STDOUT, env=env)
+        time.sleep(0.5)  # let the companion bind its ports before the vehicle talks
+        sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
+        budget = 60.0 + 2.0 * duration_s
+        try:
+            sim_rc = sim.wait(timeout=budget)
+            wall = time.monotonic() - t0
+            comp_rc = comp.wait(timeout=30.0)
+        except subprocess.TimeoutExpired:
+            for p in (sim, comp):
+                p.kill()
+            raise CompanionError(f"demo: flight did not finish within {budget:.0f} s "
+                                 f"(see {out}/sim.log, {out}/companion.log)") from None
+        finally:
+            for p in (sim, comp):
+                if p.poll() is None:
+                    p.terminate()
+    if sim_rc != 0 or comp_rc != 0:
+        raise CompanionError(f"demo: emulator exited {sim_rc}, companion exited {comp_rc} "
+                             f"(see {out}/sim.log, {out}/companion.log)")
+    report = build_report(out / "flight.mcap", cfg, out, plots=plots)
+    report["wall_time_s"] = wall
+    report["real_time_factor"] = report["sim_time_s"] / wall if wall > 0 else None
+    report["scenario"] = scenario
+    report["overrides"] = overrides
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _run(args: argparse.Namespace) -> int:
+    overrides = list(args.set)
+    if args.no_visibility:
+        overrides.append("rmpc.enable_visibility=false")
+    out = args.out or Path("out") / (args.scenario + ("-novis" if args.no_visibility else ""))
+    rep = run_demo(args.config, args.scenario, args.duration, out, overrides,
+                   args.inject_fault, plots=not args.no_plots)
+    vis = rep["visibility"]
+    trk = rep["tracking"]
+    print(f"scenario {args.scenario}: {rep['sim_time_s']:.1f} s simulated in "
+          f"{rep['wall_time_s']:.1f} s ({rep['real_time_factor']:.1f}x real time)")
+    print(f"visibility: max |u| {vis['max_abs_u_px']:.1f} px, max |n| {vis['max_abs_n_px']:.1f}"
+          f" px (bound {vis['bound_px']:.0f}), frames target lost {vis['frames_target_lost']}")
+    print(f"tracking: rms s_e {trk['rms_se']}, final s_e {trk['final_se']}")
+    print(f"solver: {rep['solver']}")
+    print(f"report: {out / 'report.json'}")
+    return 0

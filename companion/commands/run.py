@@ -1,0 +1,43 @@
+"""``companion run``: the on-vehicle process."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+from pathlib import Path
+
+from companion.config import load_config
+from companion.runtime import CompanionApp, FaultWindow
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("run", help="run the companion against an autopilot and a camera")
+    p.add_argument("--config", type=Path, default=None, help="config file (default: paper)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set rmpc.eps=0.11 (repeatable)")
+    p.add_argument("--mavlink", default=None,
+                   help="MAVLink connection: udpin:0.0.0.0:14540, udpout:HOST:PORT, "
+                        "tcp:HOST:PORT, /dev/ttyACM0,921600 (default: mavlink.url)")
+    p.add_argument("--camera", default="tcp://127.0.0.1:5700",
+                   help="camera: tcp://HOST:PORT (frame socket), device index, file, rtsp://")
+    p.add_argument("--log", type=Path, default=None,
+                   help="MCAP log file (default: logging.dir/flight-<time>.mcap)")
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.add_argument("--truth-port", type=int, default=None,
+                   help="record the emulator's ground truth from this UDP port (scoring only)")
+    p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1",
+                   help="failure injection for tests: solver:T0:T1 (seconds after first frame)")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config, args.set)
+    text = Path(cfg.source).read_text() if cfg.source else ""
+    log_path = args.log or Path(cfg.logging.dir) / time.strftime("flight-%Y%m%d-%H%M%S.mcap")
+    app = CompanionApp(
+        cfg, mavlink_url=args.mavlink, camera_url=args.camera, log_path=log_path,
+        truth_port=args.truth_port, duration_s=args.duration,
+        faults=tuple(FaultWindow.parse(f) for f in args.inject_fault), config_text=text,
+    )
+    return asyncio.run(app.run())

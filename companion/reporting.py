@@ -1,0 +1,48 @@
+"""Flight reports from a log: ``report.json`` figures, PNG plots and an HTML summary."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from companion.config import Config
+from companion.flight_report import TOPIC_STEP, TOPIC_TRUTH, ReportSettings, compute_report
+from companion.log_reader import LogReader
+
+SCORED_TOPICS = (TOPIC_TRUTH, TOPIC_STEP, "/mavlink/out/SET_ATTITUDE_TARGET")
+
+
+def report_settings(cfg: Config) -> ReportSettings:
+    c = cfg.camera
+    return ReportSettings(
+        width_px=c.width_px, height_px=c.height_px, pixel_size_m=c.pixel_size_m,
+        report_pixel_size_m=c.report_pixel_size_m,
+        visible_bound_report_px=c.visible_bound_report_px,
+        desired_depth_m=cfg.rmpc.desired_depth_m,
+    )
+
+
+def load_scored_messages(log_path: Path) -> tuple[list[tuple[str, int, Any]], dict[str, Any]]:
+    """The messages the report uses, decoded, and what the reader recovered."""
+    reader = LogReader(log_path)
+    msgs = [(m.topic, m.log_time_ns, m.data or {})
+            for m in reader.messages(topics=SCORED_TOPICS)]
+    rec = reader.recovery
+    return msgs, {"truncated": rec.truncated, "messages": rec.messages,
+                  "salvaged": rec.salvaged}
+
+
+def build_report(log_path: Path, cfg: Config, out: Path, plots: bool = True) -> dict[str, Any]:
+    msgs, recovery = load_scored_messages(log_path)
+    st = report_settings(cfg)
+    report = compute_report(msgs, st)
+    report["log"] = {"path": str(log_path), **recovery}
+    if plots:
+        from companion.plots import write_figures, write_html
+
+        figs = write_figures(msgs, st, out)
+        report["figures"] = {k: p.name for k, p in figs.items()}
+        write_html(report, figs, out / "report.html", title=f"Flight report: {log_path.name}")
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    return report

@@ -1,0 +1,350 @@
+"""The on-vehicle process: camera + telemetry -> pipeline -> SET_ATTITUDE_TARGET, all logged.
+
+One asyncio process. Stages are wired in one place (:meth:`CompanionApp.run`):
+
+- the MAVLink link's receive callback logs every accepted message and feeds the telemetry
+  store and the offboard state machine (so the log's order is the order the store saw);
+- the control task runs one pipeline step per camera frame and streams the setpoint;
+- a heartbeat task announces the companion (MAV_TYPE_ONBOARD_CONTROLLER) at 1 Hz;
+- an optional ground-truth recorder (emulator only) logs ``/truth`` for scoring: it feeds
+  nothing else.
+
+Time: :class:`TimeBase` stamps frames and messages either on receipt (real vehicle) or with
+the autopilot's own clock (the emulator, where frames carry the autopilot's boot time).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import signal
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion import CompanionError
+from companion.camera_sources import CameraFrame, open_camera
+from companion.config import Config
+from companion.mavlink_link import MavlinkLink, NoPeerError, Received
+from companion.mcap_log import McapLogger
+from companion.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.perception.pipeline import Perception
+from companion.pipeline import ControlPipeline, StepResult
+from companion.safety import SafetyLevel
+from companion.telemetry import TelemetryStore
+
+log = logging.getLogger(__name__)
+
+TOPIC_FRAME = "/camera/image"
+TOPIC_STEP = "/control/step"
+TOPIC_SAFETY = "/control/safety"
+TOPIC_OFFBOARD = "/control/offboard"
+TOPIC_TRUTH = "/truth"
+TOPIC_POSE = "/vehicle/pose"
+
+# Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
+_STAMP_FIELDS = {
+    "ATTITUDE_QUATERNION": "time_boot_ms",
+    "ATTITUDE": "time_boot_ms",
+    "LOCAL_POSITION_NED": "time_boot_ms",
+    "FOLLOW_TARGET": "timestamp",
+}
+
+
+class TimeBase:
+    """Assigns every input a time in seconds on one base (see ``control.time_source``).
+
+    ``receipt``: local monotonic receipt time (ns -> s). ``autopilot``: the source's own
+    stamps (frame ``t_us``, ``time_boot_ms``); messages without a stamp (HEARTBEAT,
+    COMMAND_ACK) get the newest source time seen so far.
+    """
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.latest_s = -math.inf
+
+    def message_s(self, name: str, fields: Mapping[str, Any], t_rx_ns: int) -> float:
+        if self.source == "receipt":
+            return t_rx_ns * 1e-9
+        key = _STAMP_FIELDS.get(name)
+        if key is not None and key in fields:
+            t = float(fields[key]) * 1e-3
+            self.latest_s = max(self.latest_s, t)
+            return t
+        return self.latest_s if math.isfinite(self.latest_s) else 0.0
+
+    def frame_s(self, t_us: int, t_rx_ns: int) -> float:
+        if self.source == "receipt":
+            return t_rx_ns * 1e-9
+        t = t_us * 1e-6
+        self.latest_s = max(self.latest_s, t)
+        return t
+
+
+@dataclass(frozen=True)
+class FaultWindow:
+    """Fault injection for tests and bench (like PX4's failure injection): ``kind`` is
+    ``solver`` (every solve reported failed) during ``[t0_s, t1_s)`` after the first frame."""
+
+    kind: str
+    t0_s: float
+    t1_s: float
+
+    @classmethod
+    def parse(cls, text: str) -> FaultWindow:
+        try:
+            kind, t0, t1 = text.split(":")
+            w = cls(kind, float(t0), float(t1))
+        except ValueError:
+            raise CompanionError(f"--inject-fault {text!r}: expected KIND:T0:T1") from None
+        if w.kind != "solver" or not w.t1_s > w.t0_s:
+            raise CompanionError(f"--inject-fault {text!r}: kind 'solver' and T1 > T0 only")
+        return w
+
+
+def new_pipeline(cfg: Config) -> ControlPipeline:
+    """The pipeline a flight (live or replayed) uses for this config."""
+    return ControlPipeline(cfg, Perception(cfg.camera, cfg.target))
+
+
+def new_store(cfg: Config) -> TelemetryStore:
+    t = cfg.target
+    return TelemetryStore(t.mavlink_sysid, t.origin_lat_deg, t.origin_lon_deg, t.origin_alt_m)
+
+
+def is_autopilot(cfg: Config, sysid: int, compid: int) -> bool:
+    return sysid == cfg.mavlink.target_system and (
+        cfg.mavlink.target_component in (0, compid)
+    )
+
+
+class CompanionApp:
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        mavlink_url: str | None = None,
+        camera_url: str,
+        log_path: Path,
+        truth_port: int | None = None,
+        duration_s: float | None = None,
+        idle_timeout_s: float = 5.0,
+        faults: tuple[FaultWindow, ...] = (),
+        config_text: str = "",
+    ) -> None:
+        self.cfg = cfg
+        self.mavlink_url = mavlink_url or cfg.mavlink.url
+        self.camera_url = camera_url
+        self.log_path = log_path
+        self.truth_port = truth_port
+        self.duration_s = duration_s
+        self.idle_timeout_s = idle_timeout_s
+        self.faults = faults
+        self.config_text = config_text
+        self.timebase = TimeBase(cfg.control.time_source)
+        self.store = new_store(cfg)
+        self.pipeline = new_pipeline(cfg)
+        self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
+        self.rx_count = 0
+        self.steps = 0
+        self.sent = 0
+        self._stop = asyncio.Event()
+        self._logger: McapLogger | None = None
+        self._link: MavlinkLink | None = None
+        self._first_frame_s: float | None = None
+        self._streaming = True
+
+    # -- wiring -----------------------------------------------------------------------------
+
+    async def run(self) -> int:
+        cfg = self.cfg
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        logger = McapLogger.from_config(cfg.logging, self.log_path)
+        self._logger = logger
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, self._stop.set)
+        try:
+            with logger:
+                logger.log_config(time.monotonic_ns(), self.config_text, dict(cfg.raw),
+                                  cfg.source)
+                link = MavlinkLink.from_config(
+                    dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
+                    on_rx=self._on_rx, on_tx=lambda s: logger.log_mavlink("out", s),
+                    on_reject=logger.log_rejected,
+                )
+                self._link = link
+                async with link, open_camera(self.camera_url) as camera:
+                    log.info("companion: mavlink %s, camera %s, log %s", self.mavlink_url,
+                             self.camera_url, self.log_path)
+                    async with asyncio.TaskGroup() as tg:
+                        control = tg.create_task(self._control(camera))
+                        aux = [tg.create_task(self._drain(link)),
+                               tg.create_task(self._heartbeat(link))]
+                        if self.truth_port is not None:
+                            aux.append(tg.create_task(self._truth(self.truth_port)))
+                        await control
+                        for t in aux:
+                            t.cancel()
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(NotImplementedError, RuntimeError):
+                    loop.remove_signal_handler(sig)
+        log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
+                 "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
+                 self.log_path, logger.stats.written, logger.stats.dropped)
+        return 0
+
+    # -- receive ----------------------------------------------------------------------------
+
+    def _on_rx(self, rx: Received) -> None:
+        assert self._logger is not None
+        self._logger.log_mavlink("in", rx)
+        fields = rx.msg.to_dict()
+        t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
+        self.store.ingest(rx.name, fields, t_s, rx.src_sysid)
+        self.rx_count += 1
+        if rx.name == "HEARTBEAT" and is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
+            m = self.store.mode
+            if m is not None:
+                before = self.offboard.phase
+                self.offboard.on_heartbeat(VehicleStatus(m.armed, m.main_mode, m.sub_mode, t_s))
+                self._log_offboard(before, t_s)
+        elif rx.name == "COMMAND_ACK":
+            log.info("COMMAND_ACK command %s result %s", fields.get("command"),
+                     fields.get("result"))
+
+    async def _drain(self, link: MavlinkLink) -> None:
+        async for _rx in link:  # the callback did the work; keep the queue empty
+            pass
+
+    async def _heartbeat(self, link: MavlinkLink) -> None:
+        while True:
+            with contextlib.suppress(NoPeerError):
+                link.send_heartbeat()
+            await asyncio.sleep(1.0)
+
+    async def _truth(self, port: int) -> None:
+        """Ground truth from the emulator, logged for scoring only (never read by control)."""
+        assert self._logger is not None
+        logger = self._logger
+        loop = asyncio.get_running_loop()
+
+        class _Proto(asyncio.DatagramProtocol):
+            def datagram_received(self, data: bytes, addr: Any) -> None:
+                try:
+                    rec = json.loads(data)
+                except ValueError:
+                    return
+                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec)
+
+        transport, _ = await loop.create_datagram_endpoint(
+            _Proto, local_addr=("127.0.0.1", port))
+        try:
+            await asyncio.Future()
+        finally:
+            transport.close()
+
+    # -- control ----------------------------------------------------------------------------
+
+    async def _control(self, camera: Any) -> None:
+        it = camera.__aiter__()
+        exit_deadline: float | None = None
+        while True:
+            if self._stop.is_set() and exit_deadline is None:
+                exit_deadline = time.monotonic() + 2.0
+                self.offboard.request_exit(self.timebase.latest_s)
+            if exit_deadline is not None and (
+                time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
+            ):
+                break
+            try:
+                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
+                                                           self.idle_timeout_s)
+            except (TimeoutError, StopAsyncIteration):
+                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
+                if exit_deadline is None:
+                    self._stop.set()
+                    continue
+                break
+            self._step(frame)
+
+    def _step(self, frame: CameraFrame) -> None:
+        assert self._logger is not None and self._link is not None
+        logger, link = self._logger, self._link
+        t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
+        if self._first_frame_s is None:
+            self._first_frame_s = t_s
+        elapsed = t_s - self._first_frame_s
+        if self.duration_s is not None and elapsed >= self.duration_s:
+            self._stop.set()
+        self.pipeline.force_solver_failure = any(
+            f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
+        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
+                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
+        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
+        if self.offboard.phase in (OffboardPhase.EXITING, OffboardPhase.DONE) and \
+                res.setpoint is not None and res.safety.level is not SafetyLevel.SILENT:
+            pass  # keep streaming while PX4 switches to Hold
+        sent_ns = None
+        if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
+            try:
+                link.send_attitude_target(res.setpoint.q_wxyz, res.setpoint.thrust_norm,
+                                          time_boot_ms=int(max(t_s, 0.0) * 1e3) & 0xFFFFFFFF)
+                sent_ns = time.monotonic_ns()
+                self.sent += 1
+                self.offboard.on_streamed(t_s)
+            except NoPeerError:
+                pass
+        else:
+            self.offboard.on_stream_gap()
+        before = self.offboard.phase
+        for act in self.offboard.step(t_s):
+            self._act(act, t_s)
+        self._log_offboard(before, t_s)
+        self.steps += 1
+        rec = res.to_record()
+        rec.update({
+            "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
+            "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
+            "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
+        })
+        logger.log(TOPIC_STEP, frame.t_rx_ns, rec)
+        if res.safety.changed:
+            logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
+                            f"{res.safety.level.value}: {res.safety.reason}",
+                            level="WARNING", name="safety")
+
+    def _act(self, act: Any, t_s: float) -> None:
+        assert self._link is not None
+        try:
+            if act.kind == "arm":
+                self._link.send_arm(True)
+            elif act.kind == "set_mode":
+                self._link.send_set_mode(act.main_mode, act.sub_mode)
+            elif act.kind == "stop_stream":
+                return
+        except NoPeerError:
+            return
+        log.info("offboard: %s (%s) at t=%.2f s", act.kind, act.reason, t_s)
+
+    def _log_offboard(self, before: OffboardPhase, t_s: float) -> None:
+        if self.offboard.phase is not before and self._logger is not None:
+            _, phase, reason = self.offboard.transitions[-1]
+            log.info("offboard %s -> %s: %s", before.value, phase.value, reason)
+            self._logger.log_text(TOPIC_OFFBOARD, time.monotonic_ns(),
+                                  f"{before.value} -> {phase.value}: {reason}",
+                                  level="INFO", name="offboard")
+
+
+def step_summary(res: StepResult) -> str:  # pragma: no cover - debugging aid
+    return f"{res.t_s:.2f} {res.safety.level.value} {res.perception_status}"
