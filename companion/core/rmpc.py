@@ -349,7 +349,8 @@ class Rmpc:
         """One RMPC step from the measured error ``eta0`` (7,) for ``target`` (N rows).
 
         Raises :class:`RmpcParameterError` if ``eta0`` or ``target`` is malformed or not
-        finite (nothing reaches the solver). Never returns NaN.
+        finite (nothing reaches the solver). ``u0``, ``eta_pred``, ``u_pred`` and ``cost`` are
+        always finite (``solve_time_s`` is NaN only if CasADi raised and gave no stats).
         """
         e0 = np.asarray(eta0, dtype=float).reshape(-1)
         if e0.shape != (NX,):
