@@ -279,6 +279,16 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
     return Config(**sections, source=source, raw=types.MappingProxyType(plain))
 
 
+def with_overrides(data: Mapping[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """A deep copy of a parsed config document with ``key=value`` overrides applied."""
+    import copy
+
+    out = copy.deepcopy(dict(data))
+    for ov in overrides:
+        _apply_override(out, ov)
+    return out
+
+
 def _read_with_base(path: Path, seen: tuple[Path, ...]) -> dict[str, Any]:
     path = path.expanduser().resolve()
     if path in seen:

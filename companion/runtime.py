@@ -316,6 +316,7 @@ class CompanionApp:
         rec.update({
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
+            "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
         })
         logger.log(TOPIC_STEP, frame.t_rx_ns, rec)

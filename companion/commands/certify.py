@@ -96,6 +96,7 @@ def _report_dict(cfg: Config, d: TerminalDesign, ci: CertificateInputs, cert: Ce
         "theorem1": t1,
         "theorem2": _cond_dict(cert.theorem2),
         "failed": {c.name: _why(c, cert, ci) for c in cert.failed},
+        "not_in_verdict": {"cond2_sharp": _cond_dict(cert.cond2_sharp)},
         "notes": {c.name: c.note for c in cert.conditions},
         "gamma_ff_bound": list(ci.gamma_ff_bound),
         "visibility": {
@@ -148,6 +149,9 @@ def _print_table(cfg: Config, d: TerminalDesign, ci: CertificateInputs, cert: Ce
         for c in conds:
             print(f"  {c.name:<12} {_fmt(c.lhs):>12} {_fmt(c.rhs):>12}  "
                   f"{'yes' if c.ok else 'NO':<5}  {c.note}")
+    s = cert.cond2_sharp
+    print(f"  {'(cond2_sharp':<12} {_fmt(s.lhs):>12} {_fmt(s.rhs):>12}  "
+          f"{'yes' if s.ok else 'NO':<5}  not in the verdict: {s.note})")
     print(f"  (max |p| on Omega at eta = {np.round(cert.visibility.eta, 4).tolist()}; "
           f"|(se1, se2)| alone: {cert.visibility.se12_max:.4g}; remainder check is sampled)")
     if cert.holds:

@@ -1,0 +1,38 @@
+"""``companion log info LOG.mcap``: channels, counts, rates, duration (like ``mcap info``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from companion.log_reader import LogReader, NotMcapError
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("log", help="inspect a flight log")
+    lsub = p.add_subparsers(dest="log_command", required=True)
+    info = lsub.add_parser("info", help="channels, counts, rates, time range")
+    info.add_argument("log", type=Path)
+    info.set_defaults(func=_info)
+
+
+def _info(args: argparse.Namespace) -> int:
+    try:
+        reader = LogReader(args.log)
+    except NotMcapError as exc:
+        print(f"companion: error: {exc}")
+        return 2
+    rec = reader.recovery
+    chans = sorted(reader.channels, key=lambda c: c.topic)
+    t0 = rec.first_log_time_ns or 0
+    t1 = rec.last_log_time_ns or 0
+    print(f"file:      {args.log} ({rec.bytes_total} bytes)")
+    state = "cut short, salvaged" if rec.truncated else "complete"
+    print(f"state:     {state}: {rec.messages} messages")
+    print(f"duration:  {(t1 - t0) * 1e-9:.3f} s  [{t0} .. {t1}] ns")
+    print(f"channels:  {len(chans)}")
+    w = max((len(c.topic) for c in chans), default=10)
+    print(f"  {'topic':<{w}}  {'count':>7}  {'rate Hz':>8}  schema")
+    for c in chans:
+        print(f"  {c.topic:<{w}}  {c.count:>7}  {c.rate_hz:>8.2f}  {c.schema_name}")
+    return 0

@@ -1,0 +1,37 @@
+"""``companion report LOG.mcap --out DIR``: figures, report.json and an HTML summary."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from companion.config import load_config
+from companion.log_reader import LogReader, NotMcapError
+from companion.replay import ReplayError, replay_config
+from companion.reporting import build_report
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("report", help="plots and figures of a flight log")
+    p.add_argument("log", type=Path)
+    p.add_argument("--out", type=Path, default=Path("out") / "report")
+    p.add_argument("--config", type=Path, default=None,
+                   help="camera/geometry config (default: the one recorded in the log)")
+    p.set_defaults(func=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
+        reader = LogReader(args.log)
+    except NotMcapError as exc:
+        print(f"companion: error: {exc}")
+        return 2
+    try:
+        cfg = replay_config(reader, args.config, [])
+    except ReplayError:
+        cfg = load_config(None)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rep = build_report(args.log, cfg, args.out)
+    print(f"report: {args.out / 'report.json'}, {args.out / 'report.html'} "
+          f"({len(rep.get('figures', {}))} figures)")
+    return 0
