@@ -1,8 +1,9 @@
 """Compiled NLP functions for the RMPC, cached on disk (so a restart does not recompile).
 
-CasADi generates the C code of the NLP oracle (``nlp_f``, ``nlp_g``, ``nlp_grad_f``,
-``nlp_jac_g``, ``nlp_hess_l``) with ``Function.generate_dependencies``; the library compiled from
-it is stored as ``<cache_dir>/rmpc_<key>.so`` where ``key`` hashes the generated source, the
+A ``CodeGenerator`` writes the C code of the NLP oracle (``nlp`` and ``nlp_f``, ``nlp_g``,
+``nlp_grad``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``, as ``generate_dependencies``
+would); the library compiled from it is stored as ``<cache_dir>/rmpc_<solver>_<hard|soft>_<key>.so``
+where ``key`` hashes the generated source, the
 CasADi version and the compiler flags. So the key changes whenever the problem (horizon,
 weights, terminal matrix, camera, constraint groups ...) changes, and only then.
 Compilation goes through CasADi's own ``shell`` importer into a process-unique temporary name
@@ -26,6 +27,10 @@ log = logging.getLogger(__name__)
 
 COMPILER_FLAGS = ("-O1",)
 """gcc flags: -O1 compiles the ~2 MB source in ~7 s; -O2 doubles that for no measured gain."""
+
+
+ORACLE_FUNCTIONS = ("nlp_f", "nlp_g", "nlp_grad", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l")
+"""The oracle's derived functions an ``nlpsol`` loads from a library (plus ``nlp`` itself)."""
 
 
 class RmpcBuildError(CompanionError):
@@ -62,14 +67,14 @@ def compiled_nlp(solver: ca.Function, cache_dir: str, tag: str) -> CompiledNlp:
     except OSError as exc:
         raise RmpcBuildError(f"rmpc.cache_dir: cannot create {directory}: {exc}") from exc
     with tempfile.TemporaryDirectory(prefix="rmpc_gen_") as tmp:
-        # generate_dependencies writes into the current directory when given a bare name
+        # what Function.generate_dependencies writes, but into tmp (no chdir: threads)
         src_path = Path(tmp) / f"rmpc_{tag}.c"
-        cwd = os.getcwd()
-        try:
-            os.chdir(tmp)
-            solver.generate_dependencies(src_path.name)
-        finally:
-            os.chdir(cwd)
+        gen = ca.CodeGenerator(src_path.name)
+        gen.add(solver.oracle())
+        for fname in ORACLE_FUNCTIONS:
+            if solver.has_function(fname):
+                gen.add(solver.get_function(fname))
+        gen.generate(str(tmp) + os.sep)
         source = src_path.read_text()
         key = cache_key(source)
         library = directory / f"rmpc_{tag}_{key}.so"
