@@ -1,0 +1,537 @@
+"""The synthetic downward camera: renders the AGV on a textured ground into mono8 frames.
+
+Conventions (shared/spec/rmpc-ibvs.md section 1, docs/wire.md): world NED, body FRD, camera
+axes = body axes rotated by the mount (x forward, y right, z down = optical axis). Ideal
+pinhole: ``fx = fy = focal_length_m / pixel_size_m``, principal point at the image centre
+``cx = (width_px - 1) / 2``, ``cy = (height_px - 1) / 2`` (pixel centres at integer
+``(col, row)``, OpenCV's convention). With "forward = up" in the image:
+``col = cx + n_px``, ``row = cy - u_px``, ``u = lambda x_c / z_c``, ``n = lambda y_c / z_c``.
+
+OpenCV's camera frame is x right, y down, z forward; ours maps to it as
+``x_cv = y_c``, ``y_cv = -x_c``, ``z_cv = z_c`` (a rotation, det +1), so ``cv2.projectPoints``
+with ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]`` gives exactly the mapping above.
+
+This is an independent implementation of the geometry (it never imports the companion), so a
+geometry bug on either side shows up as a failed flight instead of cancelling out.
+
+Rendering, per frame (about 1.3 ms at 1000 x 1000 on the dev machine, see bench/sim_step.py):
+the ground plane (a periodic procedural texture, intensities ~40..150, precomputed once) is
+warped into the image by its homography (``cv2.warpPerspective``, INTER_LINEAR, BORDER_WRAP,
+at half resolution, then upsampled);
+then the box's silhouette (dark, 30) and its top (rectangle: 235; aruco: white with the marker)
+are drawn with analytic anti-aliasing (coverage ``clip(0.5 + signed distance to the edge, 0, 1)``
+per pixel), so an edge's 50 % level lies exactly on the projected edge and detected corners
+land where the projection puts them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sim_bridge import ConfigError
+from sim_bridge.physics.agv import AgvState
+
+__all__ = ["Camera", "RenderedFrame"]
+
+log = logging.getLogger(__name__)
+
+# Intensities (mono8).
+GROUND_MIN, GROUND_MAX = 40, 150
+SKY_LEVEL = 150
+BOX_SIDE_LEVEL = 30
+TOP_LEVEL = 235
+ARUCO_WHITE, ARUCO_BLACK = 245, 10
+
+_NEAR_M = 0.05  # points closer than this along the optical axis are not drawn
+_GROUND_TEXEL_M = 0.01  # ground texture resolution
+_GROUND_TEX_PX = 1024  # period of the ground texture: 10.24 m
+_GROUND_PAD_PX = 512  # the stored texture repeats the period by this much on every side
+_SKY_DZ = 0.08  # rays whose world-down component (|ray| ~ 1..1.6) is below this show sky
+_TOP_TEXEL_M = 5.0e-4  # finest texel of the ArUco top texture (mip level 0)
+_MIP_LEVELS = 7  # 0.5 mm .. 32 mm texels
+_NOISE_BANK = 4
+
+# Our camera axes (x fwd, y right, z down) -> OpenCV's (x right, y down, z fwd = optical axis).
+_CV_FROM_CAM = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class RenderedFrame:
+    """One rendered frame and the truth about it.
+
+    ``image``: (H, W) uint8 mono8, row 0 at the top. ``corners_px``: (4, 2) true projection
+    ``(col, row)`` of the target points before noise, whether or not they are in the image:
+    rectangle: the AGV top's corners, aruco: the marker's corners in cv2.aruco's order; both in
+    the AGV frame order front-left, front-right, rear-right, rear-left. ``target_in_image``: all
+    target points in front of the camera and inside the image, the top facing the camera and not
+    occluded. ``top_corners_px``: (4, 2) the AGV top's corners (same order) for either pattern.
+    """
+
+    image: np.ndarray
+    corners_px: np.ndarray
+    target_in_image: bool
+    top_corners_px: np.ndarray
+
+
+def _ground_texture(seed: int) -> np.ndarray:
+    """A periodic (seamless) procedural ground, uint8 in [40, 150]: 1/f noise plus 1 m tiles."""
+    n = _GROUND_TEX_PX
+    rng = np.random.default_rng(seed)
+    fy = np.fft.fftfreq(n)[:, None]
+    fx = np.fft.rfftfreq(n)[None, :]
+    f = np.hypot(fx, fy)
+    f[0, 0] = 1.0
+    # Amplitude ~ 1/f, cut off above ~5 cm wavelength so the texture is smooth at the image's
+    # scale (a few mm per pixel) and does not bias corner refinement.
+    amp = np.where(f > 0.2, 0.0, 1.0 / f)
+    amp[0, 0] = 0.0
+    spec = amp * (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape))
+    noise = np.fft.irfft2(spec, s=(n, n))
+    noise = (noise - noise.mean()) / noise.std()
+    # Tiles of 1 m with a shade each and faint joints: straight edges a detector must reject.
+    tile_px = round(1.0 / _GROUND_TEXEL_M)
+    n_tiles = -(-n // tile_px)
+    shades = rng.uniform(-12.0, 12.0, size=(n_tiles, n_tiles))
+    idx = np.arange(n) // tile_px
+    tiles = shades[idx[:, None], idx[None, :]]
+    joints = (np.arange(n) % tile_px) < 2
+    joint = (joints[:, None] | joints[None, :]) * -15.0
+    img = 95.0 + 14.0 * noise + tiles + joint
+    pad = 8  # blur with wrap-around (cv2's filters do not support BORDER_WRAP)
+    img = cv2.GaussianBlur(np.pad(img.astype(np.float32), pad, mode="wrap"), (0, 0), 1.0)
+    img = img[pad:-pad, pad:-pad]
+    tex = np.clip(np.rint(img), GROUND_MIN, GROUND_MAX).astype(np.uint8)
+    return np.ascontiguousarray(np.pad(tex, _GROUND_PAD_PX, mode="wrap"))
+
+
+def _clip_polygon_halfplane(poly: np.ndarray, a: np.ndarray, c: float) -> np.ndarray:
+    """Keep the part of a convex polygon (n, d) where ``a . p + c >= 0`` (Sutherland-Hodgman)."""
+    out: list[np.ndarray] = []
+    n = len(poly)
+    for i in range(n):
+        p, q = poly[i], poly[(i + 1) % n]
+        dp, dq = float(a @ p + c), float(a @ q + c)
+        if dp >= 0:
+            out.append(p)
+        if (dp >= 0) != (dq >= 0):
+            out.append(p + (q - p) * (dp / (dp - dq)))
+    return np.array(out).reshape(-1, poly.shape[1])
+
+
+class Camera:
+    """Renders what the UAV's camera sees of the AGV (see the module docstring).
+
+    Constructor arguments are plain values (metres, radians, pixels); see ``config/paper.toml``
+    ``[camera]``, ``[target]``, ``[sim.camera]``. ``render`` is the only per-frame call.
+    """
+
+    def __init__(
+        self,
+        focal_length_m: float,
+        pixel_size_m: float,
+        width_px: int,
+        height_px: int,
+        mount_rpy_rad: Sequence[float] = (0.0, 0.0, 0.0),
+        mount_offset_m: Sequence[float] = (0.0, 0.0, 0.0),
+        target_length_m: float = 0.5,
+        target_width_m: float = 0.4,
+        target_height_m: float = 0.3,
+        pattern: str = "rectangle",
+        aruco_dictionary: str = "DICT_4X4_50",
+        aruco_id: int = 7,
+        aruco_size_m: float = 0.4,
+        noise_std: float = 0.0,
+        blur_px: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        for name, v in (
+            ("camera.focal_length_m", focal_length_m),
+            ("camera.pixel_size_m", pixel_size_m),
+            ("target.length_m", target_length_m),
+            ("target.width_m", target_width_m),
+            ("target.height_m", target_height_m),
+            ("target.aruco_size_m", aruco_size_m),
+        ):
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"{name}: must be a finite number > 0, got {v}")
+        for name, iv in (("camera.width_px", width_px), ("camera.height_px", height_px)):
+            if not (isinstance(iv, int) and 2 <= iv <= 65535):
+                raise ConfigError(f"{name}: must be an integer in 2..65535, got {iv!r}")
+        if pattern not in ("rectangle", "aruco"):
+            raise ConfigError(f"target.pattern: must be 'rectangle' or 'aruco', got {pattern!r}")
+        if not (math.isfinite(noise_std) and noise_std >= 0):
+            raise ConfigError(f"sim.camera.noise_std: must be >= 0, got {noise_std}")
+        if not (math.isfinite(blur_px) and blur_px >= 0):
+            raise ConfigError(f"sim.camera.blur_px: must be >= 0, got {blur_px}")
+        if len(mount_rpy_rad) != 3 or len(mount_offset_m) != 3:
+            raise ConfigError("camera.mount_rpy_rad / camera.mount_offset_m: need 3 values each")
+        if pattern == "aruco" and aruco_size_m > min(target_length_m, target_width_m) + 1e-12:
+            raise ConfigError(
+                f"target.aruco_size_m: {aruco_size_m} m does not fit on the "
+                f"{target_length_m} x {target_width_m} m top"
+            )
+
+        self.width_px = width_px
+        self.height_px = height_px
+        self.focal_length_m = float(focal_length_m)
+        self.pixel_size_m = float(pixel_size_m)
+        self.f_px = self.focal_length_m / self.pixel_size_m
+        self.cx = (width_px - 1) / 2.0
+        self.cy = (height_px - 1) / 2.0
+        self.camera_matrix = np.array(
+            [[self.f_px, 0.0, self.cx], [0.0, self.f_px, self.cy], [0.0, 0.0, 1.0]]
+        )
+        self._k_inv = np.linalg.inv(self.camera_matrix)
+        self._dist = np.zeros(5)
+        r, p, y = (float(v) for v in mount_rpy_rad)
+        # Camera axes -> body axes (ZYX: Rz(yaw) Ry(pitch) Rx(roll)).
+        self.r_body_cam = Rotation.from_euler("ZYX", [y, p, r]).as_matrix()
+        self.mount_offset_m = np.array(mount_offset_m, dtype=float)
+        self.length_m = float(target_length_m)
+        self.width_m = float(target_width_m)
+        self.height_m = float(target_height_m)
+        self.pattern = pattern
+        self.aruco_size_m = float(aruco_size_m)
+        self.noise_std = float(noise_std)
+        self.blur_px = float(blur_px)
+        self._rng = np.random.default_rng(seed)
+
+        half_l, half_w = self.length_m / 2.0, self.width_m / 2.0
+        # AGV-frame (x fwd, y right, z down) top corners: FL, FR, RR, RL.
+        self._top_local = np.array(
+            [
+                [half_l, -half_w, 0.0],
+                [half_l, half_w, 0.0],
+                [-half_l, half_w, 0.0],
+                [-half_l, -half_w, 0.0],
+            ]
+        )
+        self._bottom_local = self._top_local + np.array([0.0, 0.0, self.height_m])
+        hs = self.aruco_size_m / 2.0
+        # Marker mounted centred on the top, its image "up" towards the AGV front: cv2.aruco's
+        # corner order (TL, TR, BR, BL of the marker image) = FL, FR, RR, RL.
+        self._marker_local = np.array(
+            [[hs, -hs, 0.0], [hs, hs, 0.0], [-hs, hs, 0.0], [-hs, -hs, 0.0]]
+        )
+        self._ground_tex = _ground_texture(seed)
+        self._top_mips: list[np.ndarray] = []
+        self._top_texel_m: list[float] = []
+        if pattern == "aruco":
+            self._build_aruco_top(aruco_dictionary, aruco_id)
+        self._noise_bank: list[np.ndarray] = []
+        if self.noise_std > 0:
+            pad = 64
+            for _ in range(_NOISE_BANK):
+                bank = np.empty((height_px + pad, width_px + pad), np.int16)
+                cv2.randn(bank, 0.0, self.noise_std)
+                self._noise_bank.append(bank)
+
+    # ------------------------------------------------------------------------------ geometry
+    def _build_aruco_top(self, dictionary: str, marker_id: int) -> None:
+        try:
+            dict_id = getattr(cv2.aruco, dictionary)
+        except AttributeError as e:
+            raise ConfigError(f"target.aruco_dictionary: unknown {dictionary!r}") from e
+        aruco_dict = cv2.aruco.getPredefinedDictionary(dict_id)
+        n_markers = aruco_dict.bytesList.shape[0]
+        if not (isinstance(marker_id, int) and 0 <= marker_id < n_markers):
+            raise ConfigError(f"target.aruco_id: must be in 0..{n_markers - 1}, got {marker_id!r}")
+        cells = aruco_dict.markerSize + 2  # one black border cell each side
+        step = 2 ** (_MIP_LEVELS - 1)
+        # Texels per cell: a multiple of `step`, so every cell edge (the marker's outline
+        # included) falls on a texel boundary at every mip level.
+        k = step * max(1, round(self.aruco_size_m / cells / _TOP_TEXEL_M / step))
+        side = cells * k  # marker side in texels
+        texel = self.aruco_size_m / side
+        marker = cv2.aruco.generateImageMarker(aruco_dict, marker_id, side, borderBits=1)
+
+        # Texture centred on the marker, covering the whole top plus a margin; its sides are
+        # multiples of 2**(levels-1) texels so every mip level halves exactly and keeps the
+        # marker centre at the texture centre.
+        def _span(m: float) -> int:
+            margin = math.ceil((m / texel - side) / 2.0) + 2
+            return side + 2 * (-(-margin // step) * step)
+
+        rows, cols = _span(self.length_m), _span(self.width_m)
+        tex = np.full((rows, cols), ARUCO_WHITE, np.uint8)
+        r0, c0 = (rows - side) // 2, (cols - side) // 2
+        tex[r0 : r0 + side, c0 : c0 + side] = np.where(marker > 127, ARUCO_WHITE, ARUCO_BLACK)
+        for level in range(_MIP_LEVELS):
+            self._top_mips.append(tex)
+            self._top_texel_m.append(texel * 2**level)
+            tex = cv2.resize(
+                tex, (tex.shape[1] // 2, tex.shape[0] // 2), interpolation=cv2.INTER_AREA
+            )
+
+    def pose(
+        self, uav_pos_ned_m: np.ndarray, uav_q_wxyz: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World -> OpenCV-camera rotation ``R`` (3, 3) and translation ``t`` (3,):
+        ``X_cv = R X_world + t``. ``uav_q_wxyz`` rotates body vectors into NED (PX4 attitude)."""
+        q = np.asarray(uav_q_wxyz, dtype=float)
+        r_wb = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()  # scipy: x, y, z, w
+        r_wc = r_wb @ self.r_body_cam
+        c_w = np.asarray(uav_pos_ned_m, dtype=float) + r_wb @ self.mount_offset_m
+        r_cv_w = _CV_FROM_CAM @ r_wc.T
+        return r_cv_w, -r_cv_w @ c_w
+
+    def project(
+        self, points_ned_m: np.ndarray, uav_pos_ned_m: np.ndarray, uav_q_wxyz: np.ndarray
+    ) -> np.ndarray:
+        """Pixel ``(col, row)`` (n, 2) of world points (n, 3) with ``cv2.projectPoints``."""
+        r, t = self.pose(uav_pos_ned_m, uav_q_wxyz)
+        return self._project(np.asarray(points_ned_m, dtype=float).reshape(-1, 3), r, t)
+
+    def _project(self, pts: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+        rvec, _ = cv2.Rodrigues(r)
+        img, _ = cv2.projectPoints(pts, rvec, t, self.camera_matrix, self._dist)
+        return np.asarray(img, dtype=float).reshape(-1, 2)
+
+    def agv_points(self, agv: AgvState) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World NED (4, 3) top corners, bottom corners and marker corners (FL, FR, RR, RL)."""
+        c, s = math.cos(agv.yaw_rad), math.sin(agv.yaw_rad)
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        p = agv.pos_ned_m
+        return (
+            self._top_local @ rz.T + p,
+            self._bottom_local @ rz.T + p,
+            self._marker_local @ rz.T + p,
+        )
+
+    # ------------------------------------------------------------------------------ rendering
+    def render(
+        self,
+        uav_pos_ned_m: np.ndarray,
+        uav_q_wxyz: np.ndarray,
+        agv: AgvState,
+        occluded: bool = False,
+    ) -> RenderedFrame:
+        """Render the frame seen from the UAV pose (NED m, quaternion w,x,y,z body -> NED)."""
+        r, t = self.pose(uav_pos_ned_m, uav_q_wxyz)
+        c_w = -r.T @ t  # camera centre, NED
+        top, bottom, marker = self.agv_points(agv)
+        pts = np.vstack([top, bottom, marker])
+        px = self._project(pts, r, t)
+        z_cv = pts @ r[2] + t[2]
+        top_px, marker_px = px[0:4], px[8:12]
+
+        ground_z = float(agv.pos_ned_m[2]) + self.height_m
+        image = self._render_ground(r, c_w, ground_z)
+
+        top_faces_camera = c_w[2] < agv.pos_ned_m[2]
+        if not occluded:
+            self._draw_box(image, px[:8], z_cv[:8], pts[:8], r, t, top_faces_camera, agv)
+
+        target_px = marker_px if self.pattern == "aruco" else top_px
+        target_z = z_cv[8:12] if self.pattern == "aruco" else z_cv[0:4]
+        w, h = self.width_px, self.height_px
+        inside = bool(
+            np.all(target_z > _NEAR_M)
+            and np.all(target_px[:, 0] >= -0.5)
+            and np.all(target_px[:, 0] <= w - 0.5)
+            and np.all(target_px[:, 1] >= -0.5)
+            and np.all(target_px[:, 1] <= h - 0.5)
+        )
+        in_image = inside and bool(top_faces_camera) and not occluded
+
+        if self.blur_px > 0:
+            image = cv2.GaussianBlur(image, (0, 0), self.blur_px)
+        if self._noise_bank:
+            bank = self._noise_bank[int(self._rng.integers(len(self._noise_bank)))]
+            dy, dx = (int(v) for v in self._rng.integers(0, 64, size=2))
+            image = cv2.add(image, bank[dy : dy + h, dx : dx + w], dtype=cv2.CV_8U)
+        image.setflags(write=False)
+        return RenderedFrame(
+            image=image,
+            corners_px=target_px.copy(),
+            target_in_image=in_image,
+            top_corners_px=top_px.copy(),
+        )
+
+    def _render_ground(self, r: np.ndarray, c_w: np.ndarray, ground_z: float) -> np.ndarray:
+        w, h = self.width_px, self.height_px
+        # Ray of pixel p = (col, row, 1) in NED: d = A p with A = R^T K^-1.
+        a = r.T @ self._k_inv
+        depth = ground_z - float(c_w[2])  # camera height above the ground (> 0 when above)
+        if depth <= 1e-6:
+            return np.full((h, w), SKY_LEVEL, np.uint8)
+        period_m = _GROUND_TEX_PX * _GROUND_TEXEL_M
+        pad_m = _GROUND_PAD_PX * _GROUND_TEXEL_M
+        # Offsets, whole periods, that put the camera within the first period of the padded
+        # texture: views up to pad_m wide around it stay on cv2's fast (inside) path.
+        ox = math.floor(c_w[0] / period_m) * period_m - pad_m
+        oy = math.floor(c_w[1] / period_m) * period_m - pad_m
+        # Ground point of the ray: c + depth * d / d_z; homogeneous [x, y, 1] ~ [depth d_xy +
+        # c_xy d_z, d_z]. Texture: col = (y - oy) / texel, row = (x - ox) / texel.
+        g = np.empty((3, 3))
+        g[0] = (depth * a[1] + (c_w[1] - oy) * a[2]) / _GROUND_TEXEL_M
+        g[1] = (depth * a[0] + (c_w[0] - ox) * a[2]) / _GROUND_TEXEL_M
+        g[2] = a[2]
+        # The ground is smooth at the image's scale: warp it at half resolution and upsample
+        # (2.5x cheaper than a full-size warp). Half-size pixel xs sits at full-size
+        # x = (xs + 0.5) / sx - 0.5 (cv2.resize's pixel-centre convention).
+        wh, hh = (w + 1) // 2, (h + 1) // 2
+        sx, sy = wh / w, hh / h
+        half = np.array(
+            [[1.0 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1.0 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]]
+        )
+        small = cv2.warpPerspective(
+            self._ground_tex,
+            g @ half,
+            (wh, hh),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_WRAP,
+        )
+        image = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+        corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
+        dz = corners @ a[2]
+        if np.all(dz > _SKY_DZ):
+            return image
+        # Part of the view is at or above the horizon: paint it as sky.
+        rect = corners[:, :2] + 0.5 * np.sign(corners[:, :2] - [self.cx, self.cy])
+        sky = _clip_polygon_halfplane(rect, -a[2, :2], _SKY_DZ - float(a[2, 2]))
+        if len(sky) >= 3:
+            cv2.fillPoly(image, [np.round(sky * 16).astype(np.int32)], SKY_LEVEL, cv2.LINE_8, 4)
+        return image
+
+    def _draw_box(
+        self,
+        image: np.ndarray,
+        px: np.ndarray,
+        z_cv: np.ndarray,
+        pts: np.ndarray,
+        r: np.ndarray,
+        t: np.ndarray,
+        top_faces_camera: bool,
+        agv: AgvState,
+    ) -> None:
+        if np.all(z_cv > _NEAR_M):
+            # The box's silhouette (convex hull of its 8 corners) is dark; the top is drawn in
+            # the same pass with coverages that partition each pixel: ground (1 - h), sides
+            # (h - t), top t. Compositing the top over a separately anti-aliased silhouette
+            # would leak ground into the shared edges and bias them by ~0.1 px.
+            idx = cv2.convexHull(px.astype(np.float32), returnPoints=False).ravel()
+            hull = px[idx]
+            roi = _roi(hull, self.width_px, self.height_px)
+            if roi is None:
+                return
+            h_cov = _coverage(hull, roi)
+            x0, y0, x1, y1 = roi
+            bg = image[y0:y1, x0:x1].astype(np.float32)
+            out = bg + (np.float32(BOX_SIDE_LEVEL) - bg) * h_cov
+            if top_faces_camera:
+                t_cov = np.minimum(_coverage(px[:4], roi), h_cov)
+                if self.pattern == "rectangle":
+                    fg: float | np.ndarray = float(TOP_LEVEL)
+                else:
+                    fg = self._aruco_top(roi, r, t, agv, float(np.mean(z_cv[:4])))
+                out += (fg - np.float32(BOX_SIDE_LEVEL)) * t_cov
+            image[y0:y1, x0:x1] = (out + 0.5).astype(np.uint8)
+            return
+        if np.all(z_cv <= _NEAR_M):
+            return
+        # The box crosses the near plane (the camera is at/inside it): clip each visible face in
+        # the camera frame and fill it plainly. Rare; no sub-pixel care needed.
+        cam = pts @ r.T + t
+        faces = [[4, 5, 6, 7]] + [[i, (i + 1) % 4, (i + 1) % 4 + 4, i + 4] for i in range(4)]
+        if top_faces_camera:
+            faces.append([0, 1, 2, 3])
+        for k, face in enumerate(faces):
+            poly = _clip_polygon_halfplane(cam[face], np.array([0.0, 0.0, 1.0]), -_NEAR_M)
+            if len(poly) < 3:
+                continue
+            proj = (self.camera_matrix @ poly.T).T
+            uv = proj[:, :2] / proj[:, 2:3]
+            level = TOP_LEVEL if (top_faces_camera and k == len(faces) - 1) else BOX_SIDE_LEVEL
+            uv = np.clip(uv, -1e5, 1e5)
+            cv2.fillPoly(image, [np.round(uv * 16).astype(np.int32)], level, cv2.LINE_8, 4)
+
+    def _aruco_top(
+        self,
+        roi: tuple[int, int, int, int],
+        r: np.ndarray,
+        t: np.ndarray,
+        agv: AgvState,
+        depth_m: float,
+    ) -> np.ndarray:
+        """The top's texture (white with the marker) warped onto the ROI, float32 (h, w)."""
+        x0, y0, x1, y1 = roi
+        # Mip level whose texel is the smallest at or above the pixel's footprint on the top:
+        # bilinear sampling then spreads each edge over 1..2 pixels, like a camera's pixel
+        # (box) integration, so interpolating between pixels finds the edge where it is.
+        # (Sharper, minified texels give a sub-pixel ramp that biases edges by up to ~0.2 px.)
+        footprint_m = depth_m * self.pixel_size_m / self.focal_length_m
+        ratio = max(footprint_m / self._top_texel_m[0], 1.0)
+        level = min(math.ceil(math.log2(ratio) - 1e-9), _MIP_LEVELS - 1)
+        tex = self._top_mips[level]
+        texel = self._top_texel_m[level]
+        rows, cols = tex.shape
+        # Texel (tc, tr) centre -> top-local (a fwd, b right): a = (rows/2 - tr - 0.5) texel,
+        # b = (tc + 0.5 - cols/2) texel. Top-local (a, b, 1) -> image: the plane homography
+        # K [R rz e_x, R rz e_y, R p + t].
+        c, s = math.cos(agv.yaw_rad), math.sin(agv.yaw_rad)
+        gmat = self.camera_matrix @ np.column_stack(
+            [r @ np.array([c, s, 0.0]), r @ np.array([-s, c, 0.0]), r @ agv.pos_ned_m + t]
+        )
+        s_map = np.array(
+            [
+                [0.0, -texel, (rows / 2 - 0.5) * texel],
+                [texel, 0.0, (0.5 - cols / 2) * texel],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+        m_inv = np.linalg.inv(gmat @ s_map) @ shift  # ROI pixel -> texel
+        fg = cv2.warpPerspective(
+            tex,
+            m_inv,
+            (x1 - x0, y1 - y0),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        return fg.astype(np.float32)
+
+
+def _roi(poly: np.ndarray, w: int, h: int) -> tuple[int, int, int, int] | None:
+    """Integer pixel box [x0, x1) x [y0, y1) covering a polygon's anti-aliased footprint."""
+    x0 = max(math.floor(poly[:, 0].min()) - 1, 0)
+    y0 = max(math.floor(poly[:, 1].min()) - 1, 0)
+    x1 = min(math.ceil(poly[:, 0].max()) + 2, w)
+    y1 = min(math.ceil(poly[:, 1].max()) + 2, h)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, y0, x1, y1
+
+
+def _coverage(poly: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
+    """Approximate pixel coverage (float32 (h, w) in [0, 1]) of a convex polygon in the ROI:
+    ``clip(0.5 + min_i signed_distance_i, 0, 1)`` over its edges (pixel centres at integers)."""
+    x0, y0, x1, y1 = roi
+    p = np.asarray(poly, dtype=float)
+    area2 = float(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
+    sign = 1.0 if area2 > 0 else -1.0
+    cols = np.arange(x0, x1, dtype=np.float32)[None, :]
+    rows = np.arange(y0, y1, dtype=np.float32)[:, None]
+    cov: np.ndarray | None = None
+    n = len(p)
+    for i in range(n):
+        a, b = p[i], p[(i + 1) % n]
+        e = b - a
+        length = math.hypot(e[0], e[1])
+        if length < 1e-9:
+            continue
+        # Inward unit normal (left of the edge for a counter-clockwise polygon in (col, row)).
+        nx, ny = -sign * e[1] / length, sign * e[0] / length
+        c0 = 0.5 - (nx * a[0] + ny * a[1])
+        d = (np.float32(nx) * cols + np.float32(ny) * rows) + np.float32(c0)
+        cov = d if cov is None else np.minimum(cov, d)
+    if cov is None:
+        return np.zeros((y1 - y0, x1 - x0), np.float32)
+    return np.clip(cov, 0.0, 1.0)
