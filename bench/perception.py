@@ -1,0 +1,154 @@
+"""Perception timing and accuracy at the paper's 1000 x 1000 px.
+
+Scenes come from the test renderer (tests/companion/test_perception.py: textured ground,
+dark box sides, bright top, exact area coverage) over random poses (1.5-5 m, tilt <= 0.3 rad,
+any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one warm-up call.
+
+    python bench/perception.py [--poses 100] [--seed 1] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from companion.camera_sources import FrameHeader, decode_payload, pack_frame  # noqa: E402
+from companion.config import load_config  # noqa: E402
+from companion.perception import ArucoDetector, Perception, RectangleDetector  # noqa: E402
+from tests.companion.test_perception import (  # noqa: E402
+    box_level,
+    ground,
+    pose_ok,
+    project,
+    render_box,
+    render_marker,
+    set_error_px,
+    to_camera,
+)
+
+
+def _stats(ms: list[float]) -> dict[str, float]:
+    a = np.asarray(ms)
+    return {
+        "median_ms": float(np.median(a)),
+        "p95_ms": float(np.percentile(a, 95)),
+        "max_ms": float(a.max()),
+    }
+
+
+def _timed(fn: Any, arg: Any) -> tuple[Any, float]:
+    t0 = time.perf_counter()
+    out = fn(arg)
+    return out, 1e3 * (time.perf_counter() - t0)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+
+    cfg = load_config()
+    rng = np.random.default_rng(args.seed)
+    rect = RectangleDetector(cfg.target.length_m, cfg.target.width_m)
+    aruco = ArucoDetector(cfg.target.aruco_dictionary, cfg.target.aruco_id, cfg.target.aruco_size_m)
+    perception = Perception(cfg.camera, cfg.target, track_order=False)
+
+    scenes: list[tuple[np.ndarray, np.ndarray]] = []
+    while len(scenes) < args.poses:
+        depth = rng.uniform(1.5, 5.0)
+        top, bottom = box_level(
+            depth,
+            rng.uniform(-0.5, 0.5) * depth,
+            rng.uniform(-0.5, 0.5) * depth,
+            rng.uniform(-math.pi, math.pi),
+        )
+        phi, theta = rng.uniform(-0.3, 0.3, 2)
+        if pose_ok(top, bottom, phi, theta, margin=8):
+            scenes.append(render_box(int(rng.integers(10_000)), top, bottom, phi, theta))
+    marker_scenes: list[tuple[np.ndarray, np.ndarray]] = []
+    while len(marker_scenes) < max(10, args.poses // 4):
+        depth = rng.uniform(1.5, 3.0)
+        top, _ = box_level(
+            depth, *(rng.uniform(-0.3, 0.3, 2) * depth), rng.uniform(-math.pi, math.pi), 0.4, 0.4
+        )
+        true = project(to_camera(top, *rng.uniform(-0.3, 0.3, 2)))
+        if true.min() > 60 and true.max() < 1000 - 61:
+            img = ground(int(rng.integers(10_000)))
+            render_marker(img, true, cfg.target.aruco_dictionary, cfg.target.aruco_id)
+            marker_scenes.append((img, true))
+    empty = ground(0)
+
+    rect.detect(scenes[0][0])
+    aruco.detect(marker_scenes[0][0])
+    out: dict[str, Any] = {
+        "image_px": [1000, 1000],
+        "cpus": os.cpu_count(),
+        "loadavg_1min": os.getloadavg()[0],
+        "poses": args.poses,
+    }
+    t_rect, e_rect = [], []
+    for img, true in scenes:
+        det, ms = _timed(rect.detect, img)
+        t_rect.append(ms)
+        e_rect.append(set_error_px(det.corners_px, true) if det is not None else math.inf)
+    out["rectangle_detect"] = _stats(t_rect)
+    out["rectangle_err_px"] = {"median": float(np.median(e_rect)), "max": float(max(e_rect))}
+    out["rectangle_empty_image"] = _stats([_timed(rect.detect, empty)[1] for _ in range(20)])
+    t_ar, e_ar = [], []
+    for img, true in marker_scenes:
+        det, ms = _timed(aruco.detect, img)
+        t_ar.append(ms)
+        e_ar.append(
+            float(np.max(np.linalg.norm(det.corners_px - true, axis=1)))
+            if det is not None
+            else math.inf
+        )
+    out["aruco_detect"] = _stats(t_ar)
+    out["aruco_err_px"] = {"median": float(np.median(e_ar)), "max": float(max(e_ar))}
+    out["perception_process"] = _stats([_timed(perception.process, img)[1] for img, _ in scenes])
+    mono = pack_frame(0, 0, scenes[0][0])
+    jpeg = pack_frame(0, 0, scenes[0][0], "jpeg")
+    for name, rec in (("decode_mono8", mono), ("decode_jpeg", jpeg)):
+        decode = functools.partial(decode_payload, FrameHeader.unpack(rec[:32]))
+        out[name] = _stats([_timed(decode, rec[32:])[1] for _ in range(30)])
+    out["opencv"] = cv2.__version__
+
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"perception at 1000 x 1000 px, {args.poses} poses, load {out['loadavg_1min']:.2f}")
+    for key in (
+        "rectangle_detect",
+        "rectangle_empty_image",
+        "aruco_detect",
+        "perception_process",
+        "decode_mono8",
+        "decode_jpeg",
+    ):
+        s = out[key]
+        print(
+            f"  {key:24s} median {s['median_ms']:6.2f} ms  p95 {s['p95_ms']:6.2f}  "
+            f"max {s['max_ms']:6.2f}"
+        )
+    for key in ("rectangle_err_px", "aruco_err_px"):
+        print(f"  {key:24s} median {out[key]['median']:.3f} px  max {out[key]['max']:.3f} px")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
