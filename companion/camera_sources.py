@@ -295,8 +295,9 @@ def decode_payload(header: FrameHeader, payload: bytes) -> tuple[npt.NDArray[np.
         raise CameraError(f"{name} payload decodes to {img.dtype}, expected 8-bit")
     if img.shape[:2] != (h, w):
         raise CameraError(f"{name} payload is {img.shape[1]}x{img.shape[0]}, header {w}x{h}")
-    img.setflags(write=False)
-    return img, "mono8" if img.ndim == 2 else "bgr8"
+    out = np.asarray(img, dtype=np.uint8)
+    out.setflags(write=False)
+    return out, "mono8" if out.ndim == 2 else "bgr8"
 
 
 @dataclass(frozen=True)
@@ -540,8 +541,9 @@ class VideoCaptureSource(CameraSource):
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
         elif img.ndim == 3 and img.shape[2] == 1:
             img = img[:, :, 0]
-        img.setflags(write=False)
-        return img, pos_ms, t_rx_ns
+        out = np.asarray(img, dtype=np.uint8)
+        out.setflags(write=False)
+        return out, pos_ms, t_rx_ns
 
     def _frame(self, got: tuple[npt.NDArray[np.uint8], float, int]) -> CameraFrame:
         img, pos_ms, t_rx_ns = got

@@ -123,11 +123,12 @@ class ArucoDetector:
             rejections.extend(Rejection("marker id seen twice: ambiguous", m) for m in mine)
             return DetectionReport(None, tuple(rejections), "marker id seen twice", len(ids))
         pts = mine[0]
-        reason = check_quad(pts, w, h, self.limits)
-        if reason is not None:
-            rejections.append(Rejection(reason, pts))
-            return DetectionReport(None, tuple(rejections), reason, len(ids))
-        quality, flags = 0.8, ("subpix corners",)
+        bad = check_quad(pts, w, h, self.limits)
+        if bad is not None:
+            rejections.append(Rejection(bad, pts))
+            return DetectionReport(None, tuple(rejections), bad, len(ids))
+        quality = 0.8
+        flags: tuple[str, ...] = ("subpix corners",)
         if self.refine_edges:
             refined = self._refine(gray, pts)
             if refined is not None:
@@ -147,12 +148,14 @@ class ArucoDetector:
                 if ids is None:
                     continue
                 for c, i in zip(corners, np.asarray(ids).reshape(-1), strict=True):
-                    all_corners.append(np.asarray(c, np.float32) + np.float32([c0, r0]))
+                    offset = np.array([c0, r0], dtype=np.float32)
+                    all_corners.append(np.asarray(c, np.float32) + offset)
                     all_ids.append(int(i))
             if self.marker_id in all_ids or not self.full_frame_fallback:
                 return all_corners, np.asarray(all_ids, np.int32) if all_ids else None
         corners, ids, _ = self._detector.detectMarkers(gray)
-        return list(corners), ids
+        found = [np.asarray(c, np.float32) for c in corners]
+        return found, None if ids is None else np.asarray(ids, np.int32)
 
     def _refine(self, gray: npt.NDArray[np.uint8], pts: FloatArray) -> FloatArray | None:
         side_px = float(np.min(np.linalg.norm(np.roll(pts, -1, axis=0) - pts, axis=1)))

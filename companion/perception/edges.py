@@ -73,7 +73,7 @@ def refine_quad(
     surroundings (else darker, e.g. a marker's black border on white).
     """
     if not bright_inside:
-        gray = cv2.bitwise_not(gray)
+        gray = np.asarray(cv2.bitwise_not(gray), dtype=np.uint8)
     fits = []
     for i in range(4):
         fit = fit_edge(gray, corners[i], corners[(i + 1) % 4], settings)

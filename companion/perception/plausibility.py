@@ -80,13 +80,13 @@ def interior_angles(corners: npt.ArrayLike) -> FloatArray:
     a = np.roll(c, 1, axis=0) - c
     b = np.roll(c, -1, axis=0) - c
     cosang = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
-    return np.arccos(np.clip(cosang, -1.0, 1.0))
+    return np.asarray(np.arccos(np.clip(cosang, -1.0, 1.0)), dtype=np.float64)
 
 
 def edge_lengths(corners: npt.ArrayLike) -> FloatArray:
     """Length of edge i (corner i -> corner i+1), px."""
     c = np.asarray(corners, dtype=np.float64)
-    return np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)
+    return np.asarray(np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1), dtype=np.float64)
 
 
 def aspect_ratio(corners: npt.ArrayLike) -> float:

@@ -136,13 +136,13 @@ class RectangleDetector:
         s = self.settings
         coarse = gray
         if s.presmooth_px > 0:
-            coarse = cv2.GaussianBlur(gray, (0, 0), s.presmooth_px)
+            coarse = np.asarray(cv2.GaussianBlur(gray, (0, 0), s.presmooth_px), dtype=np.uint8)
         if s.threshold is None:
             _, binary = cv2.threshold(coarse, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
         else:
             _, binary = cv2.threshold(coarse, s.threshold, 255, cv2.THRESH_BINARY)
         contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        blobs = [(float(cv2.contourArea(c)), c) for c in contours]
+        blobs = [(float(cv2.contourArea(c)), np.asarray(c, dtype=np.int32)) for c in contours]
         blobs = [b for b in blobs if b[0] >= s.noise_floor_px]
         if not blobs:
             return DetectionReport(None, (), "no bright region (target not in view)", 0)
