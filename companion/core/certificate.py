@@ -279,6 +279,13 @@ class Certificate:
     theorem2: Condition
     visibility: VisibilityMax
     lambdas: tuple[float, ...]  # Lambda(0..N)
+    cond2_sharp: Condition
+    """Not part of the verdict: Theorem 1 (2) with the contraction the proof actually uses.
+
+    The proof bounds ``|A_K eta + r|_P^2 <= eta'(A_K'PA_K + kappa P) eta`` (Assumption 2 (3))
+    and then, by (2), by ``(1 - lmin(Q*)/lmax(P)) |eta|_P^2``. Stopping at the first step gives
+    ``c = sqrt(lambda_max(P^-1/2 A_K'PA_K P^-1/2) + kappa) <= sqrt(1 - lmin(Q*)/lmax(P))`` and
+    the condition ``Lambda(N) <= (1 - c) eps``: the same proof, never more demanding."""
 
     @property
     def conditions(self) -> tuple[Condition, ...]:
@@ -358,7 +365,14 @@ def certify(ci: CertificateInputs, remainder_samples: int = 20000) -> Certificat
     t2 = _cond("theorem2", lhs2, lam_qp * eps * eps,
                "lambda(Q,P) sum(Lambda(n-1)^2 + 2 Lambda(n-1) X(n)) + Lambda(N)^2 + "
                "2 sqrt(1 - lmin(Q*)/lmax(P)) Lambda(N) eps <= lambda(Q,P) eps^2")
-    return Certificate(tuple(a2), t1, t2, vis, lam)
+    ak = ci.a + ci.b @ k
+    wv, vv = np.linalg.eigh(p)
+    ph = vv @ np.diag(wv**-0.5) @ vv.T
+    c_sharp = math.sqrt(max(0.0, _lmax(ph @ ak.T @ p @ ak @ ph) + ci.kappa))
+    sharp = _cond("cond2_sharp", lam[n_h], (1.0 - c_sharp) * eps,
+                  "Lambda(N) <= (1 - sqrt(lmax(P^-1/2 A_K'PA_K P^-1/2) + kappa)) eps "
+                  "(not the paper's; same proof, needs Assumption 2)")
+    return Certificate(tuple(a2), t1, t2, vis, lam, sharp)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -635,3 +649,60 @@ def feasibility_report(
     return FeasibilityReport(tuple(float(x) for x in e),
                              (float(v_a_m_s[0]), float(v_a_m_s[1])), reach, mode, status,
                              feasible)
+
+
+PAPER_TERMINAL_STATE = (-0.006, -0.076, 0.44, 0.153, -0.005, -0.062, 0.24)
+"""Where the first RMPC problem from :data:`PAPER_ETA0` can end (``eta(N)``, measured): the
+depth error cannot drop below 0.375 in 16 steps, the yaw error below 0.133."""
+
+
+def lmi_fit_design(
+    a: np.ndarray,
+    b: np.ndarray,
+    q: np.ndarray,
+    r: np.ndarray,
+    *,
+    eps: float,
+    fit_state: Sequence[float],
+    fit_level: float,
+    u_max: Sequence[float],
+    gamma_ff_bound: Sequence[float],
+    gamma: float,
+    kappa: float = 4e-4,
+    vis_margin: float = 0.99,
+    p_max_hi: float = 5.0,
+) -> LmiDesign:
+    """The LMI design with the smallest ``lambda_max(P)`` whose Omega contains ``fit_state``
+    at level ``fit_level eps`` (``|x|_P <= fit_level eps``) and meets Theorem 1 (3) with
+    ``vis_margin gamma`` (bisection on ``p_max`` of :func:`lmi_terminal`, ~2 s).
+
+    This shapes Omega for a known start (e.g. :data:`PAPER_TERMINAL_STATE`); with the paper's
+    numbers at eps = 0.13 it makes the first problem at the paper's eta_e(0) feasible with
+    every condition but Theorem 1 (2) holding (``cond2_sharp`` holds).
+    """
+    x = np.asarray(fit_state, dtype=float)
+
+    def fits(pm: float) -> LmiDesign | None:
+        try:
+            d = lmi_terminal(a, b, q, r, eps=eps, kappa=kappa, u_max=u_max,
+                             gamma_ff_bound=gamma_ff_bound, vis_gamma=vis_margin * gamma,
+                             objective_state=x, p_max=pm)
+        except CertificateError:
+            return None
+        return d if math.sqrt(max(d.objective, 0.0)) <= fit_level * eps else None
+
+    best = fits(p_max_hi)
+    if best is None:
+        raise CertificateError(f"no design fits the state at level {fit_level} eps")
+    lo, hi = _lmax(q), p_max_hi
+    for _ in range(24):
+        mid = math.sqrt(lo * hi)
+        d = fits(mid)
+        if d is None:
+            lo = mid
+        else:
+            hi, best = mid, d
+        if hi / lo < 1.002:
+            break
+    kap = _final_kappa(a, b, best.k, best.p, q, r, kappa)
+    return LmiDesign(p=best.p, k=best.k, kappa=kap, status=best.status, objective=best.objective)

@@ -15,9 +15,11 @@ from hypothesis import strategies as st
 from companion.config import load_config
 from companion.core.certificate import (
     PAPER_ETA0,
+    PAPER_TERMINAL_STATE,
     certify,
     inputs_from_design,
     lmi_certified_design,
+    lmi_fit_design,
     lmi_terminal,
     max_visibility_on_omega,
     paper_path_feedforward_bound,
@@ -304,3 +306,39 @@ def test_terminal_reach_depth_bound_is_attained_by_full_descent() -> None:
     assert se4.lo == pytest.approx(eta[3], abs=1e-12)
     assert not se3.ok  # the certified Omega ends at |se3| ~ 0.19
     assert se4.ok
+
+
+def test_fit_design_feasible_at_paper_start_fails_only_the_papers_cond2() -> None:
+    """Omega shaped for the paper's start (eps = 0.13): every condition but the paper's
+    Theorem 1 (2) holds, its sharper form holds, and the RMPC stays on its hard problem for
+    10 s of closed loop from eta_e(0) (the real RMPC, nominal model + rho-bounded noise)."""
+    import dataclasses
+
+    from companion.core.rmpc import Rmpc
+    from companion.core.rmpc_scenario import closed_loop
+
+    cfg = load_config(PAPER, overrides=["rmpc.eps=0.13"])
+    rm = cfg.rmpc
+    a, b = linearised_model(rm.dt_s, rm.desired_depth_m)
+    d0 = design_terminal(rm, cfg.camera)
+    des = lmi_fit_design(a, b, np.diag(rm.q_diag), np.diag(rm.r_diag), eps=0.13,
+                         fit_state=PAPER_TERMINAL_STATE, fit_level=0.97, u_max=rm.u_max,
+                         gamma_ff_bound=paper_path_feedforward_bound(), gamma=d0.gamma)
+    d = dataclasses.replace(d0, p=des.p, k=des.k, kappa=des.kappa, method="given")
+    ci = inputs_from_design(rm, d)
+    cert = certify(ci)
+    assert {c.name for c in cert.failed} == {"cond2"}
+    assert cert.cond2_sharp.ok
+    assert cert.cond2_sharp.rhs >= cert.theorem1[1].rhs  # never more demanding
+    # the sharper contraction, checked on true nonlinear terminal-law steps from Omega
+    c_sharp = 1.0 - cert.cond2_sharp.rhs / ci.eps
+    for eta in _sample_omega_boundary(ci.p, ci.eps, 2000, seed=5):
+        psidot_q = float(ci.k[3] @ eta)
+        u = ci.k @ eta + terminal_feedforward(np.zeros(2), np.zeros(2), 0.0, psidot_q)
+        nxt = euler_step(eta, u, [0.0, 0.0], [0.0, 0.0], 0.0, 2.0, ci.dt_s)
+        assert math.sqrt(nxt @ ci.p @ nxt) <= c_sharp * ci.eps * (1 + 1e-9)
+    mpc = Rmpc(dataclasses.replace(rm, jit=False), cfg.camera, d)
+    steps = closed_loop(mpc, np.array(PAPER_ETA0), 200, rm.rho, seed=1)
+    assert all(s.result.mode == "optimal" for s in steps)
+    end = steps[-1].eta
+    assert math.sqrt(end @ ci.p @ end) <= ci.eps  # converged into Omega (Theorem 2)
