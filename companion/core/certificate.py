@@ -22,6 +22,7 @@ import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cvxpy as cp
 import numpy as np
@@ -31,6 +32,9 @@ import scipy.optimize
 from companion import CompanionError
 from companion.config import RmpcConfig
 from companion.core.terminal import TerminalDesign, linearised_model
+
+_bmat: Callable[..., Any] = cp.bmat  # type: ignore[attr-defined]
+_reshape: Callable[..., Any] = cp.reshape  # type: ignore[attr-defined]
 
 
 class CertificateError(CompanionError):
@@ -42,7 +46,7 @@ class CertificateError(CompanionError):
 
 
 def _sym(m: np.ndarray) -> np.ndarray:
-    return 0.5 * (m + m.T)
+    return np.asarray(0.5 * (m + m.T), dtype=float)
 
 
 def _lmax(m: np.ndarray) -> float:
@@ -156,7 +160,7 @@ def max_visibility_on_omega(p: np.ndarray, eps: float) -> VisibilityMax:
 def visibility_of(eta: np.ndarray) -> np.ndarray:
     """``|p|`` of states ``eta`` (..., 7): ``|(se1, se2)| / (1 + se3)``."""
     e = np.asarray(eta, dtype=float)
-    return np.hypot(e[..., 0], e[..., 1]) / (1.0 + e[..., 2])
+    return np.asarray(np.hypot(e[..., 0], e[..., 1]) / (1.0 + e[..., 2]), dtype=float)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -199,7 +203,7 @@ def remainder_ratio_max(
         alpha = np.einsum("ni,ij,nj->n", d, m_alpha, d)
         beta = np.einsum("ni,ij,nj->n", d, m_beta, d)
         psi = eps * np.abs(d @ k4) + psidot_a_max
-        return dt * dt * psi * psi * alpha + 2.0 * dt * psi * np.abs(beta)
+        return np.asarray(dt * dt * psi * psi * alpha + 2.0 * dt * psi * np.abs(beta))
 
     rng = np.random.default_rng(seed)
     x = rng.standard_normal((samples, 7))
@@ -434,7 +438,7 @@ def lmi_terminal(
     t = cp.Variable()
     awby = a @ wv + b @ yv
     zn = np.zeros((n, n))
-    lmi = cp.bmat([
+    lmi = _bmat([
         [(1.0 - kappa) * wv, awby.T, wv @ qh, yv.T @ rh],
         [awby, wv, zn, np.zeros((n, m))],
         [qh @ wv, zn, np.eye(n), np.zeros((n, m))],
@@ -445,7 +449,7 @@ def lmi_terminal(
         room = float(u_max[i]) - float(gamma_ff_bound[i])
         if room <= 0:
             raise CertificateError(f"input {i + 1}: |Gamma| bound leaves no room in u_max")
-        blk = cp.bmat([[np.array([[room**2 / eps**2]]), yv[i:i + 1, :]], [yv[i:i + 1, :].T, wv]])
+        blk = _bmat([[np.array([[room**2 / eps**2]]), yv[i:i + 1, :]], [yv[i:i + 1, :].T, wv]])
         cons.append(0.5 * (blk + blk.T) >> 0)
     if p_max is not None:
         cons.append(wv >> np.eye(n) / p_max)
@@ -457,11 +461,11 @@ def lmi_terminal(
         cons.append(wv[2, 2] >= w33_min)
     for x, level in contain:
         xc = np.asarray(x, dtype=float).reshape(n, 1)
-        blk = cp.bmat([[np.array([[level**2]]), xc.T], [xc, wv]])
+        blk = _bmat([[np.array([[level**2]]), xc.T], [xc, wv]])
         cons.append(0.5 * (blk + blk.T) >> 0)
     if objective_state is not None:
         xo = np.asarray(objective_state, dtype=float).reshape(n, 1)
-        blk = cp.bmat([[cp.reshape(t, (1, 1), order="C"), xo.T], [xo, wv]])
+        blk = _bmat([[_reshape(t, (1, 1), order="C"), xo.T], [xo, wv]])
         cons.append(0.5 * (blk + blk.T) >> 0)
         prob = cp.Problem(cp.Minimize(t), cons)
     else:
@@ -471,7 +475,7 @@ def lmi_terminal(
         with warnings.catch_warnings():
             # "Solution may be inaccurate": the result is verified exactly afterwards
             warnings.simplefilter("ignore", UserWarning)
-            prob.solve(solver=solver)
+            prob.solve(solver=solver)  # type: ignore[no-untyped-call]
     except cp.error.SolverError as exc:
         raise CertificateError(f"LMI solver {solver} failed: {exc}") from None
     if prob.status not in ("optimal", "optimal_inaccurate") or wv.value is None:
@@ -581,7 +585,7 @@ class ChannelReach:
 
 
 def terminal_reach(
-    eta0: Sequence[float], p: np.ndarray, eps: float, dt_s: float, z_star_m: float,
+    eta0: Sequence[float] | np.ndarray, p: np.ndarray, eps: float, dt_s: float, z_star_m: float,
     horizon: int, u_max: Sequence[float], psidot_a_max: float,
 ) -> tuple[ChannelReach, ChannelReach]:
     """Necessary condition for the first RMPC problem: can ``se3`` and ``se4`` reach Omega?
