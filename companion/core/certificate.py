@@ -186,8 +186,9 @@ def remainder_ratio_max(
     target's ``v_a``, ``vdot_a`` cancel). On the ray ``eta = s d`` (``d'Pd = 1``, ``0 < s <=
     eps``) the ratio is ``dt^2 psi^2 d'J'PJd + 2 dt psi d'A_K'PJd``, convex in ``psi``; ``psi``
     lies in ``+-(eps |K_4 d| + psidot_a_max)``, so each ray's maximum is bounded in closed form
-    (exact when the interval's end is attained). The rays are sampled (uniform on the P-sphere) and the best one is refined locally: a sampled, not
-    a proven, bound. Returns ``(ratio, eta_worst)``.
+    (exact when the interval's end is attained). The rays are sampled (uniform on the
+    P-sphere) and the best one is refined locally: a sampled, not a proven, bound.
+    Returns ``(ratio, eta_worst)``.
     """
     ak = a + b @ k
     jm = np.zeros((7, 7))
