@@ -28,8 +28,12 @@ from typing import Any
 import numpy as np
 
 from sim_bridge import SimBridgeError
+from sim_bridge.camera import Camera, RenderedFrame
 from sim_bridge.config import EmulatorConfig, parse_address
+from sim_bridge.follow_target import follow_target_fields, latlon_from_ned
+from sim_bridge.frames import FrameServer
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
+from sim_bridge.physics.agv import AgvState, AgvTrajectory
 from sim_bridge.physics.vehicle import (
     Disturbance,
     DisturbanceParams,
@@ -46,6 +50,7 @@ from sim_bridge.px4 import (
     Px4,
     Px4Params,
 )
+from sim_bridge.truth import TruthPublisher, truth_record
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +84,6 @@ DEFAULT_RATES_HZ: dict[int, float] = {
     AUTOPILOT_VERSION: 0.0,
 }
 
-EARTH_RADIUS_M = 6371000.0
 FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0 official
 CAPABILITIES = 8192 | 8 | 64 | 128  # MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, POS TARGET
 
@@ -184,12 +188,17 @@ class SimBridge:
         self._setpoint_event = asyncio.Event()
         self._links: dict[str, MavUdpLink] = {}
         self._streams: dict[str, _Streams] = {}
-        self._world: Any = None
-        self._frame_server: Any = None
-        self._truth: Any = None
-        self._camera: Any = None
-        self._agv: Any = None
-        self._ft_fields: Any = None
+        c, tg = cfg.camera, cfg.target
+        self.agv = AgvTrajectory(sim.agv.trajectory, sim.agv.speed_scale, sim.agv.top_z_m)
+        self.camera = Camera(
+            c.focal_length_m, c.pixel_size_m, c.width_px, c.height_px,
+            mount_rpy_rad=c.mount_rpy_rad, mount_offset_m=c.mount_offset_m,
+            target_length_m=tg.length_m, target_width_m=tg.width_m, target_height_m=tg.height_m,
+            pattern=tg.pattern, aruco_dictionary=tg.aruco_dictionary, aruco_id=tg.aruco_id,
+            aruco_size_m=tg.aruco_size_m, noise_std=sim.camera.noise_std,
+            blur_px=sim.camera.blur_px, seed=sim.seed)
+        self._frame_server: FrameServer | None = None
+        self._truth: TruthPublisher | None = None
         self._frame_seq = 0
         self._steps = 0
         self._timeouts = 0
@@ -232,10 +241,11 @@ class SimBridge:
         self._stack.callback(agv_link.close)
         self._links["agv"] = agv_link
         self.ports["agv"] = agv_link.port
-        try:
-            await self._open_world()
-        except ImportError as e:  # the world half is built separately; run without it
-            log.warning("world modules unavailable (%s): no AGV, camera, frames or truth", e)
+        self._frame_server = await self._stack.enter_async_context(
+            FrameServer(self.bind_host, link.frame_port))
+        self.ports["frames"] = self._frame_server.port
+        self._truth = TruthPublisher(*parse_address(link.truth_remote))
+        self._stack.callback(self._truth.close)
         self._t0_wall = time.monotonic()
         log.info("sim_bridge %s, scenario %s, start %s: MAVLink offboard udp %s:%d -> %s, "
                  "GCS udp %s:%d -> %s, AGV udp :%d (sysid %d), frames tcp :%s, truth udp -> %s",
@@ -243,35 +253,6 @@ class SimBridge:
                  self.ports["offboard"], link.offboard_remote, self.bind_host,
                  self.ports["gcs"], link.gcs_remote, self.ports["agv"],
                  cfg.target.mavlink_sysid, self.ports.get("frames", "-"), link.truth_remote)
-
-    async def _open_world(self) -> None:
-        """The world half: AGV trajectory, camera, frame server, truth, FOLLOW_TARGET."""
-        cfg = self.cfg
-        from sim_bridge.camera import Camera
-        from sim_bridge.follow_target import follow_target_fields
-        from sim_bridge.frames import FrameServer
-        from sim_bridge.physics.agv import AgvTrajectory
-        from sim_bridge.truth import TruthPublisher
-
-        self._agv = AgvTrajectory(cfg.sim.agv.trajectory, cfg.sim.agv.speed_scale,
-                                  cfg.sim.agv.top_z_m)
-        c, t = cfg.camera, cfg.target
-        self._camera = Camera(
-            c.focal_length_m, c.pixel_size_m, c.width_px, c.height_px,
-            mount_rpy_rad=c.mount_rpy_rad, mount_offset_m=c.mount_offset_m,
-            target_length_m=t.length_m, target_width_m=t.width_m, target_height_m=t.height_m,
-            pattern=t.pattern, aruco_dictionary=t.aruco_dictionary, aruco_id=t.aruco_id,
-            aruco_size_m=t.aruco_size_m, noise_std=cfg.sim.camera.noise_std,
-            blur_px=cfg.sim.camera.blur_px, seed=cfg.sim.seed)
-        self._ft_fields = follow_target_fields
-        self._frame_server = await self._stack.enter_async_context(
-            FrameServer(self.bind_host, cfg.sim.link.frame_port))
-        self.ports["frames"] = int(getattr(self._frame_server, "port",
-                                           cfg.sim.link.frame_port))
-        host, port = parse_address(cfg.sim.link.truth_remote)
-        self._truth = TruthPublisher(host, port)
-        if hasattr(self._truth, "close"):
-            self._stack.callback(self._truth.close)
 
     # ------------------------------------------------------------------ clock
     def now_s(self) -> float:
@@ -352,10 +333,7 @@ class SimBridge:
     # ------------------------------------------------------------------ telemetry
     def _ned_to_global(self, pos: np.ndarray) -> tuple[float, float, float]:
         tg = self.cfg.target
-        lat0 = math.radians(tg.origin_lat_deg)
-        lat = tg.origin_lat_deg + math.degrees(pos[0] / EARTH_RADIUS_M)
-        lon = tg.origin_lon_deg + math.degrees(pos[1] / (EARTH_RADIUS_M * math.cos(lat0)))
-        return lat, lon, tg.origin_alt_m - float(pos[2])
+        return latlon_from_ned(pos, tg.origin_lat_deg, tg.origin_lon_deg, tg.origin_alt_m)
 
     def _encode(self, link: MavUdpLink, mid: int, t: float) -> Any:
         s, px4, mav, ms = self.state, self.px4, link.mav, self._ms(t)
@@ -411,63 +389,41 @@ class SimBridge:
                 self._send_message(link, mid, t)
 
     # ------------------------------------------------------------------ world outputs
-    def _agv_state(self, t: float) -> Any:
-        return self._agv.state(t) if self._agv is not None else None
-
     def _send_follow_target(self, t: float) -> None:
-        if self._agv is None or self._ft_fields is None:
-            return
+        """FOLLOW_TARGET from the AGV's own node (sysid ``target.mavlink_sysid``) to every peer
+        of the vehicle's links (the configured remotes and whoever talks to the vehicle)."""
         tg = self.cfg.target
-        fields = self._ft_fields(self._agv.state(t), self._ms(t), tg.origin_lat_deg,
-                                 tg.origin_lon_deg, tg.origin_alt_m)
+        fields = follow_target_fields(self.agv.state(t), self._ms(t), tg.origin_lat_deg,
+                                      tg.origin_lon_deg, tg.origin_alt_m)
         agv_link = self._links["agv"]
-        msg = agv_link.mav.follow_target_encode(**fields)
         targets: list[Address] = []
         for name in ("offboard", "gcs"):
-            for a in self._links[name].peers:
-                if a not in targets:
-                    targets.append(a)
+            targets += [a for a in self._links[name].peers if a not in targets]
         for a in targets:
-            agv_link.send(msg, a)
+            agv_link.send(agv_link.mav.follow_target_encode(**fields), a)
 
     async def _publish_frame(self, t: float) -> None:
-        """Render the camera frame at ``t``, publish it and the ground-truth record."""
-        agv = self._agv_state(t)
-        frame = None
+        """Render the camera frame at ``t``; publish the ground-truth record, then the frame."""
+        agv = self.agv.state(t)
         s = self.state
-        if self._camera is not None and agv is not None:
-            frame = self._camera.render(s.pos_ned_m, s.q_wxyz, agv,
-                                        occluded=self.cfg.sim.camera.occluded(t))
+        frame = self.camera.render(s.pos_ned_m, s.q_wxyz, agv,
+                                   occluded=self.cfg.sim.camera.occluded(t))
         seq = self._frame_seq
         self._frame_seq += 1
         t_us = round(t * 1e6)
         if self._truth is not None:
             self._truth.publish(self._truth_record(t_us, seq, agv, frame))
-        if self._frame_server is not None and frame is not None:
+        if self._frame_server is not None:
             await self._frame_server.publish(seq, t_us, frame.image)
 
-    def _truth_record(self, t_us: int, seq: int, agv: Any, frame: Any) -> dict[str, Any]:
+    def _truth_record(self, t_us: int, seq: int, agv: AgvState, frame: RenderedFrame
+                      ) -> dict[str, Any]:
         s = self.state
-        rec: dict[str, Any] = {
-            "t_us": t_us,
-            "frame_seq": seq,
-            "uav": {"pos_ned_m": s.pos_ned_m.tolist(), "vel_ned_m_s": s.vel_ned_m_s.tolist(),
-                    "q_wxyz": s.q_wxyz.tolist(), "rates_frd_rad_s": s.rates_frd_rad_s.tolist()},
-            "disturbance_accel_ned_m_s2": s.disturbance_ned_m_s2.tolist(),
-            "mode": self.px4.mode.label,
-            "armed": self.px4.armed,
-            "setpoint_age_s": min(self.px4.setpoint_age_s(t_us * 1e-6), 1e9),
-        }
-        if agv is not None:
-            rec["agv"] = {"pos_ned_m": np.asarray(agv.pos_ned_m).tolist(),
-                          "vel_ned_m_s": np.asarray(agv.vel_ned_m_s).tolist(),
-                          "acc_ned_m_s2": np.asarray(agv.acc_ned_m_s2).tolist(),
-                          "yaw_rad": float(agv.yaw_rad),
-                          "yaw_rate_rad_s": float(agv.yaw_rate_rad_s)}
-        if frame is not None:
-            rec["corners_px"] = np.asarray(frame.corners_px).tolist()
-            rec["target_in_image"] = bool(frame.target_in_image)
-        return rec
+        age = self.px4.setpoint_age_s(t_us * 1e-6)
+        return truth_record(
+            t_us, seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv, frame,
+            disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
+            armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
 
     # ------------------------------------------------------------------ stepping
     def _advance(self, t_target: float) -> None:
