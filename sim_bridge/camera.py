@@ -26,6 +26,7 @@ land where the projection puts them.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Sequence
@@ -80,6 +81,7 @@ class RenderedFrame:
     top_corners_px: np.ndarray
 
 
+@functools.lru_cache(maxsize=4)
 def _ground_texture(seed: int) -> np.ndarray:
     """A periodic (seamless) procedural ground, uint8 in [40, 150]: 1/f noise plus 1 m tiles."""
     n = _GROUND_TEX_PX
@@ -108,7 +110,9 @@ def _ground_texture(seed: int) -> np.ndarray:
     img = cv2.GaussianBlur(np.pad(img.astype(np.float32), pad, mode="wrap"), (0, 0), 1.0)
     img = img[pad:-pad, pad:-pad]
     tex = np.clip(np.rint(img), GROUND_MIN, GROUND_MAX).astype(np.uint8)
-    return np.ascontiguousarray(np.pad(tex, _GROUND_PAD_PX, mode="wrap"))
+    out = np.ascontiguousarray(np.pad(tex, _GROUND_PAD_PX, mode="wrap"))
+    out.setflags(write=False)  # shared between cameras with the same seed
+    return out
 
 
 def _clip_polygon_halfplane(poly: np.ndarray, a: np.ndarray, c: float) -> np.ndarray:
@@ -229,9 +233,8 @@ class Camera:
         if self.noise_std > 0:
             pad = 64
             for _ in range(_NOISE_BANK):
-                bank = np.empty((height_px + pad, width_px + pad), np.int16)
-                cv2.randn(bank, 0.0, self.noise_std)
-                self._noise_bank.append(bank)
+                noise = self._rng.normal(0.0, self.noise_std, (height_px + pad, width_px + pad))
+                self._noise_bank.append(np.rint(noise).astype(np.int16))
 
     # ------------------------------------------------------------------------------ geometry
     def _build_aruco_top(self, dictionary: str, marker_id: int) -> None:
