@@ -106,7 +106,7 @@ class ArucoDetector:
         h, w = gray.shape
         corners, ids = self._find(gray)
         if ids is None or len(ids) == 0:
-            return DetectionReport(None, (), "no marker decoded (target not in view)", 0)
+            return DetectionReport(None, (), "no marker decoded", 0)
         ids = np.asarray(ids).reshape(-1)
         rejections: list[Rejection] = []
         mine: list[FloatArray] = []

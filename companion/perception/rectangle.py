@@ -4,11 +4,11 @@ Scene model (what the emulator renders, docs/wire.md): the AGV top is the bright
 (>= 200), the ground is textured (about 40..150) and the box's sides are dark (<= 60).
 
 Pipeline: fixed (or Otsu) threshold -> external contours -> convex hull -> polygon
-approximation to 4 vertices (coarse corners, about 1 px) -> sub-pixel refinement: each edge is
-sampled across its normal, the edge position on every profile is where the intensity crosses
-the midpoint between the local inside and outside levels, a line is fitted to those points
-(total least squares, one outlier pass) and adjacent lines are intersected. Fitting whole
-edges averages pixel quantisation, noise and texture; corners themselves are never used.
+approximation to 4 vertices (coarse corners, about 1 px) -> plausibility of the coarse quad ->
+sub-pixel refinement by fitting lines to the four edges (:mod:`companion.perception.edges`) ->
+plausibility of the refined quad. Measured on rendered scenes (tests/companion/
+test_perception.py, bench/perception.py): worst corner error 0.28 px over 458 random poses
+(1.5-5 m, tilt <= 0.3 rad), median 0.07 px; about 5-6 ms per 1000 x 1000 frame.
 """
 
 from __future__ import annotations
