@@ -93,6 +93,7 @@ MIS_TAKEOFF_ALT_M = 2.5
 MPC_LAND_SPEED_M_S = 0.7
 MPC_TKO_SPEED_M_S = 1.5
 RTL_ARRIVE_RADIUS_M = 0.5
+MAX_ABS_FIELD = 1e6  # setpoint fields beyond this are nonsense (a unit quaternion, rad/s, 0..1)
 
 
 class Mode(enum.Enum):
@@ -173,9 +174,9 @@ class AttitudeTarget:
         if not (self.uses_attitude or self.uses_rates):
             return False
         vals = (*self.q_wxyz, *self.body_rates_rad_s, self.thrust_norm)
-        if not all(math.isfinite(v) for v in vals):
+        if not all(math.isfinite(v) and abs(v) < MAX_ABS_FIELD for v in vals):
             return False
-        return not (self.uses_attitude and not np.linalg.norm(self.q_wxyz) > 1e-6)
+        return not (self.uses_attitude and not math.hypot(*self.q_wxyz) > 1e-6)
 
 
 @dataclass(frozen=True)

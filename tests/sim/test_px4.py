@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sim_bridge.physics.vehicle import (
     VehicleModel,
@@ -213,3 +215,30 @@ def test_do_set_mode_rejections(p1: float, p2: float, p3: float) -> None:
     r = Rig()
     assert r.cmd(176, p1, p2, p3) == TEMPORARILY_REJECTED
     assert r.px4.mode is Mode.POSCTL
+
+
+_floats = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                    st.sampled_from([0.0, 1.0, 6.0, 4.0, 3.0, 21196.0]))
+_events = st.lists(st.one_of(
+    st.tuples(st.just("cmd"), st.sampled_from([20, 21, 22, 176, 185, 400, 0, 65535]),
+              st.tuples(*[_floats] * 7)),
+    st.tuples(st.just("sp"), st.integers(0, 255), st.tuples(*[_floats] * 8)),
+    st.tuples(st.just("wait"), st.floats(0.0, 3.0), st.just(()))), max_size=25)
+
+
+@settings(max_examples=100, deadline=None)
+@given(events=_events, airborne=st.booleans())
+def test_any_input_sequence_keeps_the_state_machine_sane(events: list, airborne: bool) -> None:
+    r = Rig(airborne=airborne)
+    for kind, a, b in events:
+        if kind == "cmd":
+            assert r.cmd(a, *b) in (ACCEPTED, TEMPORARILY_REJECTED, 2, UNSUPPORTED)
+        elif kind == "sp":
+            r.px4.on_attitude_target(r.t, AttitudeTarget(a, b[:4], b[4:7], b[7]))
+        else:
+            r.run(round(a / DT) * DT)
+        cmd = r.px4.attitude_command()
+        vals = (cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad, cmd.thrust_norm)
+        assert all(math.isfinite(v) for v in vals), (kind, vals)
+        assert np.all(np.isfinite(r.s.pos_ned_m)) and r.s.pos_ned_m[2] <= 0.3
+        assert (r.px4.mode.custom_mode >> 16) & 0xFF in (1, 2, 3, 4, 5, 6, 7)
