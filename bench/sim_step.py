@@ -1,0 +1,145 @@
+"""Speed of one emulator step's world half: AGV state + a vehicle-pose stub (point-mass
+integration of 50 ms at 2.5 ms steps) + render a frame + encode it for the wire.
+
+    python bench/sim_step.py [--steps 1000] [--pattern rectangle|aruco] [--size 1000] [--json]
+
+Target (issue "sim_bridge"): median <= 2 ms per step at 1000 x 1000, i.e. >= 25x real time at
+the 20 Hz frame rate. Prints median/p95 per stage and for the whole step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from sim_bridge.camera import Camera
+from sim_bridge.frames import encode_frame
+from sim_bridge.physics.agv import AgvTrajectory
+
+STEP_S = 0.05
+PHYSICS_DT_S = 0.0025
+
+
+def _quat_from_euler(phi: float, theta: float, psi: float) -> np.ndarray:
+    cr, sr = math.cos(phi / 2), math.sin(phi / 2)
+    cp, sp = math.cos(theta / 2), math.sin(theta / 2)
+    cy, sy = math.cos(psi / 2), math.sin(psi / 2)
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def _physics_stub(pos: np.ndarray, vel: np.ndarray, target: np.ndarray) -> None:
+    """Point mass pulled towards ``target`` (PD), linear drag, 20 steps of 2.5 ms, in place."""
+    for _ in range(round(STEP_S / PHYSICS_DT_S)):
+        acc = 2.0 * (target - pos) - 2.5 * vel - 0.05 * vel
+        vel += acc * PHYSICS_DT_S
+        pos += vel * PHYSICS_DT_S
+
+
+def run(steps: int, pattern: str, size: int) -> dict[str, object]:
+    pixel = 5.04e-6 * 1000 / size  # same field of view at any resolution
+    cam = Camera(2.8e-3, pixel, size, size, pattern=pattern, aruco_size_m=0.3)
+    agv_traj = AgvTrajectory("paper")
+    pos = np.array([-0.2, 0.4, -2.0])
+    vel = np.zeros(3)
+    stages: dict[str, list[float]] = {k: [] for k in ("agv", "physics", "render", "encode")}
+    total: list[float] = []
+    in_image = 0
+    n_bytes = 0
+    for k in range(steps + 20):  # 20 warm-up steps
+        t = k * STEP_S
+        t0 = time.perf_counter()
+        agv = agv_traj.state(t)
+        t1 = time.perf_counter()
+        _physics_stub(pos, vel, agv.pos_ned_m + np.array([0.0, 0.0, -2.0]))
+        q = _quat_from_euler(0.05 * math.sin(t), -0.05 * math.cos(0.7 * t), agv.yaw_rad)
+        t2 = time.perf_counter()
+        frame = cam.render(pos, q, agv)
+        t3 = time.perf_counter()
+        rec = encode_frame(k, int(t * 1e6), frame.image)
+        t4 = time.perf_counter()
+        if k < 20:
+            continue
+        for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
+            stages[name].append(dt)
+        total.append(t4 - t0)
+        in_image += frame.target_in_image
+        n_bytes = len(rec)
+
+    def ms(xs: list[float], p: float) -> float:
+        return round(float(np.percentile(xs, p)) * 1e3, 4)
+
+    med = float(np.median(total))
+    return {
+        "steps": steps,
+        "size_px": size,
+        "pattern": pattern,
+        "record_bytes": n_bytes,
+        "target_in_image_fraction": in_image / steps,
+        "median_ms": ms(total, 50),
+        "p95_ms": ms(total, 95),
+        "max_ms": ms(total, 100),
+        "stages_median_ms": {k: ms(v, 50) for k, v in stages.items()},
+        "stages_p95_ms": {k: ms(v, 95) for k, v in stages.items()},
+        "frames_per_s": round(1.0 / med, 1),
+        "realtime_ratio_at_20hz": round(STEP_S / med, 1),
+        "target_median_ms": 2.0,
+        "meets_target": med * 1e3 <= 2.0,
+        "host": {
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "loadavg_1min": round(os.getloadavg()[0], 2),
+        },
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--pattern", choices=("rectangle", "aruco"), default="rectangle")
+    ap.add_argument("--size", type=int, default=1000, help="image side in pixels")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    args = ap.parse_args()
+    res = run(args.steps, args.pattern, args.size)
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(
+        f"sim step (AGV + physics stub + render {res['size_px']}^2 {res['pattern']} + encode), "
+        f"{res['steps']} steps, load {res['host']['loadavg_1min']}"
+    )  # type: ignore[index]
+    print(
+        f"  median {res['median_ms']} ms, p95 {res['p95_ms']} ms, max {res['max_ms']} ms "
+        f"(target <= {res['target_median_ms']} ms median: "
+        f"{'met' if res['meets_target'] else 'NOT met'})"
+    )
+    for name in res["stages_median_ms"]:  # type: ignore[attr-defined]
+        print(
+            f"  {name:8s} median {res['stages_median_ms'][name]:.4f} ms, "  # type: ignore[index]
+            f"p95 {res['stages_p95_ms'][name]:.4f} ms"
+        )  # type: ignore[index]
+    print(
+        f"  {res['frames_per_s']} frames/s, {res['realtime_ratio_at_20hz']}x real time at 20 Hz, "
+        f"target in image {res['target_in_image_fraction']:.0%}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
