@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -82,3 +83,12 @@ def test_exits_cleanly_on_signal(sig: signal.Signals) -> None:
                 proc.wait()
     assert rc == 0, rest
     assert "stopped by signal" in rest
+
+
+def test_console_script_from_another_directory(tmp_path: Path) -> None:
+    exe = shutil.which("sim-bridge")
+    assert exe is not None, "the sim-bridge entry point is not installed (pip install -e .)"
+    p = subprocess.run([exe, "--duration", "0.3", *FREE_PORTS], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=20, check=False)
+    assert p.returncode == 0, p.stderr
+    assert "MAVLink offboard udp 127.0.0.1:" in p.stderr
