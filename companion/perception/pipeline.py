@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from companion.config import CameraConfig, TargetConfig
+from companion.core.geometry import opencv_to_spec_pixel, principal_point_px
 from companion.perception._types import (
     Detection,
     DetectionReport,
@@ -46,33 +47,29 @@ class CameraModel:
 def camera_model(camera: CameraConfig, calibration: Calibration | None = None) -> CameraModel:
     """Intrinsics from the calibration if given, else the ideal pinhole of the config:
     ``f_px = focal_length_m / pixel_size_m`` and the principal point at the image centre
-    ``((width - 1) / 2, (height - 1) / 2)`` (pixel centres at integer coordinates)."""
+    (``companion.core.geometry.principal_point_px``: ``((width - 1) / 2, (height - 1) / 2)``,
+    pixel centres at integer coordinates)."""
     if calibration is not None:
         cx, cy = calibration.principal_point_px
         return CameraModel(calibration.fx, calibration.fy, cx, cy, camera.focal_length_m)
     f_px = camera.focal_length_m / camera.pixel_size_m
-    return CameraModel(
-        f_px,
-        f_px,
-        (camera.width_px - 1) / 2.0,
-        (camera.height_px - 1) / 2.0,
-        camera.focal_length_m,
-    )
+    cx, cy = principal_point_px(camera.width_px, camera.height_px)
+    return CameraModel(f_px, f_px, cx, cy, camera.focal_length_m)
 
 
 def pixels_to_metric(points_px: npt.ArrayLike, model: CameraModel) -> FloatArray:
     """Undistorted pixel ``(col, row)`` -> metric image coordinates ``(u, n)`` (metres).
 
-    Spec section 1 with "forward = up" in the image: ``col = cx + n_px``, ``row = cy - u_px``
-    and ``u = lambda * u_px / f_px`` (= ``u_px * pixel_size`` for the ideal camera).
-    (N, 2) in, (N, 2) out.
-
-    TODO(core): the single local copy of this mapping; replace with
-    ``companion.core.geometry``'s pixel <-> metric function once it lands.
+    Spec section 1 via the core's single mapping
+    (:func:`companion.core.geometry.opencv_to_spec_pixel`: ``u_px = cy - row``,
+    ``n_px = col - cx``), then ``u = lambda * u_px / f_y``, ``n = lambda * n_px / f_x``
+    (= ``pixel * pixel_size`` for the ideal camera; a calibration's own focal lengths
+    otherwise). (N, 2) in, (N, 2) out.
     """
     p = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
-    u = model.focal_length_m * (model.cy_px - p[:, 1]) / model.fy_px
-    n = model.focal_length_m * (p[:, 0] - model.cx_px) / model.fx_px
+    u_px, n_px = opencv_to_spec_pixel(p[:, 0], p[:, 1], model.cx_px, model.cy_px)
+    u = model.focal_length_m * np.asarray(u_px, dtype=np.float64) / model.fy_px
+    n = model.focal_length_m * np.asarray(n_px, dtype=np.float64) / model.fx_px
     return np.column_stack([u, n])
 
 

@@ -427,6 +427,12 @@ def test_pixels_to_metric_convention() -> None:
     np.testing.assert_allclose(um[0], [0.0, 0.0], atol=1e-15)
     np.testing.assert_allclose(um[1], [0.0, 100 * CAM.pixel_size_m])  # right = +n
     np.testing.assert_allclose(um[2], [100 * CAM.pixel_size_m, 0.0])  # up = +u (forward)
+    # the same numbers as the core's camera, for any pixel
+    from companion.core.geometry import PinholeCamera
+
+    rand = np.random.default_rng(0).uniform(0, W - 1, (50, 2))
+    core = PinholeCamera.from_config(CAM).opencv_to_metric(rand)
+    np.testing.assert_allclose(pixels_to_metric(rand, model), core, rtol=1e-12, atol=1e-18)
 
 
 def test_wrong_image_size_is_rejected() -> None:
