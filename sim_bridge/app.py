@@ -9,9 +9,10 @@ Two clocks:
 * ``lockstep``: simulated time advances one ``step_dt_s`` at a time. At step ``k`` the emulator
   sends the MAVLink messages due by ``t = k step_dt_s`` (stamped ``t``), FOLLOW_TARGET if due,
   the ground-truth record and the camera frame; then waits up to ``lockstep_timeout_s`` of
-  wall time for a SET_ATTITUDE_TARGET addressed to it that arrived since the step began (a
-  timeout is counted as a lost setpoint and is no offboard signal); then integrates to
-  ``t + step_dt_s``. Commands are handled whenever they arrive, stamped with ``t``.
+  wall time for a SET_ATTITUDE_TARGET addressed to it that arrives after that frame (a
+  timeout is counted as a lost setpoint and is no offboard signal; an answer that arrives
+  late, during the next step's telemetry, is applied but does not release that step); then
+  integrates to ``t + step_dt_s``. Commands are handled whenever they arrive, stamped ``t``.
 """
 
 from __future__ import annotations
@@ -480,7 +481,6 @@ class SimBridge:
         while k * step < duration_s - 1e-9:
             t = k * step
             self.t_s = t
-            self._setpoint_event.clear()
             self.px4.update(t, self.state)
             self._note_changes(t)
             self._send_streams(t)
@@ -488,6 +488,9 @@ class SimBridge:
                 self._send_follow_target(t)
                 next_ft += ft_dt
             await self._publish_frame(t)
+            # only a setpoint that arrives after the frame releases the step: a late answer
+            # to an earlier frame must not (the frame leaves once this coroutine waits)
+            self._setpoint_event.clear()
             try:
                 await asyncio.wait_for(self._setpoint_event.wait(), sim.lockstep_timeout_s)
             except TimeoutError:

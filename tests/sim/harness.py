@@ -6,8 +6,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import struct
 import threading
 import time
+import zlib
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -174,3 +176,26 @@ def sim_with_client(c: MavClient, **sim_changes: Any) -> contextlib.AbstractCont
             yield rs
 
     return wrapped()
+
+
+HEADER = struct.Struct("<4sBBHIQHHII")
+
+
+def read_exact(sock: socket.socket, n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("frame server closed the connection")
+        buf += chunk
+    return bytes(buf)
+
+
+def read_frame(sock: socket.socket) -> tuple[dict[str, Any], bytes]:
+    """One camera frame record (docs/wire.md), header checked, CRC verified."""
+    magic, ver, enc, _res, seq, t_us, w, h, n, crc = HEADER.unpack(
+        read_exact(sock, HEADER.size))
+    payload = read_exact(sock, n)
+    assert magic == b"IBVF" and ver == 1
+    assert zlib.crc32(payload) == crc
+    return {"seq": seq, "t_us": t_us, "w": w, "h": h, "enc": enc}, payload

@@ -7,36 +7,12 @@ import itertools
 import json
 import math
 import socket
-import struct
-import time
-import zlib
 from typing import Any
 
 import numpy as np
 
 from sim_bridge.config import with_link
-from tests.sim.harness import MavClient, make_config, run_sim
-
-HEADER = struct.Struct("<4sBBHIQHHII")
-
-
-def _read_exact(sock: socket.socket, n: int) -> bytes:
-    buf = bytearray()
-    while len(buf) < n:
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise ConnectionError("frame server closed the connection")
-        buf += chunk
-    return bytes(buf)
-
-
-def _read_frame(sock: socket.socket) -> tuple[dict[str, Any], bytes]:
-    magic, ver, enc, _res, seq, t_us, w, h, n, crc = HEADER.unpack(
-        _read_exact(sock, HEADER.size))
-    payload = _read_exact(sock, n)
-    assert magic == b"IBVF" and ver == 1
-    assert zlib.crc32(payload) == crc
-    return {"seq": seq, "t_us": t_us, "w": w, "h": h, "enc": enc}, payload
+from tests.sim.harness import MavClient, make_config, read_frame, run_sim
 
 
 def test_lockstep_world_on_the_wire(client: MavClient) -> None:
@@ -55,13 +31,19 @@ def test_lockstep_world_on_the_wire(client: MavClient) -> None:
         with run_sim(cfg, duration_s=n_steps * 0.05) as rs:
             client.target = ("127.0.0.1", rs.ports["offboard"])
             cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=5.0)
-            time.sleep(0.2)  # let the server register us
             q = [0.98078528, 0.0, 0.0, 0.19509032]
-            # release the step whose frame went out before we connected
-            client.send(client.mav.set_attitude_target_encode(0, 1, 1, 7, q, 0, 0, 0, 0.5))
+            cam.settimeout(0.5)
             try:
                 while len(frames) < n_steps - 1:
-                    hdr, payload = _read_frame(cam)
+                    try:
+                        hdr, payload = read_frame(cam)
+                    except TimeoutError:
+                        # step 0's frame left before we connected: release that step
+                        assert not frames
+                        client.send(client.mav.set_attitude_target_encode(0, 1, 1, 7, q, 0, 0,
+                                                                          0, 0.5))
+                        cam.settimeout(5.0)
+                        continue
                     frames.append(hdr)
                     assert len(payload) == hdr["w"] * hdr["h"] * (3 if hdr["enc"] == 1 else 1)
                     # answer the frame: the emulator steps

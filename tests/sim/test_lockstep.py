@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import socket
 import time
 
 from sim_bridge.config import with_link
-from tests.sim.harness import MavClient, make_config, run_sim
+from tests.sim.harness import MavClient, make_config, read_frame, run_sim
 
 
 def _lockstep_cfg(client: MavClient, timeout_s: float, **changes: object):
@@ -30,21 +31,48 @@ def _reply_each_step(client: MavClient, rs, q: list[float], thrust: float,
 
 
 def test_one_step_per_setpoint_and_much_faster_than_real_time(client: MavClient) -> None:
+    """A client that answers every camera frame at once: 10 s of flight, one step per answer,
+    in a fraction of the wall time."""
     cfg = _lockstep_cfg(client, timeout_s=2.0)
-    t0 = time.monotonic()
+    q = [0.98078528, 0.0, 0.0, 0.19509032]  # level, yaw 22.5 deg: hover
+    stamps: list[int] = []
     with run_sim(cfg, duration_s=10.0) as rs:
         client.target = ("127.0.0.1", rs.ports["offboard"])
-        stamps = _reply_each_step(client, rs, [1.0, 0, 0, 0], 0.5, budget_s=30.0)
-        rs.thread.join(30.0)
-        wall = time.monotonic() - t0
+        cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=5.0)
+        try:
+            t0 = time.monotonic()
+            cam.settimeout(0.5)
+            while rs.thread.is_alive():
+                try:
+                    hdr, _ = read_frame(cam)
+                except TimeoutError:
+                    # step 0's frame left before we connected: release that step
+                    assert not stamps
+                    client.send(client.mav.set_attitude_target_encode(0, 1, 1, 7, q, 0, 0, 0,
+                                                                      0.5))
+                    cam.settimeout(5.0)
+                    continue
+                except ConnectionError:
+                    break
+                stamps.append(hdr["t_us"])
+                client.send(client.mav.set_attitude_target_encode(
+                    hdr["t_us"] // 1000, 1, 1, 7, q, 0, 0, 0, 0.5))
+                client.drain()
+            rs.thread.join(30.0)
+            wall = time.monotonic() - t0
+        finally:
+            cam.close()
         stats = rs.stop()
     assert stats is not None
     assert stats.steps == 200 and abs(stats.t_s - 10.0) < 1e-9
     assert stats.lockstep_timeouts == 0
-    # the telemetry clock is simulated time: one ATTITUDE_QUATERNION per 50 ms step
-    assert stamps == [50 * k for k in range(200)]
+    # frames stamped with simulated time, one per 50 ms step, each answered once
+    first = stamps[0] // 50_000
+    assert first <= 1
+    assert stamps == [50_000 * k for k in range(first, 200)]
     assert stats.setpoints_received == 200
-    assert wall < 10.0 / 3, f"10 s of flight took {wall:.2f} s of wall time"
+    assert wall < 10.0 / 2, f"10 s of flight took {wall:.2f} s of wall time"
+    print(f"lockstep: 10 s of flight in {wall:.2f} s of wall time")
 
 
 def test_time_advances_on_timeout_without_setpoints(client: MavClient) -> None:
