@@ -21,6 +21,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
+from companion import schemas as sch
 from companion.config import Config, config_from_dict, load_config, with_overrides
 from companion.log_reader import LogMessage, LogReader
 from companion.mcap_log import McapLogger
@@ -88,7 +89,13 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
 def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
            overrides: list[str] | None = None,
            progress: Callable[[int, int], None] | None = None) -> ReplayResult:
-    reader = LogReader(log_path)
+    with LogReader(log_path) as reader:
+        return _replay(reader, log_path, out_path, config, overrides, progress)
+
+
+def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Path | None,
+            overrides: list[str] | None,
+            progress: Callable[[int, int], None] | None) -> ReplayResult:
     counts = {c.topic: c.count for c in reader.channels}
     missing = [t for t in REQUIRED if t not in counts]
     if missing:
@@ -145,7 +152,7 @@ def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
         new.update({k: rec_step.get(k) for k in ("frame_seq", "frame_t_us", "t_rx_ns",
                                                  "rx_count", "offboard")})
         if writer is not None:
-            writer.log(TOPIC_STEP, int(rec_step["t_rx_ns"]), new)
+            writer.log(TOPIC_STEP, int(rec_step["t_rx_ns"]), new, schema=sch.CONTROLLER_STEP)
         _compare(res, rec_step, out, t_s)
         if progress is not None:
             progress(res.steps, total_steps)
@@ -168,7 +175,7 @@ def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
             elif m.topic == TOPIC_STEP and m.data:
                 pending_steps.append(m.data)
             elif m.topic == TOPIC_TRUTH and writer is not None and m.data:
-                writer.log(TOPIC_TRUTH, m.log_time_ns, m.data)
+                writer.log(TOPIC_TRUTH, m.log_time_ns, m.data, schema=sch.JSON)
             while pending_steps and ready(pending_steps[0]):
                 run_step(pending_steps.pop(0))
         while pending_steps:  # a log cut short: the last steps run with what was recovered

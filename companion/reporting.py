@@ -25,10 +25,10 @@ def report_settings(cfg: Config) -> ReportSettings:
 
 def load_scored_messages(log_path: Path) -> tuple[list[tuple[str, int, Any]], dict[str, Any]]:
     """The messages the report uses, decoded, and what the reader recovered."""
-    reader = LogReader(log_path)
-    msgs = [(m.topic, m.log_time_ns, m.data or {})
-            for m in reader.messages(topics=SCORED_TOPICS)]
-    rec = reader.recovery
+    with LogReader(log_path) as reader:
+        msgs = [(m.topic, m.log_time_ns, m.data or {})
+                for m in reader.messages(topics=SCORED_TOPICS)]
+        rec = reader.recovery
     return msgs, {"truncated": rec.truncated, "messages": rec.messages,
                   "salvaged": rec.salvaged}
 

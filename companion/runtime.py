@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from companion import CompanionError
+from companion import schemas as sch
 from companion.camera_sources import CameraFrame, open_camera
 from companion.config import Config
 from companion.mavlink_link import MavlinkLink, NoPeerError, Received
@@ -139,6 +140,7 @@ class CompanionApp:
         idle_timeout_s: float = 5.0,
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
+        ready_file: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.mavlink_url = mavlink_url or cfg.mavlink.url
@@ -149,6 +151,7 @@ class CompanionApp:
         self.idle_timeout_s = idle_timeout_s
         self.faults = faults
         self.config_text = config_text
+        self.ready_file = ready_file
         self.timebase = TimeBase(cfg.control.time_source)
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg)
@@ -191,7 +194,11 @@ class CompanionApp:
                         aux = [tg.create_task(self._drain(link)),
                                tg.create_task(self._heartbeat(link))]
                         if self.truth_port is not None:
-                            aux.append(tg.create_task(self._truth(self.truth_port)))
+                            ready = asyncio.Event()
+                            aux.append(tg.create_task(self._truth(self.truth_port, ready)))
+                            await ready.wait()
+                        if self.ready_file is not None:
+                            self.ready_file.write_text("ready\n")
                         await control
                         for t in aux:
                             t.cancel()
@@ -233,7 +240,7 @@ class CompanionApp:
                 link.send_heartbeat()
             await asyncio.sleep(1.0)
 
-    async def _truth(self, port: int) -> None:
+    async def _truth(self, port: int, ready: asyncio.Event) -> None:
         """Ground truth from the emulator, logged for scoring only (never read by control)."""
         assert self._logger is not None
         logger = self._logger
@@ -245,10 +252,11 @@ class CompanionApp:
                     rec = json.loads(data)
                 except ValueError:
                     return
-                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec)
+                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec, schema=sch.JSON)
 
         transport, _ = await loop.create_datagram_endpoint(
             _Proto, local_addr=("127.0.0.1", port))
+        ready.set()
         try:
             await asyncio.Future()
         finally:
@@ -319,7 +327,7 @@ class CompanionApp:
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
         })
-        logger.log(TOPIC_STEP, frame.t_rx_ns, rec)
+        logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
         if res.safety.changed:
             logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
                             f"{res.safety.level.value}: {res.safety.reason}",

@@ -70,7 +70,7 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
-        "--duration", f"{duration_s}",
+        "--duration", f"{duration_s}", "--ready-file", str(out / ".companion-ready"),
     ]
     return sim, comp
 
@@ -88,23 +88,44 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
     with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
+        ready = out / ".companion-ready"
+        ready.unlink(missing_ok=True)
         comp = subprocess.Popen(comp_cmd, stdout=comp_log, stderr=subprocess.STDOUT, env=env)
-        time.sleep(0.5)  # let the companion bind its ports before the vehicle talks
+        # The vehicle starts talking only once the companion listens (first start compiles
+        # the solver: allow for it).
+        while not ready.exists():
+            if comp.poll() is not None or time.monotonic() - t0 > 300.0:
+                comp.kill()
+                raise CompanionError(f"demo: the companion did not start (see {out}/companion.log)")
+            time.sleep(0.05)
+        t0 = time.monotonic()
         sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
         budget = 60.0 + 2.0 * duration_s
+        sim_rc = comp_rc = None
+        wall = 0.0
         try:
-            sim_rc = sim.wait(timeout=budget)
-            wall = time.monotonic() - t0
-            comp_rc = comp.wait(timeout=30.0)
+            while time.monotonic() - t0 < budget:
+                sim_rc, comp_rc = sim.poll(), comp.poll()
+                if sim_rc is not None:
+                    wall = time.monotonic() - t0
+                    comp_rc = comp.wait(timeout=30.0)
+                    break
+                if comp_rc is not None:  # the companion died: no point flying on
+                    sim.terminate()
+                    sim_rc = sim.wait(timeout=10.0)
+                    break
+                time.sleep(0.05)
+            else:
+                raise CompanionError(f"demo: flight did not finish within {budget:.0f} s "
+                                     f"(see {out}/sim.log, {out}/companion.log)")
         except subprocess.TimeoutExpired:
-            for p in (sim, comp):
-                p.kill()
-            raise CompanionError(f"demo: flight did not finish within {budget:.0f} s "
-                                 f"(see {out}/sim.log, {out}/companion.log)") from None
+            raise CompanionError(f"demo: a process did not exit (see {out}/sim.log, "
+                                 f"{out}/companion.log)") from None
         finally:
             for p in (sim, comp):
                 if p.poll() is None:
-                    p.terminate()
+                    p.kill()
+                    p.wait()
     if sim_rc != 0 or comp_rc != 0:
         raise CompanionError(f"demo: emulator exited {sim_rc}, companion exited {comp_rc} "
                              f"(see {out}/sim.log, {out}/companion.log)")

@@ -22,8 +22,9 @@ def _info(args: argparse.Namespace) -> int:
     except NotMcapError as exc:
         print(f"companion: error: {exc}")
         return 2
-    rec = reader.recovery
-    chans = sorted(reader.channels, key=lambda c: c.topic)
+    with reader:
+        rec = reader.recovery
+        chans = sorted(reader.channels, key=lambda c: c.topic)
     t0 = rec.first_log_time_ns or 0
     t1 = rec.last_log_time_ns or 0
     print(f"file:      {args.log} ({rec.bytes_total} bytes)")

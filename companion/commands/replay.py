@@ -41,8 +41,11 @@ def _run(args: argparse.Namespace) -> int:
     from companion.log_reader import LogReader
     from companion.reporting import build_report
 
-    cfg = load_config(args.config, args.set) if args.config else replay_config(
-        LogReader(args.log), None, args.set)
+    if args.config:
+        cfg = load_config(args.config, args.set)
+    else:
+        with LogReader(args.log) as reader:
+            cfg = replay_config(reader, None, args.set)
     flight = build_report(out / "replay.mcap", cfg, out, plots=not args.no_plots)
     report.update({k: v for k, v in flight.items() if k not in ("replay",)})
     sim_s = flight.get("sim_time_s") or 0.0

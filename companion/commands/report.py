@@ -30,6 +30,8 @@ def _run(args: argparse.Namespace) -> int:
         cfg = replay_config(reader, args.config, [])
     except ReplayError:
         cfg = load_config(None)
+    finally:
+        reader.close()
     args.out.mkdir(parents=True, exist_ok=True)
     rep = build_report(args.log, cfg, args.out)
     print(f"report: {args.out / 'report.json'}, {args.out / 'report.html'} "

@@ -28,6 +28,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="record the emulator's ground truth from this UDP port (scoring only)")
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1",
                    help="failure injection for tests: solver:T0:T1 (seconds after first frame)")
+    p.add_argument("--ready-file", type=Path, default=None,
+                   help="write this file once every socket is open (for orchestration)")
     p.set_defaults(func=_run)
 
 
@@ -39,5 +41,6 @@ def _run(args: argparse.Namespace) -> int:
         cfg, mavlink_url=args.mavlink, camera_url=args.camera, log_path=log_path,
         truth_port=args.truth_port, duration_s=args.duration,
         faults=tuple(FaultWindow.parse(f) for f in args.inject_fault), config_text=text,
+        ready_file=args.ready_file,
     )
     return asyncio.run(app.run())

@@ -1,0 +1,176 @@
+"""End to end: the emulator and the companion as two processes on loopback, in lockstep.
+
+One short paper-scenario flight (real UDP MAVLink, real TCP frames, real CasADi solves, a real
+MCAP file), then assertions on its report, on the MCAP file read back with the ``mcap`` reader,
+and on the offline replay of that file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from companion.commands.demo import run_demo
+from companion.config import DEFAULT_CONFIG
+from companion.replay import replay
+
+pytestmark = pytest.mark.slow
+
+DURATION_S = 8.0
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("paper")
+    report = run_demo(DEFAULT_CONFIG, "paper", DURATION_S, out, [], [], plots=True)
+    return out, report
+
+
+def test_flight_report_figures(flight: tuple[Path, dict]) -> None:
+    out, rep = flight
+    on_disk = json.loads((out / "report.json").read_text())
+    assert on_disk["steps"] == rep["steps"]
+    assert rep["sim_time_s"] == pytest.approx(DURATION_S, abs=0.2)
+    vis = rep["visibility"]
+    # the paper's claim on its own path: every corner inside the 500 px visible area
+    assert vis["bound_px"] == pytest.approx(500.0)
+    assert 0 < vis["max_abs_u_px"] < 500 and 0 < vis["max_abs_n_px"] < 500
+    assert vis["frames_outside_bound"] == 0
+    assert vis["frames_target_lost"] == 0
+    sol = rep["solver"]
+    assert sol["failures"] == 0 and sol["fallbacks"] == 0
+    # every step solved but the first frames, which arrive before any telemetry
+    assert rep["steps"] - 3 <= sol["solves"] <= rep["steps"]
+    # one SET_ATTITUDE_TARGET per frame at the 20 Hz control rate (simulated time)
+    assert rep["mavlink"]["set_attitude_target_sent"] == rep["steps"]
+    assert rep["mavlink"]["rate_hz"] == pytest.approx(20.0, rel=0.05)
+    # the errors shrink from the paper's initial |s_e| ~ 0.75 (truth)
+    trk = rep["tracking"]
+    assert np.linalg.norm(trk["final_se"]) < 0.25 * np.linalg.norm([0.0159, -0.223, 0.6, 0.39])
+    for name in ("paths_3d", "pixels", "moment_errors", "solver", "safety"):
+        png = out / rep["figures"][name]
+        assert png.stat().st_size > 10_000, name
+    assert (out / "report.html").read_text().count("<img") == len(rep["figures"])
+
+
+def test_mcap_file_reads_back_with_the_mcap_reader(flight: tuple[Path, dict]) -> None:
+    out, rep = flight
+    counts: Counter[str] = Counter()
+    schemas: dict[str, str] = {}
+    first_image = None
+    with open(out / "flight.mcap", "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        for schema, channel, message in reader.iter_messages():
+            counts[channel.topic] += 1
+            schemas[channel.topic] = schema.name if schema else ""
+            if channel.topic == "/camera/image" and first_image is None:
+                first_image = json.loads(message.data)
+    steps = rep["steps"]
+    assert counts["/camera/image"] == steps == counts["/control/step"]
+    assert counts["/mavlink/out/SET_ATTITUDE_TARGET"] == steps
+    assert schemas["/camera/image"] == "foxglove.CompressedImage"
+    # telemetry at PX4's rates in simulated time: attitude ~50 Hz, position ~30 Hz, 1 Hz beat
+    assert counts["/mavlink/in/ATTITUDE_QUATERNION"] >= 0.8 * 20 * DURATION_S
+    assert counts["/mavlink/in/LOCAL_POSITION_NED"] >= 0.8 * 20 * DURATION_S
+    assert DURATION_S - 2 <= counts["/mavlink/in/HEARTBEAT"] <= DURATION_S + 2
+    assert counts["/mavlink/in/FOLLOW_TARGET"] >= 0.8 * 10 * DURATION_S
+    assert counts["/truth"] >= steps and counts["/config"] == 1
+    # a frame decodes to the configured image
+    import base64
+
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(base64.b64decode(first_image["data"]), np.uint8),
+                       cv2.IMREAD_UNCHANGED)
+    assert img.shape == (1000, 1000)
+
+
+def test_offboard_engaged_as_px4_expects(flight: tuple[Path, dict]) -> None:
+    """Setpoints streamed >= 1 s before the mode request, mode confirmed from HEARTBEAT."""
+    out, _ = flight
+    from companion.log_reader import LogReader
+
+    with LogReader(out / "flight.mcap") as r:
+        _check_offboard(r)
+
+
+def _check_offboard(r: object) -> None:
+    sent = [m.log_time_ns for m in r.messages(topics=["/mavlink/out/SET_ATTITUDE_TARGET"])]
+    cmds = [m for m in r.messages(topics=["/mavlink/out/COMMAND_LONG"])]
+    mode_req = [m for m in cmds if m.data["fields"]["command"] == 176]
+    assert mode_req, "OFFBOARD never requested"
+    assert mode_req[0].data["fields"]["param2"] == 6
+    steps = [m.data for m in r.messages(topics=["/control/step"])]
+    first_sent_t = next(s["t_s"] for s in steps if s["sent"])
+    req_step = next(s for s in steps if s["offboard"] != "preflight")
+    assert req_step["t_s"] - first_sent_t >= 1.0 - 1e-9
+    assert any(s["offboard"] == "active" for s in steps)
+    beats = [m.data["fields"] for m in r.messages(topics=["/mavlink/in/HEARTBEAT"])]
+    assert any((b["custom_mode"] >> 16) & 0xFF == 6 for b in beats)
+    assert sent  # and every command on the wire is finite
+    for m in r.messages(topics=["/mavlink/out/SET_ATTITUDE_TARGET"]):
+        f = m.data["fields"]
+        assert all(math.isfinite(v) for v in [*f["q"], f["thrust"]])
+        assert f["type_mask"] == 7
+
+
+def test_replay_reproduces_every_command(flight: tuple[Path, dict], tmp_path: Path) -> None:
+    out, rep = flight
+    res = replay(out / "flight.mcap", tmp_path / "replay.mcap")
+    s = res.summary()
+    assert s["commands_compared"] == rep["steps"]
+    assert s["identical"], s
+    assert s["max_quat_diff"] <= 1e-6 and s["max_thrust_diff"] <= 1e-6
+
+
+def test_replay_with_a_changed_weight_changes_commands(flight: tuple[Path, dict],
+                                                       tmp_path: Path) -> None:
+    out, _ = flight
+    res = replay(out / "flight.mcap", tmp_path / "replay.mcap",
+                 overrides=["rmpc.q_diag=[5e-2, 5e-2, 1e-2, 1e-2, 5e-3, 5e-3, 1e-3]"])
+    s = res.summary()
+    assert not s["identical"]
+    assert s["max_quat_diff"] > 1e-4
+    assert s["first_difference_t_s"] is not None
+
+
+def test_replay_of_a_log_cut_short(flight: tuple[Path, dict], tmp_path: Path) -> None:
+    out, rep = flight
+    data = (out / "flight.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    res = replay(cut, tmp_path / "replay.mcap")
+    s = res.summary()
+    assert s["log"]["truncated"]
+    assert 0 < s["steps"] < rep["steps"]
+    # what was recovered replays exactly up to where the recording stops
+    assert s["max_quat_diff"] <= 1e-6 or s["frames_missing"] > 0
+
+
+def test_replay_cli_on_not_an_mcap_file(tmp_path: Path) -> None:
+    bogus = tmp_path / "bogus.mcap"
+    bogus.write_bytes(b"this is not an MCAP file\n" * 100)
+    p = subprocess.run([sys.executable, "-m", "companion", "replay", str(bogus), "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert "not an MCAP" in (p.stdout + p.stderr)
+
+
+def test_log_info_lists_channels(flight: tuple[Path, dict]) -> None:
+    out, rep = flight
+    p = subprocess.run([sys.executable, "-m", "companion", "log", "info",
+                        str(out / "flight.mcap")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "/camera/image" in p.stdout and "/control/step" in p.stdout
+    line = next(ln for ln in p.stdout.splitlines() if "/control/step" in ln)
+    assert int(line.split()[1]) == rep["steps"]
