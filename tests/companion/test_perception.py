@@ -444,18 +444,22 @@ def test_wrong_image_size_is_rejected() -> None:
 # ArUco
 
 
-def _marker_image(dict_name: str, marker_id: int, cell_px: int = 60) -> tuple[np.ndarray, int]:
+def _marker_image(
+    dict_name: str, marker_id: int, cell_px: int = 60, quiet_cells: int = 2
+) -> tuple[np.ndarray, int]:
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dict_name))
     side = (d.markerSize + 2) * cell_px
     marker = cv2.aruco.generateImageMarker(d, marker_id, side, borderBits=1)
-    pad = 2 * cell_px  # white quiet zone
+    pad = quiet_cells * cell_px  # white quiet zone
     return cv2.copyMakeBorder(marker, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255), pad
 
 
-def render_marker(img: np.ndarray, corners_px: np.ndarray, dict_name: str, marker_id: int) -> None:
+def render_marker(
+    img: np.ndarray, corners_px: np.ndarray, dict_name: str, marker_id: int, quiet_cells: int = 2
+) -> None:
     """Warp a generated marker (outer border corners TL, TR, BR, BL -> ``corners_px``) into
     ``img`` by a homography, supersampled 8x and area-averaged."""
-    tex, pad = _marker_image(dict_name, marker_id)
+    tex, pad = _marker_image(dict_name, marker_id, quiet_cells=quiet_cells)
     side = tex.shape[0] - 2 * pad
     src = np.array(
         [
@@ -546,6 +550,24 @@ def test_aruco_search_paths_agree() -> None:
     assert cv2_only.flags == ("subpix corners",) and cv2_only.quality == 0.8
     assert float(np.max(np.linalg.norm(cv2_only.corners_px - true, axis=1))) < 0.5
     assert float(np.max(np.linalg.norm(fast.corners_px - true, axis=1))) < 0.15
+
+
+def test_aruco_without_quiet_zone_on_a_dark_side_is_rejected() -> None:
+    """A 0.4 m marker on the 0.4 m wide AGV top: its black border touches the dark box side
+    on two edges, and cv2's quad swallows the side (8 px errors measured on the emulator)."""
+    top, bottom = box_level(2.5, -0.6, 0.0, 0.0, 0.4, 0.4)
+    true = project(to_camera(top, 0.0, 0.0))
+    pb = project(to_camera(bottom, 0.0, 0.0))
+    img = ground(14)
+    hull = cv2.convexHull(np.vstack([true, pb]).astype(np.float32)).reshape(-1, 2)
+    fill_supersampled(img, [(hull.astype(np.float64), 35)])
+    render_marker(img, true, "DICT_4X4_50", 7, quiet_cells=0)
+    report = ArucoDetector("DICT_4X4_50", 7, 0.4).analyse(img)
+    assert report.detection is None and "quiet zone" in report.reason, report
+    # what accepting cv2's own corners would have meant
+    raw = ArucoDetector("DICT_4X4_50", 7, 0.4, refine_edges=False).detect(img)
+    assert raw is not None
+    assert float(np.max(np.linalg.norm(raw.corners_px - true, axis=1))) > 2.0
 
 
 def test_aruco_bad_config_is_a_clear_error() -> None:
