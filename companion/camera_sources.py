@@ -152,6 +152,22 @@ class CameraSource(abc.ABC):
         self._counters: dict[str, int] = dict.fromkeys(SourceStats.__dataclass_fields__, 0)
         self._started = False
         self._closed = False
+        self._error: BaseException | None = None
+
+    def _watch(self, task: asyncio.Task[None], buffer: _Newest[Any]) -> None:
+        """If the background ``task`` dies, wake the consumer and make it raise."""
+
+        def done(t: asyncio.Task[None]) -> None:
+            if not t.cancelled() and t.exception() is not None:
+                self._error = t.exception()
+                _log.error("%r: background task failed: %r", self, self._error)
+                buffer.close()
+
+        task.add_done_callback(done)
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            raise CameraError(f"{self!r} failed: {self._error!r}") from self._error
 
     @property
     def stats(self) -> SourceStats:
@@ -206,6 +222,15 @@ class CameraSource(abc.ABC):
 
     @abc.abstractmethod
     async def _next_frame(self) -> CameraFrame | None: ...
+
+
+async def _stop(task: asyncio.Task[None]) -> None:
+    """Cancel and reap a background task; a failure it already reported is not raised again."""
+    if not task.done():
+        task.cancel()
+    # a failure was already logged and surfaced by CameraSource._watch
+    with contextlib.suppress(asyncio.CancelledError, Exception):
+        await task
 
 
 # ----------------------------------------------------------------------------------------------
@@ -350,12 +375,11 @@ class FrameSocketSource(CameraSource):
     async def _start(self) -> None:
         self._buffer = _Newest(self._queue_size)
         self._task = asyncio.create_task(self._run(), name=f"frames {self.host}:{self.port}")
+        self._watch(self._task, self._buffer)
 
     async def _close(self) -> None:
         if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+            await _stop(self._task)
         if self._buffer is not None:
             self._buffer.close()
 
@@ -364,6 +388,7 @@ class FrameSocketSource(CameraSource):
         while True:
             rec = await self._buffer.get()
             if rec is None:
+                self._raise_if_failed()
                 return None
             try:
                 if rec.header.encoding in (2, 3):
@@ -509,12 +534,11 @@ class VideoCaptureSource(CameraSource):
         if self.live:
             self._buffer = _Newest(self._queue_size)
             self._task = asyncio.create_task(self._grab_loop(), name=f"capture {self.source!r}")
+            self._watch(self._task, self._buffer)
 
     async def _close(self) -> None:
         if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+            await _stop(self._task)
         if self._buffer is not None:
             self._buffer.close()
         if self._cap is not None:
@@ -558,7 +582,10 @@ class VideoCaptureSource(CameraSource):
     async def _next_frame(self) -> CameraFrame | None:
         if self.live:
             assert self._buffer is not None
-            return await self._buffer.get()
+            frame = await self._buffer.get()
+            if frame is None:
+                self._raise_if_failed()
+            return frame
         if self._eof:
             return None
         got = await self._call(self._read)

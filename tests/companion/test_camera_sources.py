@@ -257,6 +257,25 @@ def test_iteration_ends_when_closed() -> None:
     run(main())
 
 
+def test_a_crashed_reader_surfaces_as_camera_error() -> None:
+    """Fault injection: the reader task dies on an unexpected error; the consumer must not
+    wait forever but get a CameraError."""
+
+    class Faulty(FrameSocketSource):
+        async def _read_records(self, reader: asyncio.StreamReader) -> bool:
+            raise RuntimeError("injected")
+
+    async def script(i: int, w: asyncio.StreamWriter) -> None:
+        return None
+
+    async def main() -> None:
+        async with FrameServer(script) as srv, Faulty("127.0.0.1", srv.port) as cam:
+            with pytest.raises(CameraError, match="injected"):
+                await anext(cam)
+
+    run(main())
+
+
 def _write_video(path: Path, n: int, fps: float = 10.0) -> list[np.ndarray]:
     fourcc = cv2.VideoWriter.fourcc(*"MJPG")
     writer = cv2.VideoWriter(str(path), fourcc, fps, (64, 48))
