@@ -150,6 +150,8 @@ class Perception:
 
     def process(self, image: npt.NDArray[np.uint8], *, t_us: int | None = None) -> PerceptionResult:
         """Measure the target in ``image`` ((H, W) mono or (H, W, 3) BGR uint8)."""
+        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
+            raise PerceptionError("image: expected an (H, W) or (H, W, 3) numpy array")
         if image.shape[:2] != (self.camera.height_px, self.camera.width_px):
             return PerceptionResult(
                 "rejected",
@@ -161,7 +163,7 @@ class Perception:
         report = self.detector.analyse(image, hint)
         det = report.detection
         if det is None:
-            self._last_corners = None
+            # the order hint survives a loss: the nearer rotation is still the best guess
             status: Status = "rejected" if report.rejections else "lost"
             return PerceptionResult(status, report.reason, t_us=t_us, report=report)
         self._last_corners = det.corners_px
