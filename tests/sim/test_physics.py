@@ -49,11 +49,12 @@ def test_tilt_with_compensated_thrust_gives_g_tan_tilt(roll: float, pitch: float
     s0 = initial_state((0, 0, -5), roll, pitch, yaw)
     thrust = 0.5 / (math.cos(roll) * math.cos(pitch))
     s = m.step(s0, AttitudeCommand(roll, pitch, yaw, thrust), 0.0025)
-    tilt = math.acos(math.cos(roll) * math.cos(pitch))
+    # g tan(tilt), tilt = acos(cos(roll) cos(pitch)), written without the ill-conditioned acos
+    sin_tilt = math.hypot(math.sin(pitch) * math.cos(roll), math.sin(roll))
+    tan_tilt = sin_tilt / (math.cos(roll) * math.cos(pitch))
     a = s.acc_ned_m_s2
     assert abs(a[2]) < 1e-9  # altitude held
-    assert math.isclose(float(np.hypot(a[0], a[1])), G * math.tan(tilt), rel_tol=1e-9,
-                        abs_tol=1e-9)
+    assert math.isclose(float(np.hypot(a[0], a[1])), G * tan_tilt, rel_tol=1e-9, abs_tol=1e-12)
     # exactly the model: R(q) [0, 0, -g T / T_hover] + [0, 0, g]
     expect = rot_from_euler(roll, pitch, yaw) @ np.array([0, 0, -G * thrust / 0.5]) + [0, 0, G]
     np.testing.assert_allclose(a, expect, atol=1e-9)
