@@ -17,6 +17,7 @@ import platform
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +53,7 @@ def _physics_stub(pos: np.ndarray, vel: np.ndarray, target: np.ndarray) -> None:
         pos += vel * PHYSICS_DT_S
 
 
-def run(steps: int, pattern: str, size: int) -> dict[str, object]:
+def run(steps: int, pattern: str, size: int) -> dict[str, Any]:
     pixel = 5.04e-6 * 1000 / size  # same field of view at any resolution
     cam = Camera(2.8e-3, pixel, size, size, pattern=pattern, aruco_size_m=0.3)
     agv_traj = AgvTrajectory("paper")
@@ -123,17 +124,17 @@ def main() -> int:
     print(
         f"sim step (AGV + physics stub + render {res['size_px']}^2 {res['pattern']} + encode), "
         f"{res['steps']} steps, load {res['host']['loadavg_1min']}"
-    )  # type: ignore[index]
+    )
     print(
         f"  median {res['median_ms']} ms, p95 {res['p95_ms']} ms, max {res['max_ms']} ms "
         f"(target <= {res['target_median_ms']} ms median: "
         f"{'met' if res['meets_target'] else 'NOT met'})"
     )
-    for name in res["stages_median_ms"]:  # type: ignore[attr-defined]
+    for name in res["stages_median_ms"]:
         print(
-            f"  {name:8s} median {res['stages_median_ms'][name]:.4f} ms, "  # type: ignore[index]
+            f"  {name:8s} median {res['stages_median_ms'][name]:.4f} ms, "
             f"p95 {res['stages_p95_ms'][name]:.4f} ms"
-        )  # type: ignore[index]
+        )
     print(
         f"  {res['frames_per_s']} frames/s, {res['realtime_ratio_at_20hz']}x real time at 20 Hz, "
         f"target in image {res['target_in_image_fraction']:.0%}"

@@ -260,10 +260,10 @@ class Camera:
         # marker centre at the texture centre.
         def _span(m: float) -> int:
             margin = math.ceil((m / texel - side) / 2.0) + 2
-            return side + 2 * (-(-margin // step) * step)
+            return int(side + 2 * (-(-margin // step) * step))
 
         rows, cols = _span(self.length_m), _span(self.width_m)
-        tex = np.full((rows, cols), ARUCO_WHITE, np.uint8)
+        tex: np.ndarray = np.full((rows, cols), ARUCO_WHITE, np.uint8)
         r0, c0 = (rows - side) // 2, (cols - side) // 2
         tex[r0 : r0 + side, c0 : c0 + side] = np.where(marker > 127, ARUCO_WHITE, ARUCO_BLACK)
         for level in range(_MIP_LEVELS):
@@ -537,4 +537,4 @@ def _coverage(poly: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
         cov = d if cov is None else np.minimum(cov, d)
     if cov is None:
         return np.zeros((y1 - y0, x1 - x0), np.float32)
-    return np.clip(cov, 0.0, 1.0)
+    return np.asarray(np.clip(cov, 0.0, 1.0), dtype=np.float32)
