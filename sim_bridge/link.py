@@ -31,6 +31,7 @@ Address = tuple[str, int]
 MessageHandler = Callable[["MavUdpLink", Any, Address], None]
 
 PEER_TIMEOUT_S = 10.0
+MAX_PEERS = 16
 MAVLINK2_MAGIC = 0xFD
 
 
@@ -172,7 +173,12 @@ class MavUdpLink:
             c["rx_foreign"] += 1
             return
         c["rx_messages"] += 1
-        self._peers[addr] = self._clock()
+        now = self._clock()
+        if addr not in self._peers and len(self._peers) >= MAX_PEERS:
+            self._peers = {a: t for a, t in self._peers.items() if now - t <= PEER_TIMEOUT_S}
+            if len(self._peers) >= MAX_PEERS:  # still full of live peers: replace the oldest
+                del self._peers[min(self._peers, key=self._peers.__getitem__)]
+        self._peers[addr] = now
         if self.handler is not None:
             try:
                 self.handler(self, msg, addr)

@@ -7,6 +7,7 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from sim_bridge.link import MAX_PEERS, PEER_TIMEOUT_S, MavUdpLink
 from sim_bridge.physics.vehicle import euler_from_quat, quat_from_euler
 from tests.sim.harness import MavClient, sim_with_client
 
@@ -235,3 +236,18 @@ def test_mavlink1_frames_are_dropped(client: MavClient) -> None:
         assert client.ack(31999, 0.5) is None
         c = rs.call(lambda: rs.sim._links["offboard"].counters)
         assert c.rx_mavlink1 == 1
+
+
+def test_peers_are_bounded_and_expire() -> None:
+    now = [0.0]
+    link = MavUdpLink("t", "127.0.0.1", 0, ("127.0.0.1", 9), 1, 1, clock=lambda: now[0])
+    gcs = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+    hb = gcs.heartbeat_encode(6, 8, 0, 0, 0, 3).pack(gcs)
+    for port in range(20000, 20100):
+        link._on_datagram(hb, ("127.0.0.1", port))
+        now[0] += 0.01
+    assert len(link._peers) <= MAX_PEERS
+    assert ("127.0.0.1", 20099) in link.peers and link.peers[0] == ("127.0.0.1", 9)
+    now[0] += PEER_TIMEOUT_S + 1
+    assert link.peers == [("127.0.0.1", 9)]
+    assert link.counters.rx_messages == 100
