@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,6 +63,7 @@ class StepResult:
     u: np.ndarray | None  # (r1, r2, r3, psidot_q) actually commanded
     setpoint: AttitudeSetpoint | None
     notes: tuple[str, ...] = ()
+    timings_ms: dict[str, float] = field(default_factory=dict)
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -94,6 +96,7 @@ class StepResult:
                 "yaw_rad": self.setpoint.yaw_rad,
             },
             "notes": list(self.notes),
+            "timings_ms": self.timings_ms,
         }
 
 
@@ -130,7 +133,8 @@ class ControlPipeline:
     """One object per flight; ``step`` once per camera frame, in order."""
 
     def __init__(self, cfg: Config, perception: Any, rmpc: Any | None = None,
-                 terminal: TerminalDesign | None = None) -> None:
+                 terminal: TerminalDesign | None = None,
+                 timer: Callable[[], float] | None = None) -> None:
         self.cfg = cfg
         self.perception = perception
         self.terminal = terminal or design_terminal(cfg.rmpc, cfg.camera)
@@ -147,13 +151,18 @@ class ControlPipeline:
         self._last_seen_s = -math.inf
         self._last_yaw = 0.0
         self._yaw_sp: float | None = None
-        self.force_solver_failure = False  # fault injection (tests, MAV_CMD_INJECT_FAILURE-like)
+        self.force_solver_failure = False
+        # Optional stage timing (seconds clock, e.g. time.perf_counter): measurement only,
+        # it never changes a result, so replay stays exact with or without it.
+        self._timer = timer  # fault injection (tests, MAV_CMD_INJECT_FAILURE-like)
 
     # ------------------------------------------------------------------------------------------
 
     def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore) -> StepResult:
         cfg = self.cfg
         notes: list[str] = []
+        clock = self._timer
+        marks: list[tuple[str, float]] = [("start", clock())] if clock else []
         # 1. perception
         corners = None
         points_m = None
@@ -161,6 +170,8 @@ class ControlPipeline:
             p_status, p_reason = "lost", "no image"
         else:
             pr = self.perception.process(image)
+        if clock:
+            marks.append(("detect", clock()))
             p_status, p_reason = pr.status, pr.reason
             if pr.status == "ok":
                 corners, points_m = pr.corners_px, pr.points_m
@@ -196,6 +207,8 @@ class ControlPipeline:
                         np.zeros(3), 0.0, "image_estimator")
                 else:
                     self._estimator.update(t_s, es.s, es.v_q_v_m_s, yaw, att.yaw_rate_rad_s)
+        if clock:
+            marks.append(("moments", clock()))
         # 3. solve while the state is valid
         rmpc_res = None
         solver_ok = True
@@ -209,6 +222,8 @@ class ControlPipeline:
             else:
                 rmpc_res = self.rmpc.solve(es.eta_e, motion)
             solver_ok = rmpc_res.mode != "fallback"
+        if clock:
+            marks.append(("solve", clock()))
         health = Health(
             t_s=t_s,
             telemetry_age_s=store.telemetry_age_s(t_s),
@@ -246,7 +261,11 @@ class ControlPipeline:
                                 thrust_max=cfg.control.thrust_max)
             u = None
         self._yaw_sp = sp.yaw_rad if sp is not None else None
+        if clock:
+            marks.append(("command", clock()))
+        timings = {name: (t - marks[i][1]) * 1e3 for i, (name, t) in enumerate(marks[1:])}
         return StepResult(
+            timings_ms=timings,
             t_s=t_s, perception_status=p_status, perception_reason=p_reason,
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
             safety=decision, u=u, setpoint=sp, notes=tuple(notes),

@@ -111,9 +111,9 @@ class FaultWindow:
         return w
 
 
-def new_pipeline(cfg: Config) -> ControlPipeline:
+def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
     """The pipeline a flight (live or replayed) uses for this config."""
-    return ControlPipeline(cfg, Perception(cfg.camera, cfg.target))
+    return ControlPipeline(cfg, Perception(cfg.camera, cfg.target), timer=timer)
 
 
 def new_store(cfg: Config) -> TelemetryStore:
@@ -154,7 +154,7 @@ class CompanionApp:
         self.ready_file = ready_file
         self.timebase = TimeBase(cfg.control.time_source)
         self.store = new_store(cfg)
-        self.pipeline = new_pipeline(cfg)
+        self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
         self.rx_count = 0
         self.steps = 0
@@ -297,6 +297,7 @@ class CompanionApp:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
+        t_start_ns = time.monotonic_ns()
         logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
                          self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
         res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
@@ -327,6 +328,12 @@ class CompanionApp:
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
         })
+        if sent_ns is not None:
+            # decode: receipt -> step start (the source decodes before handing the frame over)
+            rec["timings_ms"] = {"queue": (t_start_ns - frame.t_rx_ns) * 1e-6,
+                                 **rec["timings_ms"],
+                                 "send": (sent_ns - t_start_ns) * 1e-6
+                                 - sum(rec["timings_ms"].values())}
         logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
         if res.safety.changed:
             logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,

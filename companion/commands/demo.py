@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -76,7 +77,12 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
 
 
 def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
-             overrides: list[str], faults: list[str], plots: bool = True) -> dict[str, Any]:
+             overrides: list[str], faults: list[str], plots: bool = True,
+             monitor: Callable[[subprocess.Popen[bytes]], None] | None = None,
+             sim_config: Path | None = None) -> dict[str, Any]:
+    """Fly a scenario; ``monitor(companion_process)`` is called every 50 ms during the flight
+    (benchmarks sample its memory); ``sim_config`` gives the emulator a different file (e.g.
+    with fault injection) than the companion's ``config``."""
     cfg = load_config(config, overrides)  # fail early, in this process, on a bad config
     if duration_s is None:
         import tomllib
@@ -85,6 +91,8 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                            .get("duration_s", 251.0))
     out.mkdir(parents=True, exist_ok=True)
     sim_cmd, comp_cmd = demo_commands(config, scenario, duration_s, out, overrides, faults)
+    if sim_config is not None:
+        sim_cmd[sim_cmd.index("--config") + 1] = str(sim_config)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
     with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
@@ -114,6 +122,8 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                     sim.terminate()
                     sim_rc = sim.wait(timeout=10.0)
                     break
+                if monitor is not None:
+                    monitor(comp)
                 time.sleep(0.05)
             else:
                 raise CompanionError(f"demo: flight did not finish within {budget:.0f} s "

@@ -7,6 +7,7 @@ The virtual-camera mapping and the image moments are the core's job
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Literal
@@ -30,6 +31,10 @@ from companion.perception.rectangle import RectangleDetector
 _log = logging.getLogger(__name__)
 
 Status = Literal["ok", "lost", "rejected"]
+
+
+ROI_GROW = 1.0
+ROI_MIN_MARGIN_PX = 40.0
 
 
 @dataclass(frozen=True)
@@ -127,6 +132,7 @@ class Perception:
         calibration: Calibration | None = None,
         detector: Detector | None = None,
         track_order: bool = True,
+        roi: bool = True,
     ) -> None:
         if calibration is None and camera.calibration_file:
             calibration = load_calibration(camera.calibration_file)
@@ -142,11 +148,35 @@ class Perception:
         self.model = camera_model(camera, calibration)
         self.detector: Detector = detector if detector is not None else make_detector(target)
         self._track_order = track_order
+        self._use_roi = roi
         self._last_corners: FloatArray | None = None
+        self.roi_hits = 0
+        self.full_searches = 0
 
     @property
     def target_points_m(self) -> FloatArray:
         return self.detector.target_points_m
+
+    def _analyse(self, image: npt.NDArray[np.uint8], hint: FloatArray | None
+                 ) -> DetectionReport:
+        """Search a region of interest around the previous detection first (the target moves
+        little between frames); the whole image when there is none or the region finds
+        nothing acceptable. A candidate cut by the region's edge fails the border check and so
+        sends the search to the whole image. Depends only on earlier results: replay-exact."""
+        if self._use_roi and self._last_corners is not None:
+            h, w = image.shape[:2]
+            x0, y0, x1, y1 = roi_box(self._last_corners, w, h)
+            if (x1 - x0) * (y1 - y0) < 0.5 * w * h:
+                off = np.array([x0, y0], dtype=np.float64)
+                sub = self.detector.analyse(image[y0:y1, x0:x1],
+                                            None if hint is None else hint - off)
+                if sub.detection is not None:
+                    self.roi_hits += 1
+                    d = sub.detection
+                    moved = dataclasses.replace(d, corners_px=d.corners_px + off)
+                    return dataclasses.replace(sub, detection=moved)
+        self.full_searches += 1
+        return self.detector.analyse(image, hint)
 
     def process(self, image: npt.NDArray[np.uint8], *, t_us: int | None = None) -> PerceptionResult:
         """Measure the target in ``image`` ((H, W) mono or (H, W, 3) BGR uint8)."""
@@ -160,7 +190,7 @@ class Perception:
                 t_us=t_us,
             )
         hint = self._last_corners if self._track_order else None
-        report = self.detector.analyse(image, hint)
+        report = self._analyse(image, hint)
         det = report.detection
         if det is None:
             # the order hint survives a loss: the nearer rotation is still the best guess
@@ -178,6 +208,19 @@ class Perception:
         return PerceptionResult(
             "ok", "", det.corners_px, undist, points, det.quality, t_us, det, report
         )
+
+
+def roi_box(corners: FloatArray, width: int, height: int,
+            grow: float = ROI_GROW, min_margin_px: float = ROI_MIN_MARGIN_PX
+            ) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)`` (pixels, end exclusive): the corners' bounding box grown by
+    ``grow`` times its size (at least ``min_margin_px``) on every side, clipped to the image."""
+    lo = corners.min(axis=0)
+    hi = corners.max(axis=0)
+    margin = np.maximum(grow * (hi - lo), min_margin_px)
+    x0, y0 = np.floor(lo - margin).astype(int)
+    x1, y1 = np.ceil(hi + margin).astype(int) + 1
+    return max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
 
 
 __all__ = [

@@ -531,9 +531,9 @@ def test_aruco_wrong_id_is_ignored() -> None:
     assert res.status == "rejected"
     res3 = Perception(CAM, replace(aruco_cfg, aruco_id=3)).process(img)
     assert res3.status == "ok" and res3.points_m is not None
+    h = aruco_cfg.aruco_size_m / 2  # the marker's own corners, from the config
     np.testing.assert_allclose(
-        Perception(CAM, aruco_cfg).target_points_m,
-        [[0.2, -0.2], [0.2, 0.2], [-0.2, 0.2], [-0.2, -0.2]],
+        Perception(CAM, aruco_cfg).target_points_m, [[h, -h], [h, h], [-h, h], [-h, -h]],
     )
 
 
