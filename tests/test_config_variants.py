@@ -1,0 +1,52 @@
+"""Every shipped config loads; the variants say what their headers claim."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from companion import ConfigError
+from companion.config import load_config
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
+
+
+@pytest.mark.parametrize("path", sorted(CONFIG_DIR.glob("*.toml")), ids=lambda p: p.name)
+def test_every_shipped_config_loads(path: Path) -> None:
+    cfg = load_config(path)
+    assert cfg.rmpc.horizon == 16 and cfg.camera.r_v == pytest.approx(0.45)
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [("rmpc.horizon=0", "rmpc.horizon"), ("camera.visible_fraction=1.5", "camera.visible_fraction"),
+     ("rmpc.solver=\"qpoases\"", "rmpc.solver"), ("control.time_source=\"gps\"", "time_source"),
+     ("rmpc.u_max=[1,1,1]", "rmpc.u_max"), ("safety.nope=1", "safety.nope")],
+)
+def test_a_bad_value_names_its_key(override: str, key: str) -> None:
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(None, [override])
+
+
+def test_broken_toml_is_a_clear_error(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('base = "%s"\n[rmpc\neps = 1\n' % (CONFIG_DIR / "paper.toml"))
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+
+
+def test_lmi_feasible_variant_fails_only_theorem1_cond2_and_is_feasible_at_paper_start() -> None:
+    p = subprocess.run(
+        [sys.executable, "-m", "companion", "certify", "--config",
+         str(CONFIG_DIR / "lmi-feasible.toml"), "--json"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert p.returncode == 1, p.stderr
+    d = json.loads(p.stdout)
+    assert list(d["failed"]) == ["cond2"]
+    assert d["feasibility"]["feasible"] is True
+    assert d["theorem1"]["cond3"]["ok"] and d["theorem2"]["ok"]
