@@ -139,8 +139,16 @@ class RmpcConfig:
     cache_dir: str
     max_iter: int = field(metadata=_check(_positive))
     terminal: TerminalConfig
+    # Which image the visibility circle about M(u(n)) constrains: "spec" = p(n) (spec 6 and
+    # the paper's (2d); the applied input u(0) is in no row), "causal" = p(n+1), the image
+    # taken with the attitude u(n) produces (u(0) checked against the next image).
+    visibility_pairing: str = "spec"
 
     def __post_init__(self) -> None:
+        if self.visibility_pairing not in ("spec", "causal"):
+            raise ConfigError(
+                f"rmpc.visibility_pairing: {self.visibility_pairing!r} is not 'spec' or 'causal'"
+            )
         for name in ("q_diag", "r_diag", "eta_max", "u_max"):
             for i, v in enumerate(getattr(self, name)):
                 if not v > 0:

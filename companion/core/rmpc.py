@@ -39,6 +39,7 @@ from companion.core.rmpc_problem import (
     centre,
     image_point,
     tube_bound,
+    visibility_pairs,
     visibility_radius,
 )
 from companion.core.terminal import TerminalDesign
@@ -559,11 +560,11 @@ def check_solution(
         for n in range(big_n):
             add("tube", n, float(norm_p[n] - tube_bound(rmpc, n)))
     if "visibility" in groups:
-        for n in range(1, big_n):
-            pu, pn = image_point(eta[n])
-            mu, mn = centre(u[n], rmpc, camera)
+        for n, img, inp in visibility_pairs(rmpc):
+            pu, pn = image_point(eta[img])
+            mu, mn = centre(u[inp], rmpc, camera)
             dist = float(np.hypot(pu - mu, pn - mn))
-            add("visibility", n, dist - visibility_radius(rmpc, terminal, n))
+            add("visibility", n, dist - visibility_radius(rmpc, terminal, img))
     if "terminal" in groups or "tube" in groups:  # X(N) = eps
         add("terminal_set", big_n, float(norm_p[big_n] - rmpc.eps))
     if "terminal" in groups:
@@ -577,10 +578,12 @@ def check_solution(
 def visibility_margin(
     result: RmpcResult, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign
 ) -> np.ndarray:
-    """``(r_v - n rho e^{..}) - |p(n) - M(u(n))|`` for n = 1..N-1 (N-1,): 0 means binding."""
-    out = np.zeros(rmpc.horizon - 1)
-    for n in range(1, rmpc.horizon):
-        pu, pn = image_point(result.eta_pred[n])
-        mu, mn = centre(result.u_pred[n], rmpc, camera)
-        out[n - 1] = visibility_radius(rmpc, terminal, n) - float(np.hypot(pu - mu, pn - mn))
+    """Radius minus distance of every visibility row (:func:`visibility_pairs` order, N-1
+    values): 0 means binding."""
+    pairs = visibility_pairs(rmpc)
+    out = np.zeros(len(pairs))
+    for i, (_, img, inp) in enumerate(pairs):
+        pu, pn = image_point(result.eta_pred[img])
+        mu, mn = centre(result.u_pred[inp], rmpc, camera)
+        out[i] = visibility_radius(rmpc, terminal, img) - float(np.hypot(pu - mu, pn - mn))
     return out

@@ -80,6 +80,22 @@ def tube_bound(rmpc: RmpcConfig, n: int) -> float:
     return ((big_n - n) * rmpc.tube_h + n) / big_n * rmpc.eps
 
 
+def visibility_pairs(rmpc: RmpcConfig) -> list[tuple[int, int, int]]:
+    """``(stage, image index, input index)`` of every visibility row.
+
+    ``spec`` (spec 6, the paper's (2d)): ``|p(n) - M(u(n))|`` for n = 1..N-1: the image at
+    stage n against the attitude that input n asks for. The applied input u(0) is in no row.
+    ``causal``: ``|p(n+1) - M(u(n))|`` for n = 0..N-2: the image at n+1 is taken with the
+    attitude u(n) produced during the step (the paper's ``phi_d(k+1)`` from ``r(k)``), so the
+    applied input u(0) is checked against the next image. Written in stage n as
+    ``p(F(x_n, u_n))`` to keep the stage structure; tightened with the radius of stage n+1.
+    """
+    big_n = rmpc.horizon
+    if rmpc.visibility_pairing == "causal":
+        return [(n, n + 1, n) for n in range(big_n - 1)]
+    return [(n, n, n) for n in range(1, big_n)]
+
+
 def visibility_radius(rmpc: RmpcConfig, terminal: TerminalDesign, n: int) -> float:
     """``r_v - n rho e^{L (n-1) delta}`` (spec 6), the tightened radius at stage ``n``."""
     return terminal.r_v - n * rmpc.rho * float(np.exp(terminal.lipschitz_l * (n - 1) * rmpc.dt_s))
@@ -129,20 +145,23 @@ def build_nlp(
         n_w += v.shape[0]
         return idx
 
-    def path_rows(n: int, x: ca.SX, u: ca.SX | None) -> None:
+    vis_stage = {st: img for st, img, _ in visibility_pairs(rmpc)}
+
+    def path_rows(n: int, x: ca.SX, u: ca.SX | None, x_next: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
         items: list[tuple[str, str, ca.SX, float]] = []
         if n < big_n:
             if rmpc.enable_tube:
                 items.append(("tube", "tube", ca.bilin(p_mat, x, x), tube_bound(rmpc, n) ** 2))
-            if rmpc.enable_visibility and n >= 1:
-                assert u is not None
-                pu, pn = image_point(x)
+            if rmpc.enable_visibility and n in vis_stage:
+                assert u is not None and x_next is not None
+                img = vis_stage[n]
+                pu, pn = image_point(x if img == n else x_next)
                 mu, mn = centre(u, rmpc, camera)
                 val = (pu - mu) ** 2 + (pn - mn) ** 2
                 items.append(
-                    ("visibility", "visibility", val, visibility_radius(rmpc, terminal, n) ** 2)
+                    ("visibility", "visibility", val, visibility_radius(rmpc, terminal, img) ** 2)
                 )
         else:
             if rmpc.enable_tube or rmpc.enable_terminal:  # X(N) = eps: the tube ends in Omega
@@ -174,16 +193,15 @@ def build_nlp(
         u_index[n] = add_w(u)
         ue = input_error(u, v_a, vdot_a, psidot_a)
         cost = cost + ca.bilin(q, x, x) + ca.bilin(r, ue, ue)
-        gap = xs[n + 1] - euler_step(
-            x, u, v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s
-        )
+        x_next = euler_step(x, u, v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s)
+        gap = xs[n + 1] - x_next
         # g: the gap rows of stage n come before its path rows (fatrop's structure detection);
         # w: the path rows' slacks are appended right after u_n, i.e. before x_{n+1}.
         gap_index[n] = np.arange(n_g, n_g + NX)
         g.append(gap)
         equality.extend([True] * NX)
         n_g += NX
-        path_rows(n, x, u)
+        path_rows(n, x, u, x_next)
     x_index[big_n] = add_w(xs[big_n])
     cost = cost + ca.bilin(p_mat, xs[big_n], xs[big_n])
     path_rows(big_n, xs[big_n], None)

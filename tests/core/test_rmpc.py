@@ -311,17 +311,22 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
 def test_constraint_groups_switch_exactly_their_rows(
     cfg: Config, design: TerminalDesign, tube: bool, vis: bool, term: bool
 ) -> None:
-    from companion.core.rmpc_problem import build_nlp
+    from companion.core.rmpc_problem import build_nlp, visibility_pairs
 
     rc = dataclasses.replace(cfg.rmpc, enable_tube=tube, enable_visibility=vis,
                              enable_terminal=term)
     big_n = rc.horizon
+    # both pairings: N-1 rows, at stages 1..N-1 ("spec") or 0..N-2 ("causal")
+    stages = [st for st, _, _ in visibility_pairs(rc)]
+    assert len(stages) == big_n - 1
+    assert stages == (list(range(big_n - 1)) if rc.visibility_pairing == "causal"
+                      else list(range(1, big_n)))
     for soft in (False, True):
         nlp, lay = build_nlp(rc, cfg.camera, design, soft=soft)
         kinds = sorted((r.kind, r.stage) for r in lay.rows)
         expected = sorted(
             [("tube", n) for n in range(big_n) if tube]
-            + [("visibility", n) for n in range(1, big_n) if vis]
+            + [("visibility", st) for st, _, _ in visibility_pairs(rc) if vis]
             + ([("terminal_set", big_n)] if tube or term else [])
             + ([("terminal_visibility", big_n)] if term else [])
         )
