@@ -61,6 +61,7 @@ SYS_STATUS = 1
 ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
+_STATE_STREAMS = frozenset({30, 31, 32})  # ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED
 GLOBAL_POSITION_INT = 33
 AUTOPILOT_VERSION = 148
 HOME_POSITION = 242
@@ -384,10 +385,27 @@ class SimBridge:
         link.send(self._encode(link, mid, t), addr)
 
     def _send_streams(self, t: float) -> None:
+        faults = self.cfg.sim.faults
         for name, streams in self._streams.items():
             link = self._links[name]
             for mid in streams.due(t):
+                if mid in _STATE_STREAMS and faults.dropout(t):
+                    continue  # injected telemetry dropout
+                if mid in _STATE_STREAMS and faults.nan(t):
+                    link.send(self._encode_nan(link, mid, t))
+                    continue
                 self._send_message(link, mid, t)
+
+    def _encode_nan(self, link: MavUdpLink, mid: int, t: float) -> Any:
+        """The state message ``mid`` with NaN attitude/velocity (injected fault)."""
+        nan, ms, mav = float("nan"), self._ms(t), link.mav
+        if mid == ATTITUDE_QUATERNION:
+            return mav.attitude_quaternion_encode(ms, nan, nan, nan, nan, nan, nan, nan)
+        if mid == ATTITUDE:
+            return mav.attitude_encode(ms, nan, nan, nan, nan, nan, nan)
+        p = self.state.pos_ned_m
+        return mav.local_position_ned_encode(ms, float(p[0]), float(p[1]), float(p[2]),
+                                             nan, nan, nan)
 
     # ------------------------------------------------------------------ world outputs
     def _send_follow_target(self, t: float) -> None:

@@ -190,6 +190,25 @@ class SimCameraConfig:
 
 
 @dataclass(frozen=True)
+class FaultsConfig:
+    """Failure injection for testing a client's safety logic (like PX4's failure injection).
+
+    Windows ``[t_start_s, t_end_s)`` in seconds since boot: ``telemetry_dropouts``: attitude
+    and local-position streams (ATTITUDE_QUATERNION, ATTITUDE, LOCAL_POSITION_NED) are not
+    sent; ``telemetry_nan``: those messages carry NaN in place of the attitude and velocity.
+    """
+
+    telemetry_dropouts: tuple[tuple[float, float], ...] = ()
+    telemetry_nan: tuple[tuple[float, float], ...] = ()
+
+    def dropout(self, t_s: float) -> bool:
+        return any(a <= t_s < b for a, b in self.telemetry_dropouts)
+
+    def nan(self, t_s: float) -> bool:
+        return any(a <= t_s < b for a, b in self.telemetry_nan)
+
+
+@dataclass(frozen=True)
 class ScenarioConfig:
     """Initial UAV pose: position (m, NED) and roll, pitch, yaw (rad, ZYX)."""
 
@@ -213,6 +232,7 @@ class SimConfig:
     link: LinkConfig
     agv: AgvConfig
     camera: SimCameraConfig
+    faults: FaultsConfig = field(default_factory=FaultsConfig)
 
     def __post_init__(self) -> None:
         if self.physics_dt_s > self.step_dt_s:
@@ -338,7 +358,9 @@ _SIM_SUBTABLES = {
     "link": LinkConfig,
     "agv": AgvConfig,
     "camera": SimCameraConfig,
+    "faults": FaultsConfig,
 }
+_OPTIONAL_SUBTABLES = frozenset({"faults"})
 
 
 def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
@@ -353,6 +375,9 @@ def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
     subs = {}
     for name, cls in _SIM_SUBTABLES.items():
         if name not in sim_t:
+            if name in _OPTIONAL_SUBTABLES:
+                subs[name] = cls()
+                continue
             raise ConfigError(f"sim.{name}: missing table")
         subs[name] = _build(cls, sim_t[name], f"sim.{name}")
     scenarios = sim_t.get("scenarios", {})
