@@ -170,11 +170,11 @@ class ControlPipeline:
             p_status, p_reason = "lost", "no image"
         else:
             pr = self.perception.process(image)
-        if clock:
-            marks.append(("detect", clock()))
             p_status, p_reason = pr.status, pr.reason
             if pr.status == "ok":
                 corners, points_m = pr.corners_px, pr.points_m
+        if clock:
+            marks.append(("detect", clock()))
         # 2. telemetry at the frame's time
         att = store.attitude_at(t_s)
         kin = store.kinematics

@@ -88,14 +88,18 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
 
 def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
            overrides: list[str] | None = None,
-           progress: Callable[[int, int], None] | None = None) -> ReplayResult:
+           progress: Callable[[int, int], None] | None = None,
+           timer: Callable[[], float] | None = None) -> ReplayResult:
+    """Replay ``log_path``; ``timer`` (e.g. time.perf_counter) records stage timings in the
+    recomputed step records (measurement only: results are the same without it)."""
     with LogReader(log_path) as reader:
-        return _replay(reader, log_path, out_path, config, overrides, progress)
+        return _replay(reader, log_path, out_path, config, overrides, progress, timer)
 
 
 def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Path | None,
             overrides: list[str] | None,
-            progress: Callable[[int, int], None] | None) -> ReplayResult:
+            progress: Callable[[int, int], None] | None,
+            timer: Callable[[], float] | None) -> ReplayResult:
     counts = {c.topic: c.count for c in reader.channels}
     missing = [t for t in REQUIRED if t not in counts]
     if missing:
@@ -111,7 +115,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
         log.warning("%s is cut short: replaying the %d messages recovered up to %.1f s",
                     log_path, rec.messages,
                     ((rec.last_log_time_ns or 0) - (rec.first_log_time_ns or 0)) * 1e-9)
-    pipeline = new_pipeline(cfg)
+    pipeline = new_pipeline(cfg, timer=timer)
     store = new_store(cfg)
     tb = TimeBase(cfg.control.time_source)
     parser = mavlink2.MAVLink(None)
