@@ -150,6 +150,9 @@ def pose_and_point(draw: st.DrawFn) -> tuple[np.ndarray, float, float, float, np
     ax = r @ np.array([0.0, 0.0, 1.0])
     off = np.array([draw(st.floats(-0.8, 0.8)), draw(st.floats(-0.8, 0.8)), 1.0])
     ray = r @ off
+    # Tilt and offset together can aim the ray at or above the horizon: such a ray meets no
+    # ground point in front of the camera (the generator's domain, not the mapping's).
+    assume(ray[2] / np.linalg.norm(ray) > 0.25)
     t = -pos[2] / ray[2]
     point = pos + t * ray
     assert ax[2] > 0
