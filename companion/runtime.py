@@ -50,6 +50,7 @@ TOPIC_SAFETY = "/control/safety"
 TOPIC_OFFBOARD = "/control/offboard"
 TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
+TOPIC_TARGET_POSE = "/target/pose"
 
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
@@ -335,10 +336,23 @@ class CompanionApp:
                                  "send": (sent_ns - t_start_ns) * 1e-6
                                  - sum(rec["timings_ms"].values())}
         logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
-        if res.safety.changed:
+        self._log_poses(frame.t_rx_ns)
+        if res.safety.changed or self.steps == 1:  # the initial state, then each transition
             logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
                             f"{res.safety.level.value}: {res.safety.reason}",
                             level="WARNING", name="safety")
+
+    def _log_poses(self, t_ns: int) -> None:
+        """The vehicle and the target as the companion knows them (Foxglove 3-D panel, NED)."""
+        assert self._logger is not None
+        kin, tgt = self.store.kinematics, self.store.target
+        if kin is not None and self.store.attitude:
+            self._logger.log_pose(TOPIC_POSE, t_ns, "ned", kin.pos_ned_m,
+                                  self.store.attitude[-1].q_wxyz)
+        if tgt is not None:
+            half = 0.5 * tgt.yaw_rad
+            self._logger.log_pose(TOPIC_TARGET_POSE, t_ns, "ned", tgt.pos_ned_m,
+                                  (math.cos(half), 0.0, 0.0, math.sin(half)))
 
     def _act(self, act: Any, t_s: float) -> None:
         assert self._link is not None

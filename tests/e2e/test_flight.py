@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 
 from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG
+from companion.log_reader import LogReader
 from companion.replay import replay
 
 pytestmark = pytest.mark.slow
@@ -174,3 +175,74 @@ def test_log_info_lists_channels(flight: tuple[Path, dict]) -> None:
     assert "/camera/image" in p.stdout and "/control/step" in p.stdout
     line = next(ln for ln in p.stdout.splitlines() if "/control/step" in ln)
     assert int(line.split()[1]) == rep["steps"]
+
+
+def test_mcap_camera_source_yields_the_recorded_frames(flight: tuple[Path, dict]) -> None:
+    import asyncio
+
+    from companion.camera_sources import open_camera
+
+    out, _ = flight
+
+    async def read() -> list:
+        async with open_camera(str(out / "flight.mcap")) as cam:
+            return [(f.t_us, f.t_rx_ns, f.image.shape) async for f in cam]
+
+    frames = asyncio.run(read())
+    with LogReader(out / "flight.mcap") as r:
+        steps = [m.data for m in r.messages(topics=["/control/step"])]
+    assert [(s["frame_t_us"], s["t_rx_ns"]) for s in steps] == [f[:2] for f in frames]
+    assert {f[2] for f in frames} == {(1000, 1000)}
+
+
+def test_replay_names_a_missing_channel(flight: tuple[Path, dict], tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    from companion.replay import ReplayError
+
+    out, _ = flight
+    stripped = tmp_path / "no-frames.mcap"
+    with open(out / "flight.mcap", "rb") as src, open(stripped, "wb") as dst:
+        w = Writer(dst)
+        w.start()
+        ids: dict[int, int] = {}
+        for schema, channel, msg in make_reader(src).iter_messages():
+            if channel.topic == "/camera/image":
+                continue
+            if channel.id not in ids:
+                sid = w.register_schema(schema.name, schema.encoding, schema.data)
+                ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding,
+                                                     sid)
+            w.add_message(ids[channel.id], msg.log_time, msg.data, msg.publish_time)
+        w.finish()
+    with pytest.raises(ReplayError, match="/camera/image"):
+        replay(stripped, tmp_path / "r.mcap")
+
+
+def test_pixel_plot_data_lies_inside_the_drawn_bound(flight: tuple[Path, dict]) -> None:
+    from companion.config import load_config
+    from companion.plots import corner_report_pixels
+    from companion.reporting import load_scored_messages, report_settings
+
+    out, rep = flight
+    msgs, _ = load_scored_messages(out / "flight.mcap")
+    truth = sorted((p for t, _, p in msgs if t == "/truth"), key=lambda r: r["t_us"])
+    px = corner_report_pixels(truth, report_settings(load_config()))
+    assert np.isfinite(px).all() and px.shape == (len(truth), 4, 2)
+    # the plotted curves are the report's figures, and inside the drawn 500 px square
+    assert np.abs(px[:, :, 1]).max() == pytest.approx(rep["visibility"]["max_abs_u_px"])
+    assert np.abs(px[:, :, 0]).max() == pytest.approx(rep["visibility"]["max_abs_n_px"])
+    assert np.abs(px).max() < rep["visibility"]["bound_px"]
+
+
+def test_foxglove_layout_shows_topics_the_log_has(flight: tuple[Path, dict]) -> None:
+    import re
+
+    out, _ = flight
+    layout = (Path(__file__).resolve().parents[2] / "foxglove" / "layout.json").read_text()
+    json.loads(layout)
+    wanted = set(re.findall(r'"(/[a-z_/A-Z]+)', layout))
+    assert {"/camera/image", "/control/step", "/vehicle/pose", "/target/pose"} <= wanted
+    with LogReader(out / "flight.mcap") as r:
+        have = {c.topic for c in r.channels}
+    assert wanted <= have, wanted - have
