@@ -192,6 +192,7 @@ class McapLogger:
         chunk_size: int = 1 << 20,
         flush_interval_s: float = 1.0,
         queue_size: int = 4096,
+        max_pending_image_bytes: int = 64 << 20,
         *,
         compression: str = "zstd",
         jpeg_quality: int = 90,
@@ -211,6 +212,10 @@ class McapLogger:
         self.chunk_size = chunk_size
         self.flush_interval_s = float(flush_interval_s)
         self.queue_size = queue_size
+        self.max_pending_image_bytes = max_pending_image_bytes
+        self._pending_image_bytes = 0
+        self._images_dropped = 0
+        self._last_image_warn = 0.0
         self._compression = _COMPRESSION[compression]
         self._jpeg_quality = jpeg_quality
         self._extra = {k: dict(v) for k, v in (extra_schemas or {}).items()}
@@ -279,6 +284,12 @@ class McapLogger:
             raise McapLogError(f"MCAP writer failed: {self._failure!r}") from self._failure
 
     # -- counters -------------------------------------------------------------------------------
+
+    @property
+    def images_dropped(self) -> int:
+        """Frames dropped because the image backlog exceeded ``max_pending_image_bytes``."""
+        with self._lock:
+            return self._images_dropped
 
     @property
     def stats(self) -> LoggerStats:
@@ -350,7 +361,34 @@ class McapLogger:
             None,
             (image, encoding, frame_id, t if stamp_ns is None else stamp_ns),
         )
-        return self._put(item)
+        nbytes = int(image.nbytes)
+        with self._lock:
+            over = self._pending_image_bytes + nbytes > self.max_pending_image_bytes
+            if not over:
+                self._pending_image_bytes += nbytes
+        if over:
+            # The writer is behind on images (encoding is the costly part): drop this frame
+            # rather than let the backlog grow without bound in memory.
+            self._drop_image()
+            return False
+        if not self._put(item):
+            with self._lock:
+                self._pending_image_bytes -= nbytes
+            return False
+        return True
+
+    def _drop_image(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._dropped += 1
+            self._images_dropped += 1
+            warn = now - self._last_image_warn >= 1.0
+            if warn:
+                self._last_image_warn = now
+            n = self._images_dropped
+        if warn:
+            log.warning("MCAP log: image backlog over %d MB, %d frames dropped so far",
+                        self.max_pending_image_bytes >> 20, n)
 
     def log_text(
         self, topic: str, log_time_ns: int, message: str, level: str = "INFO", name: str = ""
@@ -536,7 +574,12 @@ class McapLogger:
                 schema_name, data = self._topics[topic], bytes(payload)
             elif kind == "image":
                 image, enc, frame_id, stamp_ns = payload
-                schema_name, data = encode_image(image, enc, stamp_ns, frame_id, self._jpeg_quality)
+                try:
+                    schema_name, data = encode_image(image, enc, stamp_ns, frame_id,
+                                                     self._jpeg_quality)
+                finally:
+                    with self._lock:
+                        self._pending_image_bytes -= int(image.nbytes)
             else:
                 schema_name, data = self._topics[topic], encode_json(_mavlink_payload(*payload))
         except (McapLogError, TypeError, ValueError, AttributeError) as e:

@@ -127,7 +127,11 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     recorded_sat: list[dict[str, Any]] = []
     pending_steps: list[dict[str, Any]] = []
     mav_in: list[LogMessage] = []
-    writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16) if out_path else None
+    writer = None
+    if out_path is not None:
+        writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
+        writer.open()
+        writer.log_config(0, "", dict(cfg.raw), cfg.source)
 
     def ingest(m: LogMessage) -> None:
         nonlocal rx_seen

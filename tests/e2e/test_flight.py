@@ -246,3 +246,20 @@ def test_foxglove_layout_shows_topics_the_log_has(flight: tuple[Path, dict]) -> 
     with LogReader(out / "flight.mcap") as r:
         have = {c.topic for c in r.channels}
     assert wanted <= have, wanted - have
+
+
+def test_replay_cli_writes_its_log_and_report(flight: tuple[Path, dict], tmp_path: Path) -> None:
+    out, rep = flight
+    p = subprocess.run([sys.executable, "-m", "companion", "replay", str(out / "flight.mcap"),
+                        "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "identical" in p.stdout
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["replay"]["identical"] is True
+    assert report["replay"]["commands_compared"] == rep["steps"]
+    assert report["replay"]["max_quat_diff"] <= 1e-6
+    # the recomputed stream is a log of its own, with the same step channel and the truth
+    with LogReader(tmp_path / "replay.mcap") as r:
+        topics = {c.topic: c.count for c in r.channels}
+    assert topics["/control/step"] == rep["steps"] and topics["/truth"] >= rep["steps"]
+    assert (tmp_path / "pixels.png").stat().st_size > 10_000
