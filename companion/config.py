@@ -233,6 +233,11 @@ class LoggingConfig:
     chunk_size_bytes: int = field(metadata=_check(_positive))
     flush_interval_s: float = field(metadata=_check(_positive))
     queue_size: int = field(metadata=_check(_positive))
+    # Frames waiting to be encoded, at most (MiB); beyond it frames are dropped (counted) ...
+    max_pending_image_mb: int = field(default=64, metadata=_check(_positive))
+    # ... unless this is set: then logging a frame waits for the writer. Only where no
+    # wall-clock deadline exists (lockstep simulation); never on a vehicle.
+    block_on_backlog: bool = False
 
     def __post_init__(self) -> None:
         if self.image_encoding not in ("png", "jpeg", "raw"):

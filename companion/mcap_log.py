@@ -194,6 +194,7 @@ class McapLogger:
         queue_size: int = 4096,
         max_pending_image_bytes: int = 64 << 20,
         *,
+        block_on_backlog: bool = False,
         compression: str = "zstd",
         jpeg_quality: int = 90,
         extra_schemas: Mapping[str, Mapping[str, Any]] | None = None,
@@ -213,6 +214,7 @@ class McapLogger:
         self.flush_interval_s = float(flush_interval_s)
         self.queue_size = queue_size
         self.max_pending_image_bytes = max_pending_image_bytes
+        self.block_on_backlog = block_on_backlog
         self._pending_image_bytes = 0
         self._images_dropped = 0
         self._last_image_warn = 0.0
@@ -221,6 +223,7 @@ class McapLogger:
         self._extra = {k: dict(v) for k, v in (extra_schemas or {}).items()}
         self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._lock = threading.Lock()
+        self._space = threading.Condition(self._lock)  # image backlog below the byte budget
         self._topics: dict[str, str] = {}
         self._enqueued = self._written = self._flushed = self._dropped = self._errors = 0
         self._last_warn = -math.inf
@@ -241,6 +244,8 @@ class McapLogger:
             chunk_size=logging_cfg.chunk_size_bytes,
             flush_interval_s=logging_cfg.flush_interval_s,
             queue_size=logging_cfg.queue_size,
+            max_pending_image_bytes=int(getattr(logging_cfg, "max_pending_image_mb", 64)) << 20,
+            block_on_backlog=bool(getattr(logging_cfg, "block_on_backlog", False)),
         )
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -271,7 +276,9 @@ class McapLogger:
         :class:`McapLogError` if the writer thread failed (unless ``raise_on_failure`` is False)."""
         if not self._open or self._closed:
             return
-        self._closed = True
+        with self._space:
+            self._closed = True
+            self._space.notify_all()
         assert self._thread is not None
         while self._thread.is_alive():
             try:
@@ -362,7 +369,14 @@ class McapLogger:
             (image, encoding, frame_id, t if stamp_ns is None else stamp_ns),
         )
         nbytes = int(image.nbytes)
-        with self._lock:
+        with self._space:
+            if self.block_on_backlog:
+                # lockstep: no wall-clock deadline, so wait for the writer rather than drop
+                self._space.wait_for(
+                    lambda: self._pending_image_bytes + nbytes <= self.max_pending_image_bytes
+                    or self._failure is not None or self._closed,
+                    timeout=10.0,
+                )
             over = self._pending_image_bytes + nbytes > self.max_pending_image_bytes
             if not over:
                 self._pending_image_bytes += nbytes
@@ -372,8 +386,9 @@ class McapLogger:
             self._drop_image()
             return False
         if not self._put(item):
-            with self._lock:
+            with self._space:
                 self._pending_image_bytes -= nbytes
+                self._space.notify_all()
             return False
         return True
 
@@ -530,7 +545,9 @@ class McapLogger:
             with self._lock:
                 self._flushed = self._written
         except BaseException as e:  # disk full, broken pipe...: stop logging, never the flight
-            self._failure = e
+            with self._space:
+                self._failure = e
+                self._space.notify_all()
             log.error("MCAP writer stopped: %r (%d items written)", e, self._written)
             self._drain_after_failure()
         finally:
@@ -578,8 +595,9 @@ class McapLogger:
                     schema_name, data = encode_image(image, enc, stamp_ns, frame_id,
                                                      self._jpeg_quality)
                 finally:
-                    with self._lock:
+                    with self._space:
                         self._pending_image_bytes -= int(image.nbytes)
+                        self._space.notify_all()
             else:
                 schema_name, data = self._topics[topic], encode_json(_mavlink_payload(*payload))
         except (McapLogError, TypeError, ValueError, AttributeError) as e:

@@ -66,7 +66,7 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
     comp = [
         sys.executable, "-m", "companion", "run", "--config", str(config),
         "--set", 'control.time_source="autopilot"', "--set", "offboard.arm=true",
-        "--set", "offboard.reengage=true",
+        "--set", "offboard.reengage=true", "--set", "logging.block_on_backlog=true",
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",

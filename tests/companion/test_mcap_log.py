@@ -265,3 +265,29 @@ def test_writer_failure_stops_logging_not_the_caller(tmp_path: Path) -> None:
     assert not lg.log("/x", i, {"i": i}, schema=sch.JSON)  # dropped, no exception
     with pytest.raises(McapLogError, match="writer failed"):
         lg.close()
+
+
+def test_image_backlog_is_bounded_in_bytes_drop_or_wait(tmp_path: Path) -> None:
+    """Frames waiting for (slow, PNG) encoding are bounded in bytes: dropped and counted by
+    default; with ``block_on_backlog`` (lockstep) the caller waits and nothing is lost."""
+    import numpy as np
+
+    from companion.log_reader import LogReader
+    from companion.mcap_log import McapLogger
+
+    rng = np.random.default_rng(0)
+    imgs = [rng.integers(0, 255, (1000, 1000), dtype=np.uint8) for _ in range(3)]
+    budget = int(2.5 * imgs[0].nbytes)
+    n = 12
+    for block in (False, True):
+        path = tmp_path / f"b{block}.mcap"
+        with McapLogger(path, max_pending_image_bytes=budget, block_on_backlog=block) as lg:
+            accepted = sum(lg.log_image("/cam", i, imgs[i % 3], "png") for i in range(n))
+            dropped = lg.images_dropped
+        with LogReader(path) as r:
+            logged = sum(1 for _ in r.messages(topics=["/cam"], decode=False))
+        assert logged == accepted
+        if block:
+            assert accepted == n and dropped == 0
+        else:
+            assert 2 <= accepted < n and dropped == n - accepted
