@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from companion.core.geometry import rectangle_corners_m
 from companion.perception._types import (
     Detection,
     DetectionReport,
@@ -86,8 +87,7 @@ class ArucoDetector:
         self._edge_settings = EdgeSettings()
         self.size_m = float(size_m)
         self.limits = limits or QuadLimits(expected_aspect=1.0)
-        h = size_m / 2
-        pts = np.array([[h, -h], [h, h], [-h, h], [-h, -h]], dtype=np.float64)
+        pts = rectangle_corners_m(size_m, size_m)  # FL, FR, RR, RL of the marker's outer edge
         pts.setflags(write=False)
         self._target_points_m = pts
 

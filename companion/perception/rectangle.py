@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from companion.core.geometry import rectangle_corners_m
 from companion.perception._types import (
     Detection,
     DetectionReport,
@@ -109,14 +110,7 @@ class RectangleDetector:
         )
         aspect = max(length_m, width_m) / min(length_m, width_m)
         self.limits = limits or QuadLimits(expected_aspect=aspect)
-        pts = np.array(
-            [
-                [+length_m / 2, -width_m / 2],
-                [+length_m / 2, +width_m / 2],
-                [-length_m / 2, +width_m / 2],
-                [-length_m / 2, -width_m / 2],
-            ]
-        )
+        pts = rectangle_corners_m(length_m, width_m)  # FL, FR, RR, RL
         pts.setflags(write=False)
         self._target_points_m = pts
 
