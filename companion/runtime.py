@@ -299,8 +299,6 @@ class CompanionApp:
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
         t_start_ns = time.monotonic_ns()
-        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
-                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
         res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
         if self.offboard.phase in (OffboardPhase.EXITING, OffboardPhase.DONE) and \
                 res.setpoint is not None and res.safety.level is not SafetyLevel.SILENT:
@@ -317,6 +315,9 @@ class CompanionApp:
                 pass
         else:
             self.offboard.on_stream_gap()
+        # The frame is logged after the command left: a logging backlog never delays it.
+        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
+                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
         before = self.offboard.phase
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
