@@ -27,7 +27,9 @@ def _files(pkg: str) -> list[Path]:
     return files
 
 
-@pytest.mark.parametrize(("pkg", "other"), [("companion", "sim_bridge"), ("sim_bridge", "companion")])
+@pytest.mark.parametrize(
+    ("pkg", "other"), [("companion", "sim_bridge"), ("sim_bridge", "companion")]
+)
 def test_emulator_and_companion_never_import_each_other(pkg: str, other: str) -> None:
     for f in _files(pkg):
         bad = {m for m in _imports(f) if m == other or m.startswith(other + ".")}
