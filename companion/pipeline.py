@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.core.dynamics import terminal_feedforward
 from companion.core.geometry import euler_zyx_from_quat, rectangle_corners_m, wrap_pi
 from companion.core.moments import DegenerateTargetError, a_star
 from companion.core.prediction import predict_target_motion
@@ -338,4 +337,4 @@ def _f(x: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
-__all__ = ["ControlPipeline", "StepResult", "VelocityEstimate", "terminal_feedforward"]
+__all__ = ["ControlPipeline", "StepResult", "VelocityEstimate"]

@@ -38,7 +38,7 @@ from companion.mavlink_link import MavlinkLink, NoPeerError, Received
 from companion.mcap_log import McapLogger
 from companion.offboard import OffboardManager, OffboardPhase, VehicleStatus
 from companion.perception.pipeline import Perception
-from companion.pipeline import ControlPipeline, StepResult
+from companion.pipeline import ControlPipeline
 from companion.safety import SafetyLevel
 from companion.telemetry import TelemetryStore
 
@@ -376,6 +376,3 @@ class CompanionApp:
                                   f"{before.value} -> {phase.value}: {reason}",
                                   level="INFO", name="offboard")
 
-
-def step_summary(res: StepResult) -> str:  # pragma: no cover - debugging aid
-    return f"{res.t_s:.2f} {res.safety.level.value} {res.perception_status}"
