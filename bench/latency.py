@@ -41,6 +41,17 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
+def _window_median(t: np.ndarray, mem: np.ndarray, a_s: float, b_s: float,
+                   duration_s: float) -> float | None:
+    """Median RSS over flight seconds [a_s, b_s) (wall samples mapped linearly onto the
+    flight)."""
+    if t.size == 0:
+        return None
+    frac = (t - t[0]) / max(t[-1] - t[0], 1e-9) * duration_s
+    sel = (frac >= a_s) & (frac < b_s)
+    return float(np.median(mem[sel])) if np.any(sel) else None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=251.0)
@@ -84,6 +95,11 @@ def main() -> int:
         "rss_at_30s_mb": float(mem[i30]) if mem.size else None,
         "rss_end_mb": float(mem[-1]) if mem.size else None,
         "rss_growth_30s_to_end": float(mem[-1] / mem[i30] - 1.0) if mem.size else None,
+        # Point samples swing with the frames queued for encoding (up to
+        # logging.max_pending_image_mb); a leak shows in window medians too.
+        "rss_median_30_60s_mb": _window_median(t, mem, 30.0, 60.0, args.duration),
+        "rss_median_last_30s_mb": _window_median(t, mem, args.duration - 30.0, args.duration,
+                                                 args.duration),
         "real_time_factor": rep["real_time_factor"],
         "targets": {"median_ms": 5.0, "p95_ms": 10.0, "rss_peak_mb": 400.0, "growth": 0.05},
     }
@@ -99,6 +115,10 @@ def main() -> int:
         print(f"companion RSS: peak {res['rss_peak_mb']:.0f} MB (target 400), "
               f"{res['rss_at_30s_mb']:.0f} MB at 30 s -> {res['rss_end_mb']:.0f} MB at the end "
               f"({100 * res['rss_growth_30s_to_end']:+.1f} %, target < 5 %)")
+        a, b = res["rss_median_30_60s_mb"], res["rss_median_last_30s_mb"]
+        if a and b:
+            print(f"  window medians: {a:.0f} MB over 30-60 s -> {b:.0f} MB over the last 30 s "
+                  f"({100 * (b / a - 1):+.1f} %)")
         print(f"flight ran at {res['real_time_factor']:.1f}x real time; log in {out}")
     return 0
 
