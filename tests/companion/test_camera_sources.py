@@ -339,8 +339,13 @@ def test_open_camera_dispatch(tmp_path: Path) -> None:
     for bad in ("", "tcp://host", "tcp://h:99999", str(tmp_path / "missing.avi"), "foo://x"):
         with pytest.raises(CameraError):
             open_camera(bad)
-    with pytest.raises(CameraError, match="MCAP"):
+    with pytest.raises(CameraError, match="no such file"):
         open_camera(str(tmp_path / "run.mcap"))
+    (tmp_path / "run.mcap").write_bytes(b"")  # opened lazily: a bad file fails on entry
+    from companion.camera_sources import McapSource
+
+    for url in (str(tmp_path / "run.mcap"), f"mcap://{tmp_path / 'run.mcap'}"):
+        assert isinstance(open_camera(url), McapSource)
     assert issubclass(CameraError, CompanionError)
 
 
