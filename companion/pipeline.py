@@ -212,7 +212,7 @@ class ControlPipeline:
         rmpc_res = None
         solver_ok = True
         motion: TargetMotion | None = None
-        if es is not None:
+        if es is not None and vel is not None:
             motion = predict_target_motion(
                 vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
                 cfg.rmpc.horizon, cfg.rmpc.dt_s)

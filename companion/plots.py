@@ -17,6 +17,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.patches import Rectangle
 
 from companion.flight_report import (
     TOPIC_STEP,
@@ -92,9 +93,9 @@ def _pixels(truth: list[Mapping[str, Any]], st: ReportSettings, path: Path) -> P
     b = st.visible_bound_report_px
     half = st.width_px * st.pixel_size_m / st.report_pixel_size_m / 2.0
     fig, ax = plt.subplots(figsize=(6, 6))
-    ax.add_patch(plt.Rectangle((-half, -half), 2 * half, 2 * half, fill=False, color="0.6",
+    ax.add_patch(Rectangle((-half, -half), 2 * half, 2 * half, fill=False, color="0.6",
                                label="image"))
-    ax.add_patch(plt.Rectangle((-b, -b), 2 * b, 2 * b, fill=False, color="tab:red", lw=2,
+    ax.add_patch(Rectangle((-b, -b), 2 * b, 2 * b, fill=False, color="tab:red", lw=2,
                                label=f"visible area (|px| <= {b:.0f})"))
     for k in range(4):
         ax.plot(px[:, k, 0], px[:, k, 1], lw=0.8, label=f"corner {k + 1}")

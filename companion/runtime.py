@@ -306,7 +306,7 @@ class CompanionApp:
         sent_ns = None
         if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
             try:
-                link.send_attitude_target(res.setpoint.q_wxyz, res.setpoint.thrust_norm,
+                link.send_attitude_target(res.setpoint.q_wxyz.tolist(), res.setpoint.thrust_norm,
                                           time_boot_ms=int(max(t_s, 0.0) * 1e3) & 0xFFFFFFFF)
                 sent_ns = time.monotonic_ns()
                 self.sent += 1

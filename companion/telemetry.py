@@ -201,4 +201,5 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
     else:
         th = math.acos(dot)
         q = (math.sin((1 - w) * th) * q0 + math.sin(w * th) * q1) / math.sin(th)
-    return q / np.linalg.norm(q)
+    out: np.ndarray = q / np.linalg.norm(q)
+    return out

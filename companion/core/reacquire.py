@@ -54,4 +54,5 @@ def reacquire_input(
     psidot = gains.kyaw_per_s * wrap_pi(yaw_a_rad - yaw_q_rad)
     u = np.array([r12[0], r12[1], r3, psidot])
     lim = np.asarray(u_max, dtype=float)
-    return np.clip(u, -lim, lim)
+    out: np.ndarray = np.clip(u, -lim, lim)
+    return out

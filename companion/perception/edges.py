@@ -231,10 +231,11 @@ def _edge_points_batch(
         width = np.where(ok, np.clip(contrast / slope, 0.5, 2.0 * r), width)
     out: list[tuple[FloatArray, float, int] | None] = []
     row0 = 0
-    for base, normal_out in zip(bases, normals, strict=True):
-        if base is None or normal_out is None:
+    for maybe_base, maybe_normal in zip(bases, normals, strict=True):
+        if maybe_base is None or maybe_normal is None:
             out.append(None)
             continue
+        base, normal_out = maybe_base, maybe_normal
         n_samples = base.shape[0]
         sl = slice(row0, row0 + n_samples)
         row0 += n_samples
