@@ -1,0 +1,114 @@
+"""The emulator in lockstep with a trivial hover controller, as the issue states the target.
+
+    python bench/lockstep.py [--duration 30] [--json]
+
+Starts ``python -m sim_bridge --lockstep`` (the real process: physics, PX4 state machine,
+telemetry streams, AGV, 1000 x 1000 frames over TCP) and a minimal client in this process that
+reads each frame and answers with a level hover SET_ATTITUDE_TARGET over UDP. Reports wall time
+per simulated step (median from the frame arrival times), frames/s and the ratio to real time.
+Target: <= 2 ms median per step. The client's own work (reading a 1 MB frame, sending one
+datagram) is inside the figure, so it is an upper bound on the emulator's share.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import struct
+import subprocess
+import sys
+import time
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
+
+HEADER = struct.Struct("<4sBBHIQHHII")
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def read_exact(sock: socket.socket, view: memoryview, n: int) -> memoryview:
+    """Fill ``view[:n]`` from the socket (no per-chunk allocation)."""
+    got = 0
+    while got < n:
+        k = sock.recv_into(view[got:n])
+        if k == 0:
+            raise EOFError
+        got += k
+    return view[:n]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--profile", default=None, help="write the emulator's cProfile here")
+    args = ap.parse_args()
+    p_comp, p_sim = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    p_frame = free_port(socket.SOCK_STREAM)
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.bind(("127.0.0.1", p_comp))
+    prof = ["-m", "cProfile", "-o", args.profile] if args.profile else []
+    cmd = [sys.executable, *prof, "-m", "sim_bridge", "--lockstep",
+           "--duration", str(args.duration), "--bind", "127.0.0.1", "--offboard-port", str(p_sim),
+           "--offboard-remote", f"127.0.0.1:{p_comp}",
+           "--gcs-port", str(free_port(socket.SOCK_DGRAM)),
+           "--gcs-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
+           "--agv-port", str(free_port(socket.SOCK_DGRAM)), "--frame-port", str(p_frame),
+           "--truth-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}", "--log-level", "WARNING"]
+    sim = subprocess.Popen(cmd, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
+    q = [1.0, 0.0, 0.0, 0.0]
+    hover = mav.set_attitude_target_encode(0, 1, 1, 7, q, 0.0, 0.0, 0.0, 0.5).pack(mav)
+    try:
+        deadline = time.monotonic() + 30.0
+        while True:
+            try:
+                tcp = socket.create_connection(("127.0.0.1", p_frame), timeout=1.0)
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+        tcp.settimeout(5.0)
+        arrivals: list[float] = []
+        buf = memoryview(bytearray(64 << 20))
+        while True:
+            try:
+                head = HEADER.unpack(read_exact(tcp, buf, HEADER.size))
+                read_exact(tcp, buf, head[8])
+            except (EOFError, TimeoutError, OSError):
+                break
+            arrivals.append(time.perf_counter())
+            udp.sendto(hover, ("127.0.0.1", p_sim))
+        sim.wait(timeout=30.0)
+    finally:
+        if sim.poll() is None:
+            sim.kill()
+    gaps = np.diff(np.array(arrivals[5:])) * 1e3
+    step_s = 0.05
+    res = {
+        "steps": len(arrivals),
+        "median_ms": float(np.median(gaps)),
+        "p95_ms": float(np.percentile(gaps, 95)),
+        "frames_per_s": float(1e3 / np.median(gaps)),
+        "real_time_ratio": float(step_s * 1e3 / np.median(gaps)),
+        "target_ms": 2.0,
+    }
+    if args.json:
+        print(json.dumps(res, indent=2))
+    else:
+        print(f"lockstep emulator + trivial hover client, {res['steps']} steps: median "
+              f"{res['median_ms']:.2f} ms/step (target 2), p95 {res['p95_ms']:.2f} ms, "
+              f"{res['frames_per_s']:.0f} frames/s, {res['real_time_ratio']:.1f}x real time")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
