@@ -372,7 +372,7 @@ class LogReader:
                     "%s: undecodable JSON on %s at %d: %s", self.path, ch.topic, m.log_time, e
                 )
             if isinstance(data, dict) and schema_name in (sch.COMPRESSED_IMAGE, sch.RAW_IMAGE):
-                image = _decode_image(schema_name, data)
+                image = decode_image(schema_name, data)
                 data.pop("data", None)
         return LogMessage(
             topic=ch.topic,
@@ -385,7 +385,8 @@ class LogReader:
         )
 
 
-def _decode_image(schema_name: str, msg: dict[str, Any]) -> np.ndarray | None:
+def decode_image(schema_name: str, msg: dict[str, Any]) -> np.ndarray | None:
+    """The picture of a decoded foxglove.CompressedImage / RawImage JSON message, or None."""
     import cv2
 
     try:
