@@ -192,6 +192,8 @@ class ControlPipeline:
                     v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
                     psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
                     lam=cfg.camera.focal_length_m, s4_prev_rad=self._s4_prev,
+                    # a square marker's moments carry no orientation: use its corner order
+                    heading_from_corners=cfg.target.pattern == "aruco",
                 )
             except (MeasurementError, DegenerateTargetError) as exc:
                 finite = not isinstance(exc, MeasurementError)

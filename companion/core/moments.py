@@ -126,13 +126,40 @@ def unwrap_s4(s4_raw_rad: float, s4_prev_rad: float | None) -> float:
     return float(s4_raw_rad + k * math.pi)
 
 
+def heading_from_ordered_corners(points_v_m: ArrayLike) -> float:
+    """Heading (rad, (-pi, pi]) of an ordered target (front-left, front-right, rear-right,
+    rear-left) in the virtual image: the angle of its rear-to-front direction from the image's
+    ``u`` axis towards ``n``. A level camera at yaw ``psi_q`` sees a world heading ``psi_a`` at
+    ``psi_a - psi_q``: the same quantity the moment orientation gives for an elongated target,
+    but unique over a full turn and defined for a square (an ArUco marker, whose moments
+    ``mu20 = mu02, mu11 = 0`` carry no orientation)."""
+    p = np.asarray(points_v_m, dtype=float)
+    if p.shape != (4, 2) or not np.all(np.isfinite(p)):
+        raise DegenerateTargetError(f"heading needs 4 finite ordered corners, got {p.shape}")
+    d = 0.5 * (p[0] + p[1]) - 0.5 * (p[2] + p[3])
+    if not np.hypot(d[0], d[1]) > 0:
+        raise DegenerateTargetError("heading: front and rear edges coincide")
+    return math.atan2(float(d[1]), float(d[0]))
+
+
+def unwrap_angle(raw_rad: float, prev_rad: float | None, period_rad: float) -> float:
+    """``raw_rad`` shifted by a multiple of ``period_rad`` to lie nearest ``prev_rad``."""
+    if prev_rad is None or not math.isfinite(prev_rad):
+        return float(raw_rad)
+    return float(raw_rad + round((prev_rad - raw_rad) / period_rad) * period_rad)
+
+
 def image_moments(
-    points_v_m: ArrayLike, a_star: float, lam: float, s4_prev_rad: float | None = None
+    points_v_m: ArrayLike, a_star: float, lam: float, s4_prev_rad: float | None = None,
+    *, heading_from_corners: bool = False,
 ) -> ImageMoments:
     """Features ``s`` of spec 3 from N >= 3 virtual-image points (N, 2) (m).
 
     ``a_star`` (m^2): ``a`` at the desired pose (:func:`a_star`); ``lam``: focal length (m);
     ``s4_prev_rad``: the previous frame's ``s4`` for unwrapping (:func:`unwrap_s4`).
+    ``heading_from_corners``: take ``s4`` from the ordered corners
+    (:func:`heading_from_ordered_corners`, unwrapped over 2 pi) instead of the moments' 0.5 atan2
+    (needed for square targets such as ArUco markers).
     Raises :class:`DegenerateTargetError` (see :func:`central_moments`).
     """
     if not (math.isfinite(a_star) and a_star > 0):
@@ -144,7 +171,10 @@ def image_moments(
     _check_spread(mu20, mu02, mu11, p.shape[0], max(lam, float(np.max(np.abs(p)))))
     a = mu20 + mu02
     s3 = math.sqrt(a_star / a)
-    s4 = unwrap_s4(orientation_raw(mu20, mu02, mu11), s4_prev_rad)
+    if heading_from_corners:
+        s4 = unwrap_angle(heading_from_ordered_corners(p), s4_prev_rad, 2.0 * math.pi)
+    else:
+        s4 = unwrap_s4(orientation_raw(mu20, mu02, mu11), s4_prev_rad)
     s = np.array([s3 * ub / lam, s3 * nb / lam, s3, s4])
     return ImageMoments(
         s=s, u_v_bar_m=ub, n_v_bar_m=nb, a=a, mu20=mu20, mu02=mu02, mu11=mu11,

@@ -188,6 +188,7 @@ def build_error_state(
     lam: float,
     s4_prev_rad: float | None = None,
     cam_to_body: ArrayLike | None = None,
+    heading_from_corners: bool = False,
 ) -> ErrorState:
     """``eta_e`` of spec 4 and the target-motion parameters from one frame's measurements.
 
@@ -197,7 +198,8 @@ def build_error_state(
     vehicle's yaw rate ``psidot_q``; ``v_q_ned_m_s`` (3,) own velocity; ``v_a_ned_m_s``,
     ``a_a_ned_m_s2`` (3,) the target's velocity and acceleration (NED); ``psidot_a_rad_s`` its
     yaw rate; ``a_star`` (m^2) and ``lam`` (m) as in :func:`companion.core.moments.image_moments`;
-    ``s4_prev_rad`` the previous ``s4`` for unwrapping (None on the first frame).
+    ``s4_prev_rad`` the previous ``s4`` for unwrapping (None on the first frame);
+    ``heading_from_corners``: ``s4`` from the ordered points (square targets: ArUco).
 
     Raises :class:`MeasurementError` on non-finite measurements,
     :class:`companion.core.moments.DegenerateTargetError` on unusable target points and
@@ -208,7 +210,8 @@ def build_error_state(
     pitch = _scalar(pitch_rad, "pitch_rad")
     yaw = _scalar(yaw_rad, "yaw_rad")
     pts_v = virtual_image_points(points_real_m, roll, pitch, lam, cam_to_body)
-    mom = image_moments(pts_v, a_star, lam, s4_prev_rad)
+    mom = image_moments(pts_v, a_star, lam, s4_prev_rad,
+                        heading_from_corners=heading_from_corners)
     motion = target_motion_in_virtual(v_a_ned_m_s, a_a_ned_m_s2, psidot_a_rad_s, yaw,
                                       yaw_rate_rad_s)
     v_q = ned_to_virtual(_vec(v_q_ned_m_s, 3, "v_q_ned_m_s"), yaw)
