@@ -292,6 +292,12 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
     return Config(**sections, source=source, raw=types.MappingProxyType(plain))
 
 
+def read_document(path: str | Path) -> dict[str, Any]:
+    """The whole TOML document of a config file with its ``base`` chain merged (every table,
+    the emulator's ``[sim]`` included), unvalidated."""
+    return _read_with_base(Path(path), seen=())
+
+
 def with_overrides(data: Mapping[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
     """A deep copy of a parsed config document with ``key=value`` overrides applied."""
     import copy

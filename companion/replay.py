@@ -13,7 +13,8 @@ import json
 import logging
 import math
 import sys
-from collections.abc import Callable, Iterator
+from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,7 +129,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     frames: dict[int, Future[np.ndarray | None]] = {}
     recorded_sat: list[dict[str, Any]] = []
     pending_steps: list[dict[str, Any]] = []
-    mav_in: list[LogMessage] = []
+    mav_in: deque[LogMessage] = deque()
     writer = None
     if out_path is not None:
         writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
@@ -150,7 +151,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     def run_step(rec_step: dict[str, Any]) -> None:
         want = int(rec_step.get("rx_count", 0))
         while rx_seen < want and mav_in:
-            ingest(mav_in.pop(0))
+            ingest(mav_in.popleft())
         fut = frames.pop(int(rec_step["t_rx_ns"]), None)
         img = fut.result() if fut is not None else None
         if img is None:
@@ -276,8 +277,3 @@ def terminal_progress() -> Callable[[int, int], None] | None:
 
     return show
 
-
-def iter_steps(reader: LogReader) -> Iterator[dict[str, Any]]:
-    for m in reader.messages(topics=[TOPIC_STEP]):
-        if m.data:
-            yield m.data

@@ -39,7 +39,6 @@ from companion.mcap_log import McapLogger
 from companion.offboard import OffboardManager, OffboardPhase, VehicleStatus
 from companion.perception.pipeline import Perception
 from companion.pipeline import ControlPipeline
-from companion.safety import SafetyLevel
 from companion.telemetry import TelemetryStore
 
 log = logging.getLogger(__name__)
@@ -300,9 +299,6 @@ class CompanionApp:
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
         t_start_ns = time.monotonic_ns()
         res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
-        if self.offboard.phase in (OffboardPhase.EXITING, OffboardPhase.DONE) and \
-                res.setpoint is not None and res.safety.level is not SafetyLevel.SILENT:
-            pass  # keep streaming while PX4 switches to Hold
         sent_ns = None
         if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
             try:

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from companion import CompanionError
-from companion.config import DEFAULT_CONFIG, load_config
+from companion.config import DEFAULT_CONFIG, load_config, read_document
 from companion.reporting import build_report
 
 log = logging.getLogger(__name__)
@@ -85,10 +85,8 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     with fault injection) than the companion's ``config``."""
     cfg = load_config(config, overrides)  # fail early, in this process, on a bad config
     if duration_s is None:
-        import tomllib
-
-        duration_s = float(tomllib.loads(config.read_text()).get("sim", {})
-                           .get("duration_s", 251.0))
+        # the emulator's own setting, through the file's base chain
+        duration_s = float(read_document(config).get("sim", {}).get("duration_s", 251.0))
     out.mkdir(parents=True, exist_ok=True)
     sim_cmd, comp_cmd = demo_commands(config, scenario, duration_s, out, overrides, faults)
     if sim_config is not None:

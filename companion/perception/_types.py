@@ -88,6 +88,25 @@ class DetectionReport:
         return tuple(r.reason for r in self.rejections)
 
 
+class QuadDetectorBase:
+    """Shared by the concrete detectors: the target's corner layout and ``detect``."""
+
+    _target_points_m: FloatArray
+
+    @property
+    def target_points_m(self) -> FloatArray:
+        """(4, 2) ``(x forward, y right)`` metres: FL, FR, RR, RL (the detection's order)."""
+        return self._target_points_m
+
+    def analyse(
+        self, image: npt.NDArray[np.uint8], hint: npt.ArrayLike | None = None
+    ) -> DetectionReport:
+        raise NotImplementedError
+
+    def detect(self, image: npt.NDArray[np.uint8]) -> Detection | None:
+        return self.analyse(image).detection
+
+
 class Detector(Protocol):
     """What every detector offers. ``detect`` is ``analyse(image).detection``."""
 

@@ -19,6 +19,7 @@ from companion.perception._types import (
     DetectionReport,
     FloatArray,
     PerceptionError,
+    QuadDetectorBase,
     Rejection,
     to_gray,
 )
@@ -34,7 +35,7 @@ def aruco_dictionary(name: str) -> cv2.aruco.Dictionary:
     return cv2.aruco.getPredefinedDictionary(code)
 
 
-class ArucoDetector:
+class ArucoDetector(QuadDetectorBase):
     """Detects marker ``marker_id`` of ``dictionary`` (corners refined with CORNER_REFINE_SUBPIX).
 
     Other ids are ignored (reported as rejections). Two markers with the configured id make
@@ -91,13 +92,6 @@ class ArucoDetector:
         pts.setflags(write=False)
         self._target_points_m = pts
 
-    @property
-    def target_points_m(self) -> FloatArray:
-        """(4, 2) ``(x forward, y right)`` metres: FL, FR, RR, RL of the marker's outer edge."""
-        return self._target_points_m
-
-    def detect(self, image: npt.NDArray[np.uint8]) -> Detection | None:
-        return self.analyse(image).detection
 
     def analyse(
         self, image: npt.NDArray[np.uint8], hint: npt.ArrayLike | None = None

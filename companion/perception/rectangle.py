@@ -27,6 +27,7 @@ from companion.perception._types import (
     DetectionReport,
     FloatArray,
     PerceptionError,
+    QuadDetectorBase,
     Rejection,
     to_gray,
 )
@@ -79,7 +80,7 @@ class RectangleSettings:
             raise PerceptionError("refine_passes: must be >= 1")
 
 
-class RectangleDetector:
+class RectangleDetector(QuadDetectorBase):
     """Finds the target rectangle's four corners with sub-pixel accuracy.
 
     ``length_m``, ``width_m``: the target's sides (length along its heading). Corner order:
@@ -114,13 +115,6 @@ class RectangleDetector:
         pts.setflags(write=False)
         self._target_points_m = pts
 
-    @property
-    def target_points_m(self) -> FloatArray:
-        """(4, 2) ``(x forward, y right)`` metres: FL, FR, RR, RL (the detection's order)."""
-        return self._target_points_m
-
-    def detect(self, image: npt.NDArray[np.uint8]) -> Detection | None:
-        return self.analyse(image).detection
 
     def analyse(
         self, image: npt.NDArray[np.uint8], hint: npt.ArrayLike | None = None
