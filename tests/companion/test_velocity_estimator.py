@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.core.dynamics import euler_step
-from companion.pipeline import _ImageVelocityEstimator
+from companion.core.estimator import ImageVelocityEstimator
 
 Z_STAR = 2.0
 
@@ -21,7 +21,7 @@ def test_estimator_recovers_the_target_velocity(yaw_rate: float) -> None:
     v_a_ned = np.array([0.3, -0.2, 0.0])
     v_q_v = np.array([0.1, 0.05, 0.0])  # vehicle velocity in the virtual frame (held)
     yaw = 0.4
-    est = _ImageVelocityEstimator(Z_STAR, alpha=0.2)
+    est = ImageVelocityEstimator(Z_STAR, alpha=0.2)
     # |s1|, |s2| ~ 0.2: a wrong sign in the yaw-rate terms would be off by ~0.2 m/s
     eta = np.array([0.2, -0.25, 0.0, 0.1, 0.0, 0.0, 0.0])
     for k in range(200):
