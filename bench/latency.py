@@ -58,6 +58,8 @@ def main() -> int:
     ap.add_argument("--scenario", default="paper")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for the companion (e.g. logging.image_encoding=\"raw\")")
     args = ap.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="bench-latency-"))
     samples: list[tuple[float, float]] = []
@@ -67,7 +69,7 @@ def main() -> int:
         if v is not None:
             samples.append((time.monotonic(), v))
 
-    rep = run_demo(DEFAULT_CONFIG, args.scenario, args.duration, out, [], [], plots=False,
+    rep = run_demo(DEFAULT_CONFIG, args.scenario, args.duration, out, args.set, [], plots=False,
                    monitor=monitor)
     lat: list[float] = []
     stages: dict[str, list[float]] = {}

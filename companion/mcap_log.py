@@ -151,13 +151,17 @@ def encode_json(payload: Any) -> bytes:
 def encode_image(
     image: np.ndarray, encoding: str, log_time_ns: int, frame_id: str, jpeg_quality: int
 ) -> tuple[str, bytes]:
-    """(schema name, JSON bytes) of a foxglove.CompressedImage (jpeg/png) or RawImage (raw)."""
+    """(schema name, protobuf bytes) of a foxglove.CompressedImage (jpeg/png) or RawImage (raw).
+
+    Costs per 1000 x 1000 mono frame on this machine: "raw" ~0.5 ms here plus MCAP's zstd chunk
+    compression (~1 MB -> ~0.5 MB); "png" 6.6 ms (lossless too, ~0.35 MB, 6.6 ms to decode);
+    "jpeg" small but lossy."""
     import cv2
 
     img = np.ascontiguousarray(image)
     if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
         raise McapLogError(f"image must be uint8 HxW or HxWx3 (BGR), got {img.dtype} {img.shape}")
-    ts = stamp(log_time_ns)
+    sec, nsec = divmod(int(log_time_ns), 1_000_000_000)
     if encoding in ("jpeg", "png"):
         # Lossless PNG tuned for speed: Huffman-only coding after the SUB filter. On 1000 x 1000
         # camera frames 6.8 ms / ~349 KB against OpenCV's default 10.4 ms / ~342 KB.
@@ -169,17 +173,18 @@ def encode_image(
         ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
         if not ok:
             raise McapLogError(f"cv2 could not encode a {encoding} image")
-        data = base64.b64encode(buf.tobytes()).decode("ascii")
-        msg = {"timestamp": ts, "frame_id": frame_id, "format": encoding, "data": data}
-        return sch.COMPRESSED_IMAGE, encode_json(msg)
+        cmsg = sch.protobuf_class(sch.COMPRESSED_IMAGE)(
+            frame_id=frame_id, format=encoding, data=buf.tobytes()
+        )
+        cmsg.timestamp.seconds, cmsg.timestamp.nanos = sec, nsec
+        return sch.COMPRESSED_IMAGE, cmsg.SerializeToString()
     h, w = img.shape[:2]
-    enc = "mono8" if img.ndim == 2 else "bgr8"
-    msg = {
-        "timestamp": ts, "frame_id": frame_id, "width": w, "height": h, "encoding": enc,
-        "step": w * (1 if img.ndim == 2 else 3),
-        "data": base64.b64encode(img.tobytes()).decode("ascii"),
-    }  # fmt: skip
-    return sch.RAW_IMAGE, encode_json(msg)
+    rmsg = sch.protobuf_class(sch.RAW_IMAGE)(
+        frame_id=frame_id, width=w, height=h, encoding="mono8" if img.ndim == 2 else "bgr8",
+        step=w * (1 if img.ndim == 2 else 3), data=img.tobytes(),
+    )  # fmt: skip
+    rmsg.timestamp.seconds, rmsg.timestamp.nanos = sec, nsec
+    return sch.RAW_IMAGE, rmsg.SerializeToString()
 
 
 IMAGE_ENCODINGS = ("jpeg", "png", "raw")
@@ -252,6 +257,7 @@ class McapLogger:
             queue_size=logging_cfg.queue_size,
             max_pending_image_bytes=int(getattr(logging_cfg, "max_pending_image_mb", 64)) << 20,
             block_on_backlog=bool(getattr(logging_cfg, "block_on_backlog", False)),
+            compression=str(getattr(logging_cfg, "compression", "zstd")),
         )
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -519,6 +525,8 @@ class McapLogger:
     def _schema_text(self, name: str) -> bytes:
         if name in self._extra:
             return encode_json(self._extra[name])
+        if name in sch.PROTOBUF_SCHEMAS:
+            return sch.protobuf_schema_bytes(name)
         return sch.schema_bytes(name)
 
     def _run(self) -> None:
@@ -621,10 +629,10 @@ class McapLogger:
             sid = schema_ids.get(schema_name)
             if sid is None:
                 sid = writer.register_schema(
-                    schema_name, sch.SCHEMA_ENCODING, self._schema_text(schema_name)
+                    schema_name, sch.encodings(schema_name)[0], self._schema_text(schema_name)
                 )
                 schema_ids[schema_name] = sid
-            cid = writer.register_channel(topic, sch.MESSAGE_ENCODING, sid)
+            cid = writer.register_channel(topic, sch.encodings(schema_name)[1], sid)
             channels[topic] = cid
         writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
         with self._lock:

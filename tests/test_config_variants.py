@@ -25,7 +25,8 @@ def test_every_shipped_config_loads(path: Path) -> None:
     ("override", "key"),
     [("rmpc.horizon=0", "rmpc.horizon"), ("camera.visible_fraction=1.5", "camera.visible_fraction"),
      ("rmpc.solver=\"qpoases\"", "rmpc.solver"), ("control.time_source=\"gps\"", "time_source"),
-     ("rmpc.u_max=[1,1,1]", "rmpc.u_max"), ("safety.nope=1", "safety.nope")],
+     ("rmpc.u_max=[1,1,1]", "rmpc.u_max"), ("safety.nope=1", "safety.nope"),
+     ("logging.compression=\"gzip\"", "logging.compression")],
 )
 def test_a_bad_value_names_its_key(override: str, key: str) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

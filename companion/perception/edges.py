@@ -75,12 +75,21 @@ def refine_quad(
     if not bright_inside:
         gray = np.asarray(cv2.bitwise_not(gray), dtype=np.uint8)
     segs = [(corners[i], corners[(i + 1) % 4]) for i in range(4)]
-    # The four edges' profiles in one pass (rows are independent: same result as one edge at
-    # a time, a quarter of numpy's per-call overhead).
-    firsts = _edge_points_batch(gray, segs, settings.profile_half_px, settings)
+    # The four edges' profiles in one pass, and the blurred ones re-measured in a second pass
+    # (rows are independent: the same result as one edge at a time, without numpy's per-call
+    # overhead four or eight times over).
+    r = settings.profile_half_px
+    got = _edge_points_batch(gray, segs, [r] * 4, settings)
+    blurred = [i for i, g in enumerate(got) if g is not None and g[1] > _BLURRED_PX]
+    if blurred:
+        again = _edge_points_batch(
+            gray, [segs[i] for i in blurred], [_blur_half_px(r, got[i][1], settings)  # type: ignore[index]
+                                               for i in blurred], settings)
+        for i, g in zip(blurred, again, strict=True):
+            got[i] = g
     fits = []
-    for (a, b), got in zip(segs, firsts, strict=True):
-        fit = _finish_edge(gray, a, b, settings, got)
+    for g in got:
+        fit = None if g is None else _fit_points(*g)
         if fit is None:
             return None
         fits.append(fit)
@@ -106,27 +115,38 @@ def fit_edge(
                         _edge_points(gray, a, b, settings.profile_half_px, settings))
 
 
+_BLURRED_PX = 1.6  # median transition width beyond which an edge is re-measured
+
+
+def _blur_half_px(r: float, width: float, settings: EdgeSettings) -> float:
+    """Profile half length for a blurred edge: long enough to reach both plateaus, a whole
+    number of profile steps (so its samples are a subset of a longer profile's)."""
+    step = settings.profile_step_px
+    return math.ceil(min(max(r, 1.0 + 1.8 * width), 3.0 * r) / step - 1e-9) * step
+
+
 def _finish_edge(
     gray: npt.NDArray[np.uint8], a: FloatArray, b: FloatArray, settings: EdgeSettings,
     got: tuple[FloatArray, float, int] | None,
 ) -> EdgeFit | None:
     """From the first (short-profile) pass: re-measure a blurred edge, then fit the line."""
-    s = settings
-    r = s.profile_half_px
     if got is None:
         return None
-    pts, width, n_samples = got
-    if width > 1.6:
-        r_blur = min(max(r, 1.0 + 1.8 * width), 3.0 * r)
-        got = _edge_points(gray, a, b, r_blur, settings)
+    if got[1] > _BLURRED_PX:
+        got = _edge_points(gray, a, b, _blur_half_px(settings.profile_half_px, got[1], settings),
+                           settings)
         if got is None:
             return None
-        pts, width, n_samples = got
+    return _fit_points(*got)
+
+
+def _fit_points(pts: FloatArray, width: float, n_samples: int) -> EdgeFit:
+    """Total-least-squares line through the edge points, with one outlier pass (texture or a
+    side face can fool a few profiles)."""
     fit = _tls_line(pts)
-    # one outlier pass: texture or a side face can fool a few profiles
     normal = np.array([-fit[1][1], fit[1][0]])
     res = np.abs((pts - fit[0]) @ normal)
-    mad = float(np.median(res)) * 1.4826 + 0.05
+    mad = _median(res) * 1.4826 + 0.05
     keep = res <= max(3.0 * mad, 0.3)
     if keep.sum() >= 4 and not keep.all():
         fit = _tls_line(pts[keep])
@@ -148,22 +168,28 @@ def _edge_points(
     relative to the current crossing, and the crossing is iterated (3 times), so a
     coarse start 1-2 px off does not bias the levels.
     """
-    return _edge_points_batch(gray, [(a, b)], r, settings)[0]
+    return _edge_points_batch(gray, [(a, b)], [r], settings)[0]
 
 
 def _edge_points_batch(
-    gray: npt.NDArray[np.uint8], segs: list[tuple[FloatArray, FloatArray]], r: float,
+    gray: npt.NDArray[np.uint8], segs: list[tuple[FloatArray, FloatArray]], rs: list[float],
     settings: EdgeSettings,
 ) -> list[tuple[FloatArray, float, int] | None]:
-    """:func:`_edge_points` for several edges at once: their profiles are stacked as rows of
-    one array (every operation below is row-wise) and split again at the end."""
+    """:func:`_edge_points` for several edges at once, edge ``i`` with profile half length
+    ``rs[i]`` (a whole number of profile steps): their profiles are stacked as rows of one array
+    sampled over the longest half length, every operation below is row-wise and confined to
+    the row's own profile, and the rows are split again at the end."""
     s = settings
-    ks = np.arange(-r, r + 1e-9, s.profile_step_px)
-    margin = 1.5 * r + 1.0
+    step = s.profile_step_px
+    r_max = max(rs)
+    ks = np.arange(-r_max, r_max + 1e-9, step)
+    n_k = len(ks)
     bases: list[FloatArray | None] = []
     normals: list[FloatArray | None] = []
     grids = []
-    for a, b in segs:
+    row_r = []
+    for (a, b), r in zip(segs, rs, strict=True):
+        margin = 1.5 * r + 1.0
         d = b - a
         length = float(np.hypot(d[0], d[1]))
         if length < 2 * margin + 4:
@@ -173,11 +199,12 @@ def _edge_points_batch(
         t = d / length
         normal_out = np.array([t[1], -t[0]])  # outward for a clockwise-on-screen polygon
         n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
-        along = np.linspace(margin, length - margin, n_samples)
+        along = margin + np.arange(n_samples) * ((length - 2 * margin) / (n_samples - 1))
         base = a[None, :] + along[:, None] * t[None, :]
         grids.append(base[:, None, :] + ks[None, :, None] * normal_out[None, None, :])
         bases.append(base)
         normals.append(normal_out)
+        row_r.append(np.full(n_samples, r))
     if not grids:
         return [None] * len(segs)
     grid = np.concatenate(grids, axis=0)
@@ -188,32 +215,48 @@ def _edge_points_batch(
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     ).astype(np.float64)
+    rr = np.concatenate(row_r)
     n_rows = prof.shape[0]
-    step = s.profile_step_px
     mid = (ks[:-1] + ks[1:]) / 2
     rows = np.arange(n_rows)
+    # a row's own profile: |k| <= r (the same samples as a profile of half length r)
+    first = np.rint((r_max - rr) / step).astype(np.intp)  # index of k = -r
+    last = n_k - 1 - first  # index of k = +r
+    own_seg = (np.abs(mid)[None, :] < rr[:, None])  # both ends of the segment in the profile
+    csum = np.zeros((n_rows, n_k + 1))
+    np.cumsum(prof, axis=1, out=csum[:, 1:])
+    # rows padded by one column so that every range end is a valid index of the flat array
+    flat = np.concatenate((prof, np.full((n_rows, 1), np.inf)), axis=1).ravel()
+    row_start = rows * (n_k + 1)
+    bounds = np.empty(2 * n_rows, dtype=np.intp)
     e = np.zeros(n_rows)
     width = np.ones(n_rows)
     ok = np.zeros(n_rows, dtype=bool)
     for _ in range(3):
         # plateau windows just beyond the transition, kept inside the sampled profile
         near = 0.5 + 0.9 * np.maximum(width, 1.0)
-        in_hi = np.clip(e - near, -r + 1.0, 0.0)
-        out_lo = np.clip(e + near, 0.0, r - 1.0)
-        kk = ks[None, :]
-        w_in = (kk >= (in_hi - 1.0)[:, None]) & (kk <= in_hi[:, None])
-        w_out = (kk >= out_lo[:, None]) & (kk <= (out_lo + 1.0)[:, None])
-        inside = (prof * w_in).sum(axis=1) / np.maximum(w_in.sum(axis=1), 1)
+        in_hi = np.clip(e - near, -rr + 1.0, 0.0)
+        out_lo = np.clip(e + near, 0.0, rr - 1.0)
+        # window means as differences of running sums: index ranges of the uniform k grid
+        i0 = np.searchsorted(ks, in_hi - 1.0, side="left")
+        i1 = np.searchsorted(ks, in_hi, side="right")
+        inside = (csum[rows, i1] - csum[rows, i0]) / np.maximum(i1 - i0, 1)
         if s.outside_level == "min":
-            w_adj = (kk >= (e + 0.5)[:, None]) & (kk <= (out_lo + 1.0)[:, None])
-            outside = np.where(w_adj, prof, np.inf).min(axis=1)
-            outside = np.where(np.isfinite(outside), outside, 0.0)
+            # darkest sample in [e + 0.5, out_lo + 1]: a range minimum per row (0 if empty)
+            j0 = np.searchsorted(ks, e + 0.5, side="left")
+            j1 = np.searchsorted(ks, out_lo + 1.0, side="right")
+            bounds[0::2] = row_start + j0
+            bounds[1::2] = row_start + j1
+            outside = np.minimum.reduceat(flat, bounds)[0::2]
+            outside = np.where(j1 > j0, outside, 0.0)
         else:
-            outside = (prof * w_out).sum(axis=1) / np.maximum(w_out.sum(axis=1), 1)
+            o0 = np.searchsorted(ks, out_lo, side="left")
+            o1 = np.searchsorted(ks, out_lo + 1.0, side="right")
+            outside = (csum[rows, o1] - csum[rows, o0]) / np.maximum(o1 - o0, 1)
         contrast = inside - outside
         level = 0.5 * (inside + outside)
         above = prof >= level[:, None]
-        cross = above[:, :-1] & ~above[:, 1:]
+        cross = above[:, :-1] & ~above[:, 1:] & own_seg
         dist = np.where(cross, np.abs(mid[None, :] - e[:, None]), np.inf)
         idx = np.argmin(dist, axis=1)
         ok = np.isfinite(dist[rows, idx]) & (contrast >= s.min_contrast)
@@ -222,13 +265,12 @@ def _edge_points_batch(
         frac = np.clip((v0 - level) / dv, 0.0, 1.0)
         e = np.where(ok, ks[idx] + frac * step, e)
         # transition width (px): contrast / steepest slope near the crossing
-        lo = np.clip(idx - 2, 0, len(ks) - 2)
-        hi = np.clip(idx + 2, 0, len(ks) - 2)
-        slopes = np.stack([prof[rows, j] - prof[rows, j + 1] for j in (lo, idx, hi)], axis=1).max(
-            axis=1
-        )
+        lo = np.clip(idx - 2, first, last - 1)
+        hi = np.clip(idx + 2, first, last - 1)
+        slopes = np.maximum(np.maximum(prof[rows, lo] - prof[rows, lo + 1], v0 - v1),
+                            prof[rows, hi] - prof[rows, hi + 1])
         slope = np.maximum(slopes / step, 1e-6)
-        width = np.where(ok, np.clip(contrast / slope, 0.5, 2.0 * r), width)
+        width = np.where(ok, np.clip(contrast / slope, 0.5, 2.0 * rr), width)
     out: list[tuple[FloatArray, float, int] | None] = []
     row0 = 0
     for maybe_base, maybe_normal in zip(bases, normals, strict=True):
@@ -244,8 +286,16 @@ def _edge_points_batch(
             out.append(None)
             continue
         pts = base[ok_e] + e[sl][ok_e, None] * normal_out[None, :]
-        out.append((pts, float(np.median(width[sl][ok_e])), n_samples))
+        out.append((pts, _median(width[sl][ok_e]), n_samples))
     return out
+
+
+def _median(x: FloatArray) -> float:
+    """``np.median`` of a small 1-D array, without its overhead (same value)."""
+    xs = np.sort(x)
+    n = xs.shape[0]
+    h = n // 2
+    return float(xs[h]) if n % 2 else float(0.5 * (xs[h - 1] + xs[h]))
 
 
 def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:

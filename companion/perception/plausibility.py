@@ -52,33 +52,47 @@ class QuadLimits:
             raise PerceptionError("min_corner_angle_rad: must be in (0, pi/2)")
 
 
+def _rot(a: FloatArray, k: int) -> FloatArray:
+    """``np.roll(a, -k, axis=0)`` without its overhead (these run on 4-corner arrays)."""
+    k %= a.shape[0]
+    return np.concatenate((a[k:], a[:k]))
+
+
+def _nxt(a: FloatArray) -> FloatArray:
+    return _rot(a, 1)
+
+
+def _prv(a: FloatArray) -> FloatArray:
+    return _rot(a, -1)
+
+
 def signed_area(corners: npt.ArrayLike) -> float:
     """Shoelace area of a polygon (N, 2) ``(col, row)``: > 0 clockwise on screen (px^2)."""
     c = np.asarray(corners, dtype=np.float64)
     x, y = c[:, 0], c[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    return 0.5 * float(np.sum(x * _nxt(y) - _nxt(x) * y))
 
 
 def is_convex(corners: npt.ArrayLike) -> bool:
     """True for a strictly convex, non-self-intersecting polygon (N >= 3)."""
     c = np.asarray(corners, dtype=np.float64)
-    e = np.roll(c, -1, axis=0) - c
-    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    e = _nxt(c) - c
+    cross = e[:, 0] * _nxt(e)[:, 1] - e[:, 1] * _nxt(e)[:, 0]
     if np.any(np.abs(cross) < 1e-12):
         return False
     if not (np.all(cross > 0) or np.all(cross < 0)):
         return False
     # turning number 1 (a pentagram has all-positive cross products but turns twice)
     ang = np.arctan2(e[:, 1], e[:, 0])
-    turn = np.sum(np.angle(np.exp(1j * (np.roll(ang, -1) - ang))))
+    turn = np.sum(np.angle(np.exp(1j * (_nxt(ang) - ang))))
     return bool(abs(abs(turn) - 2 * math.pi) < 1e-6)
 
 
 def interior_angles(corners: npt.ArrayLike) -> FloatArray:
     """Interior angle at each vertex of a convex polygon (rad)."""
     c = np.asarray(corners, dtype=np.float64)
-    a = np.roll(c, 1, axis=0) - c
-    b = np.roll(c, -1, axis=0) - c
+    a = _prv(c) - c
+    b = _nxt(c) - c
     cosang = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
     return np.asarray(np.arccos(np.clip(cosang, -1.0, 1.0)), dtype=np.float64)
 
@@ -86,7 +100,7 @@ def interior_angles(corners: npt.ArrayLike) -> FloatArray:
 def edge_lengths(corners: npt.ArrayLike) -> FloatArray:
     """Length of edge i (corner i -> corner i+1), px."""
     c = np.asarray(corners, dtype=np.float64)
-    return np.asarray(np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1), dtype=np.float64)
+    return np.asarray(np.linalg.norm(_nxt(c) - c, axis=1), dtype=np.float64)
 
 
 def aspect_ratio(corners: npt.ArrayLike) -> float:
@@ -119,7 +133,7 @@ def order_target_corners(
     e = edge_lengths(c)
     pair02_short = (e[0] + e[2]) <= (e[1] + e[3])
     start = 0 if pair02_short == first_edge_short else 1
-    options = [np.roll(c, -start, axis=0), np.roll(c, -(start + 2), axis=0)]
+    options = [_rot(c, start), _rot(c, start + 2)]
     if hint is not None:
         h = np.asarray(hint, dtype=np.float64)
         cost = [float(np.sum(np.linalg.norm(o - h, axis=1))) for o in options]

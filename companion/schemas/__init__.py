@@ -1,5 +1,10 @@
-"""JSON schemas of every MCAP channel the companion writes (schema encoding ``jsonschema``,
-message encoding ``json``).
+"""Schemas of every MCAP channel the companion writes.
+
+Camera frames are Foxglove's protobuf messages (schema encoding ``protobuf``, the schema a
+serialized ``FileDescriptorSet`` from ``foxglove-schemas-protobuf``): image bytes go into the
+file as they are, with no base64 step, and MCAP's chunk compression does the rest. Every other
+channel is JSON (schema encoding ``jsonschema``, message encoding ``json``). The JSON forms of
+the two image schemas below are kept so logs written before frames moved to protobuf still read.
 
 Foxglove's well-known schemas (``foxglove.CompressedImage``, ``foxglove.RawImage``,
 ``foxglove.Log``, ``foxglove.FrameTransform``, ``foxglove.PoseInFrame``) are written with their
@@ -20,6 +25,7 @@ from companion import CompanionError
 
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"
+PROTOBUF_ENCODING = "protobuf"  # both the schema and the message encoding of protobuf channels
 
 COMPRESSED_IMAGE = "foxglove.CompressedImage"
 RAW_IMAGE = "foxglove.RawImage"
@@ -264,6 +270,50 @@ def schema(name: str) -> dict[str, Any]:
 def schema_bytes(name: str) -> bytes:
     """UTF-8 JSON text of :func:`schema` (the MCAP Schema record's data)."""
     return json.dumps(schema(name), separators=(",", ":")).encode()
+
+
+#: Schemas written as protobuf (camera frames), not JSON.
+PROTOBUF_SCHEMAS = frozenset({COMPRESSED_IMAGE, RAW_IMAGE})
+
+
+def protobuf_class(name: str) -> Any:
+    """The generated protobuf message class of a :data:`PROTOBUF_SCHEMAS` name."""
+    if name == COMPRESSED_IMAGE:
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+        return CompressedImage
+    if name == RAW_IMAGE:
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+        return RawImage
+    raise SchemaError(f"no protobuf schema {name!r}; known: {sorted(PROTOBUF_SCHEMAS)}")
+
+
+@functools.cache
+def protobuf_schema_bytes(name: str) -> bytes:
+    """The MCAP Schema record's data for a protobuf channel: a serialized FileDescriptorSet of the
+    message's .proto file and its dependencies (dependencies first), as Foxglove expects."""
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    fds = FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd: Any) -> None:
+        for dep in fd.dependencies:
+            if dep.name not in seen:
+                add(dep)
+        seen.add(fd.name)
+        fd.CopyToProto(fds.file.add())
+
+    add(protobuf_class(name).DESCRIPTOR.file)
+    return bytes(fds.SerializeToString())
+
+
+def encodings(name: str) -> tuple[str, str]:
+    """(schema encoding, message encoding) the companion writes ``name`` with."""
+    if name in PROTOBUF_SCHEMAS:
+        return PROTOBUF_ENCODING, PROTOBUF_ENCODING
+    return SCHEMA_ENCODING, MESSAGE_ENCODING
 
 
 def static_names() -> tuple[str, ...]:

@@ -188,6 +188,65 @@ def test_unchunked_file_from_another_writer(tmp_path: Path) -> None:
         assert [m.data["i"] for m in msgs if m.data] == list(range(9, -1, -1))  # log-time order
 
 
+def test_frames_in_every_stored_form_decode(tmp_path: Path) -> None:
+    """Protobuf frames (what the companion writes) and the JSON/base64 frames of older logs,
+    PNG and raw, mono and colour: the reader gives back the same pixels."""
+    import base64
+    import json
+
+    import cv2
+
+    from companion.mcap_log import encode_image
+
+    rng = np.random.default_rng(3)
+    mono = rng.integers(0, 255, (24, 32), dtype=np.uint8)
+    bgr = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    buf = io.BytesIO()
+    w = Writer(buf)
+    w.start()
+    expect = []
+    for enc in ("png", "raw"):
+        for img in (mono, bgr):
+            name, data = encode_image(img, enc, 5, "cam", 90)
+            sid = w.register_schema(name, "protobuf", sch.protobuf_schema_bytes(name))
+            cid = w.register_channel(f"/pb/{enc}/{img.ndim}", "protobuf", sid)
+            w.add_message(cid, log_time=len(expect), data=data, publish_time=0)
+            expect.append(img)
+    ok, png = cv2.imencode(".png", bgr)
+    assert ok
+    legacy = [
+        (sch.COMPRESSED_IMAGE, {"format": "png", "data": base64.b64encode(png.tobytes()).decode()}),
+        (sch.RAW_IMAGE, {"width": 32, "height": 24, "encoding": "mono8", "step": 32,
+                         "data": base64.b64encode(mono.tobytes()).decode()}),
+    ]  # fmt: skip
+    for i, (name, msg) in enumerate(legacy):
+        sid = w.register_schema(name, "jsonschema", sch.schema_bytes(name))
+        cid = w.register_channel(f"/json/{i}", "json", sid)
+        w.add_message(cid, log_time=len(expect), data=json.dumps(msg).encode(), publish_time=0)
+        expect.append(bgr if i == 0 else mono)
+    w.finish()
+    path = tmp_path / "frames.mcap"
+    path.write_bytes(buf.getvalue())
+    _, msgs = read_log(path)
+    assert len(msgs) == len(expect)
+    for m, img in zip(msgs, expect, strict=True):
+        assert m.image is not None and np.array_equal(m.image, img), m.topic
+        assert m.data is not None and "data" not in m.data
+    assert msgs[0].data == {"timestamp": {"sec": 0, "nsec": 5}, "frame_id": "cam",
+                            "format": "png"}
+    # a damaged protobuf frame is a warning and no picture, never an exception
+    bad = io.BytesIO()
+    w = Writer(bad)
+    w.start()
+    sid = w.register_schema(sch.RAW_IMAGE, "protobuf", sch.protobuf_schema_bytes(sch.RAW_IMAGE))
+    cid = w.register_channel("/bad", "protobuf", sid)
+    w.add_message(cid, log_time=0, data=b"\xff\xff\xff", publish_time=0)
+    w.finish()
+    (tmp_path / "bad.mcap").write_bytes(bad.getvalue())
+    _, msgs = read_log(tmp_path / "bad.mcap")
+    assert len(msgs) == 1 and msgs[0].image is None
+
+
 def test_not_an_mcap_file(tmp_path: Path) -> None:
     rnd = tmp_path / "random.mcap"
     rnd.write_bytes(random.Random(1).randbytes(10_000))

@@ -99,13 +99,20 @@ def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
             "/mavlink/rejected": sch.MAVLINK_REJECTED,
         }  # fmt: skip
         assert set(by_topic) == set(expect_schema)
+        pb_classes = {}
         for topic, ch in by_topic.items():
             schema = summary.schemas[ch.schema_id]
-            assert ch.message_encoding == "json" and schema.encoding == "jsonschema"
             assert schema.name == expect_schema[topic]
+            if topic.startswith("/camera/"):
+                # frames are protobuf, self-described by the FileDescriptorSet in the file
+                assert ch.message_encoding == "protobuf" and schema.encoding == "protobuf"
+                pb_classes[topic] = _class_from_file_descriptor_set(schema.data, schema.name)
+                continue
+            assert ch.message_encoding == "json" and schema.encoding == "jsonschema"
             assert json.loads(schema.data)["title"] == schema.name
         mine = [
-            (ch.topic, m.log_time, json.loads(m.data))
+            (ch.topic, m.log_time, _pb_to_dict(pb_classes[ch.topic], m.data)
+             if ch.topic in pb_classes else json.loads(m.data))
             for _, ch, m in reader.iter_messages(log_time_order=True)
         ]
     times = [t for _, t, _ in mine]
@@ -118,8 +125,13 @@ def test_roundtrip_all_channel_kinds(tmp_path: Path) -> None:
     assert [d["t_us"] for d in ctrl] == [s["t_us"] for s in steps]
     jpeg = next(d for topic, _, d in mine if topic == "/camera/jpeg")
     assert jpeg["format"] == "jpeg" and jpeg["timestamp"] == {"sec": 0, "nsec": 0}
-    dec = cv2.imdecode(np.frombuffer(base64.b64decode(jpeg["data"]), np.uint8), cv2.IMREAD_COLOR)
+    dec = cv2.imdecode(np.frombuffer(jpeg["data"], np.uint8), cv2.IMREAD_COLOR)
     assert dec.shape == img.shape and np.abs(dec.astype(int) - img).mean() < 3.0
+    raw = [d for topic, _, d in mine if topic == "/camera/raw"]
+    assert raw[1]["timestamp"] == {"sec": 0, "nsec": 50_000_001}
+    assert (raw[1]["width"], raw[1]["height"], raw[1]["encoding"], raw[1]["step"]) == (
+        gray.shape[1], gray.shape[0], "mono8", gray.shape[1])
+    assert np.array_equal(np.frombuffer(raw[1]["data"], np.uint8).reshape(gray.shape), gray)
     mav_in = next(d for topic, _, d in mine if topic.startswith("/mavlink/in/"))
     assert base64.b64decode(mav_in["raw_b64"]) == rx.raw
     assert mav_in["t_rx_ns"] == 123 and mav_in["sysid"] == 1
@@ -291,3 +303,24 @@ def test_image_backlog_is_bounded_in_bytes_drop_or_wait(tmp_path: Path) -> None:
             assert accepted == n and dropped == 0
         else:
             assert 2 <= accepted < n and dropped == n - accepted
+
+
+def _class_from_file_descriptor_set(data: bytes, full_name: str) -> Any:
+    """The message class described by an MCAP protobuf schema, built with protobuf's own
+    descriptor pool (what Foxglove does), not with the generated module the writer used."""
+    from google.protobuf import descriptor_pool, message_factory
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    fds = FileDescriptorSet.FromString(data)
+    assert [f.name for f in fds.file][-1].endswith(full_name.split(".")[-1] + ".proto")
+    pool = descriptor_pool.DescriptorPool()
+    for f in fds.file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(full_name))
+
+
+def _pb_to_dict(cls: Any, data: bytes) -> dict[str, Any]:
+    msg = cls.FromString(data)
+    out = {f.name: v for f, v in msg.ListFields()}
+    out["timestamp"] = {"sec": msg.timestamp.seconds, "nsec": msg.timestamp.nanos}
+    return out

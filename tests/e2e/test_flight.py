@@ -75,7 +75,7 @@ def test_mcap_file_reads_back_with_the_mcap_reader(flight: tuple[Path, dict]) ->
             counts[channel.topic] += 1
             schemas[channel.topic] = schema.name if schema else ""
             if channel.topic == "/camera/image" and first_image is None:
-                first_image = json.loads(message.data)
+                first_image = (schema, channel.message_encoding, message.data)
     steps = rep["steps"]
     assert counts["/camera/image"] == steps == counts["/control/step"]
     assert counts["/mavlink/out/SET_ATTITUDE_TARGET"] == steps
@@ -86,13 +86,22 @@ def test_mcap_file_reads_back_with_the_mcap_reader(flight: tuple[Path, dict]) ->
     assert DURATION_S - 2 <= counts["/mavlink/in/HEARTBEAT"] <= DURATION_S + 2
     assert counts["/mavlink/in/FOLLOW_TARGET"] >= 0.8 * 10 * DURATION_S
     assert counts["/truth"] >= steps and counts["/config"] == 1
-    # a frame decodes to the configured image
-    import base64
-
+    # a frame decodes to the configured image: a protobuf message described by the file's own
+    # schema record (a FileDescriptorSet, what Foxglove reads), holding a PNG
     import cv2
+    from google.protobuf import descriptor_pool, message_factory
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
 
-    img = cv2.imdecode(np.frombuffer(base64.b64decode(first_image["data"]), np.uint8),
-                       cv2.IMREAD_UNCHANGED)
+    assert first_image is not None
+    schema, encoding, data = first_image
+    assert encoding == "protobuf" and schema.encoding == "protobuf"
+    pool = descriptor_pool.DescriptorPool()
+    for fd in FileDescriptorSet.FromString(schema.data).file:
+        pool.Add(fd)
+    cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+    msg = cls.FromString(data)
+    assert msg.format == "png" and msg.frame_id
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
     assert img.shape == (1000, 1000)
 
 
