@@ -132,8 +132,16 @@ class _ChunkRef:
 class LogReader:
     """``with LogReader(path) as r: r.recovery, r.channels, for m in r.messages(): ...``"""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, verify: bool = True) -> None:
+        """``verify``: read every chunk once at open (CRC-checked) so that :attr:`recovery` and
+        :attr:`channels` count exactly what is readable. ``verify=False`` on a file with an
+        intact summary skips that pass (one read of the file instead of two): counts come
+        from the summary's statistics, per-channel times are chunk bounds, and chunks are
+        still CRC-checked as :meth:`messages` reads them (a damaged one is skipped and counted
+        in ``recovery.corrupt_chunks`` then). A file without a usable summary is always
+        walked and verified."""
         self.path = Path(path)
+        self._verify = verify
         try:
             self._f: BinaryIO = open(self.path, "rb")  # noqa: SIM115 - closed by close()
         except OSError as e:
@@ -184,6 +192,23 @@ class LogReader:
                 _ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time)
                 for ci in summary.chunk_indexes
             ]
+            stats = summary.statistics
+            if not self._verify and stats is not None:
+                self._chunks = refs
+                for ci in summary.chunk_indexes:
+                    for cid in ci.message_index_offsets:
+                        c = counts.setdefault(cid, [0, ci.message_start_time,
+                                                    ci.message_end_time])
+                        c[1] = min(c[1], ci.message_start_time)
+                        c[2] = max(c[2], ci.message_end_time)
+                for cid, n in stats.channel_message_counts.items():
+                    if cid in counts:
+                        counts[cid][0] = n
+                    elif n > 0:
+                        counts[cid] = [n, stats.message_start_time, stats.message_end_time]
+                self._bytes_used, self._stop = self._size, ""
+                self._counts = counts
+                return
             for ref in refs:
                 msgs = self._read_chunk(ref.offset, learn=False)
                 if msgs is not None:

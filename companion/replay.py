@@ -95,7 +95,7 @@ def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
            timer: Callable[[], float] | None = None) -> ReplayResult:
     """Replay ``log_path``; ``timer`` (e.g. time.perf_counter) records stage timings in the
     recomputed step records (measurement only: results are the same without it)."""
-    with LogReader(log_path) as reader:
+    with LogReader(log_path, verify=False) as reader:  # one pass: chunks are CRC-checked as read
         return _replay(reader, log_path, out_path, config, overrides, progress, timer)
 
 
@@ -203,6 +203,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
         pool.shutdown(wait=True, cancel_futures=True)
         if writer is not None:
             writer.close()
+    res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
     res.recorded_wire_commands = len(recorded_sat)
     return res
 

@@ -79,6 +79,13 @@ def test_intact_file(reference: Path) -> None:
             if m.data
         ]
     assert sel == list(range(30, 60, 3))
+    # one pass: same counts and messages from the summary alone; times to chunk bounds
+    with LogReader(reference, verify=False) as r:
+        lazy = {c.topic: c for c in r.channels}
+        assert r.recovery.messages == N
+        assert [m.data["i"] for m in r.messages() if m.data] == list(range(N))
+    assert {t: c.count for t, c in lazy.items()} == {t: c.count for t, c in chans.items()}
+    assert lazy["/b"].first_log_time_ns <= 0 and lazy["/b"].last_log_time_ns >= (N - 3) * 1e6
 
 
 @pytest.mark.parametrize("fraction", [0.1, 0.5, 0.9])
@@ -119,6 +126,15 @@ def test_flipped_byte_costs_only_its_chunk(reference: Path, tmp_path: Path) -> N
     assert not rec.salvaged and not rec.truncated  # the summary was intact
     assert rec.corrupt_chunks == 1 and rec.messages == N - lost
     assert got == list(range(first_lost)) + list(range(first_lost + lost, N))
+
+    # one pass (verify=False, as replay reads): the summary's counts up front, the damaged
+    # chunk found, skipped and counted while reading, the same messages out
+    with LogReader(path, verify=False) as r:
+        before = r.recovery
+        lazy = [m.data["i"] for m in r.messages() if m.data]
+        after = r.recovery
+    assert before.messages == N and before.corrupt_chunks == 0
+    assert lazy == got and after.corrupt_chunks == 1
 
     # the same damage in a truncated file: salvage skips the chunk and keeps walking
     cut = tmp_path / "flip_cut.mcap"
