@@ -5,7 +5,8 @@
 Flies the scenario (emulator + companion as separate processes, 1000 x 1000 frames), then
 reads the companion's own step records from the log:
 - frame received -> SET_ATTITUDE_TARGET sent, median / p95 / max, with the stage breakdown
-  (queue = receipt -> step start, detect, moments, solve, command, send);
+  (decode = receipt -> step start: decoding the frame and waiting for the loop; detect,
+  moments, solve, command, send);
 - the companion process's resident memory (VmRSS, sampled every 50 ms): peak, and the growth
   from 30 s of flight to the end (flat after warm-up = < 5 %).
 Targets: latency median <= 5 ms, p95 <= 10 ms; peak RSS <= 400 MB; growth < 5 %.

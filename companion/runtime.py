@@ -327,8 +327,8 @@ class CompanionApp:
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
         })
         if sent_ns is not None:
-            # decode: receipt -> step start (the source decodes before handing the frame over)
-            rec["timings_ms"] = {"queue": (t_start_ns - frame.t_rx_ns) * 1e-6,
+            # decode: receipt -> step start (decoding the frame, then waiting for the loop)
+            rec["timings_ms"] = {"decode": (t_start_ns - frame.t_rx_ns) * 1e-6,
                                  **rec["timings_ms"],
                                  "send": (sent_ns - t_start_ns) * 1e-6
                                  - sum(rec["timings_ms"].values())}
