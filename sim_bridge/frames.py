@@ -217,6 +217,7 @@ class FrameServer:
         self.published = 0
         self._server: asyncio.Server | None = None
         self._clients: set[_Client] = set()
+        self._closing = False
         self._gone_sent = 0
         self._gone_dropped = 0
 
@@ -238,6 +239,7 @@ class FrameServer:
         await self.close()
 
     async def close(self) -> None:
+        self._closing = True
         if self._server is not None:
             self._server.close()
         for c in list(self._clients):
@@ -262,6 +264,11 @@ class FrameServer:
         try:
             # The client leaves when it closes its side (EOF) or when writing to it fails.
             await asyncio.wait({run, eof}, return_when=asyncio.FIRST_COMPLETED)
+        except asyncio.CancelledError:
+            # Shutting down: end normally. Python 3.11's start_server callback calls
+            # task.exception() on the handler and logs the CancelledError as an error.
+            if not self._closing:
+                raise
         finally:
             for task in (run, eof):
                 task.cancel()
