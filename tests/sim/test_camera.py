@@ -8,7 +8,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from sim_bridge import ConfigError
@@ -98,8 +98,12 @@ def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 def refine_quad(img: np.ndarray, quad: np.ndarray) -> np.ndarray:
     """Sub-pixel quad corners: for each side, the mid-level crossings of intensity profiles
-    across the edge (levels taken 2.5 px either side), a least-squares line, and the
-    intersections of neighbouring lines."""
+    across the edge, a least-squares line, and the intersections of neighbouring lines. The
+    inside level is taken 2.5 px in; the outside level is the sample within 3 px out that is
+    farthest from it (the darkest for a bright top), i.e. what the edge pixel mixes with. With
+    a box side showing as a band thinner than a pixel between the top and a brighter ground,
+    the ground 2.5 px out is not (seen: a level camera 0.1 m off the box's axis, corners 0.61 px
+    off with that level; over 1500 random poses the worst error went 0.43 -> 0.34 px)."""
     quad = np.asarray(quad, float)
     centre = quad.mean(axis=0)
     offs = np.arange(-3.0, 3.0001, 0.05)
@@ -113,8 +117,10 @@ def refine_quad(img: np.ndarray, quad: np.ndarray) -> np.ndarray:
         m = max(int(np.linalg.norm(b - a) * 0.8), 4)
         base = a + np.linspace(0.1, 0.9, m)[:, None] * (b - a)
         prof = _sample(img, base[:, None, :] + offs[None, :, None] * n).reshape(m, -1)
-        out_lv = _sample(img, base + 2.5 * n)
         in_lv = _sample(img, base - 2.5 * n)
+        beyond = prof[:, offs >= -0.5]
+        lo, hi = beyond.min(axis=1), beyond.max(axis=1)
+        out_lv = np.where(np.abs(lo - in_lv) >= np.abs(hi - in_lv), lo, hi)  # the far extreme
         pts = []
         for j in range(m):
             sgn = np.sign(in_lv[j] - out_lv[j])
@@ -236,6 +242,9 @@ def test_same_field_of_view_at_half_resolution() -> None:
 # ---------------------------------------------------------------- the image
 @settings(max_examples=100, deadline=None)
 @given(p=poses)
+# found by hypothesis: a level camera 0.1 m off the box's axis, a side face thinner than a pixel
+@example(p={"h": 3.40625, "phi": 0.0, "theta": 0.0, "psi": 0.0, "dx": 0.09765625, "dy": 0.0,
+            "ax": 25.625, "ay": 26.0, "ayaw": 0.0})
 def test_detected_corners_within_half_a_pixel(cam: Camera, p: dict[str, float]) -> None:
     agv, uav, eul = _scene(p)
     fr = cam.render(uav, quat_wxyz(*eul), agv)
