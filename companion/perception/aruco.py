@@ -78,10 +78,12 @@ class ArucoDetector(QuadDetectorBase):
         params.cornerRefinementWinSize = int(subpix_window_px)
         params.cornerRefinementMaxIterations = 50
         params.cornerRefinementMinAccuracy = 0.01
-        # OpenCV 5.0's default (3 px) rejected a clean, fully visible marker 60 px from the
-        # image border (a hypothesis-found emulator pose; 1 px finds it with exact corners).
-        # Markers cut by the border are still refused by the plausibility checks.
-        params.minDistanceToBorder = 1
+        # OpenCV's own border filter is off: with its default (3 px) OpenCV 5.0 decoded nothing
+        # on clean, fully visible markers 60 px from the image border (hypothesis-found
+        # emulator poses; 1 px still missed one of them; 0 or padding the image finds them,
+        # with exact corners). The border rule is ours: the plausibility checks refuse a
+        # marker near or cut by the border.
+        params.minDistanceToBorder = 0
         self._detector = cv2.aruco.ArucoDetector(dict_, params)
         self.marker_id = int(marker_id)
         self.refine_edges = refine_edges

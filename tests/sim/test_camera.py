@@ -367,15 +367,19 @@ def aruco_cam() -> Camera:
 def _aruco_detector() -> cv2.aruco.ArucoDetector:
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    params.minDistanceToBorder = 1  # OpenCV 5.0's 3 px missed the explicit example below
+    # OpenCV 5.0's border filter (3 px; 1 px too) decoded nothing on the clean markers of the
+    # explicit examples below, 60 px from the border; the poses keep every corner > 10 px in
+    params.minDistanceToBorder = 0
     return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), params)
 
 
 @settings(max_examples=60, deadline=None)
 @given(p=poses)
-# found by hypothesis: with minDistanceToBorder = 3 cv2.aruco decoded nothing on this clean frame
+# found by hypothesis: with minDistanceToBorder = 3 cv2.aruco decoded nothing on these clean frames
 @example(p={"h": 1.625, "phi": 0.0, "theta": -0.298828125, "psi": -2.125, "dx": 0.21875,
             "dy": 0.171875, "ax": 0.0, "ay": 0.0, "ayaw": 1.5})
+@example(p={"h": 1.625, "phi": 0.0, "theta": -0.29999999999999993, "psi": -2.125,
+            "dx": 0.21875, "dy": 0.171875, "ax": 0.0, "ay": 0.0, "ayaw": 1.5})
 def test_aruco_marker_detected_with_id_and_corners(aruco_cam: Camera, p: dict[str, float]) -> None:
     agv, uav, eul = _scene(p)
     fr = aruco_cam.render(uav, quat_wxyz(*eul), agv)
