@@ -29,11 +29,15 @@ def _info(args: argparse.Namespace) -> int:
     t1 = rec.last_log_time_ns or 0
     print(f"file:      {args.log} ({rec.bytes_total} bytes)")
     state = "cut short, salvaged" if rec.truncated else "complete"
-    print(f"state:     {state}: {rec.messages} messages")
+    damaged = f", {rec.corrupt_chunks} damaged chunk(s) skipped" if rec.corrupt_chunks else ""
+    print(f"state:     {state}: {rec.messages} messages{damaged}")
+    if rec.truncated and rec.stop_reason:
+        print(f"           read {rec.bytes_used} of {rec.bytes_total} bytes: {rec.stop_reason}")
     print(f"duration:  {(t1 - t0) * 1e-9:.3f} s  [{t0} .. {t1}] ns")
     print(f"channels:  {len(chans)}")
     w = max((len(c.topic) for c in chans), default=10)
-    print(f"  {'topic':<{w}}  {'count':>7}  {'rate Hz':>8}  schema")
+    print(f"  {'topic':<{w}}  {'count':>7}  {'rate Hz':>8}  schema [encoding]")
     for c in chans:
-        print(f"  {c.topic:<{w}}  {c.count:>7}  {c.rate_hz:>8.2f}  {c.schema_name}")
+        print(f"  {c.topic:<{w}}  {c.count:>7}  {c.rate_hz:>8.2f}  {c.schema_name} "
+              f"[{c.message_encoding}]")
     return 0

@@ -178,14 +178,30 @@ def test_replay_cli_on_not_an_mcap_file(tmp_path: Path) -> None:
     assert "not an MCAP" in (p.stdout + p.stderr)
 
 
-def test_log_info_lists_channels(flight: tuple[Path, dict]) -> None:
+def test_log_info_lists_channels(flight: tuple[Path, dict], tmp_path: Path) -> None:
     out, rep = flight
     p = subprocess.run([sys.executable, "-m", "companion", "log", "info",
                         str(out / "flight.mcap")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert "/camera/image" in p.stdout and "/control/step" in p.stdout
     line = next(ln for ln in p.stdout.splitlines() if "/control/step" in ln)
-    assert int(line.split()[1]) == rep["steps"]
+    assert int(line.split()[1]) == rep["steps"] and line.endswith("[json]")
+    cam = next(ln for ln in p.stdout.splitlines() if "/camera/image" in ln)
+    assert cam.endswith("foxglove.CompressedImage [protobuf]")
+    assert "complete" in p.stdout and "damaged" not in p.stdout
+    # a damaged chunk in the middle is reported, and the rest is still listed
+    with open(out / "flight.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    mid = summary.chunk_indexes[len(summary.chunk_indexes) // 2]
+    data = bytearray((out / "flight.mcap").read_bytes())
+    data[mid.chunk_start_offset + mid.chunk_length // 2] ^= 0x55  # inside that chunk's data
+    bad = tmp_path / "damaged.mcap"
+    bad.write_bytes(bytes(data))
+    p = subprocess.run([sys.executable, "-m", "companion", "log", "info", str(bad)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "1 damaged chunk(s) skipped" in p.stdout and "/control/step" in p.stdout
 
 
 def test_mcap_camera_source_yields_the_recorded_frames(flight: tuple[Path, dict]) -> None:
