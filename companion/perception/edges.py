@@ -68,31 +68,15 @@ def refine_quad(
     """Sub-pixel corners of a convex quadrilateral from its four fitted edges.
 
     ``corners``: (4, 2) coarse corners (within ~2 px), clockwise on screen. Each edge is
-    fitted independently (:func:`fit_edge`) and adjacent lines are intersected. ``None``
+    fitted independently (as :func:`fit_edge` does) and adjacent lines are intersected. ``None``
     if an edge cannot be measured. ``bright_inside``: the polygon is brighter than its
     surroundings (else darker, e.g. a marker's black border on white).
     """
     if not bright_inside:
         gray = np.asarray(cv2.bitwise_not(gray), dtype=np.uint8)
-    segs = [(corners[i], corners[(i + 1) % 4]) for i in range(4)]
-    # The four edges' profiles in one pass, and the blurred ones re-measured in a second pass
-    # (rows are independent: the same result as one edge at a time, without numpy's per-call
-    # overhead four or eight times over).
-    r = settings.profile_half_px
-    got = _edge_points_batch(gray, segs, [r] * 4, settings)
-    blurred = [i for i, g in enumerate(got) if g is not None and g[1] > _BLURRED_PX]
-    if blurred:
-        again = _edge_points_batch(
-            gray, [segs[i] for i in blurred], [_blur_half_px(r, got[i][1], settings)  # type: ignore[index]
-                                               for i in blurred], settings)
-        for i, g in zip(blurred, again, strict=True):
-            got[i] = g
-    fits = []
-    for g in got:
-        fit = None if g is None else _fit_points(*g)
-        if fit is None:
-            return None
-        fits.append(fit)
+    fits = _fit_edges(gray, [(corners[i], corners[(i + 1) % 4]) for i in range(4)], settings)
+    if fits is None:
+        return None
     out = np.empty((4, 2))
     for i in range(4):
         p = _intersect(fits[(i - 1) % 4], fits[i])
@@ -111,8 +95,28 @@ def fit_edge(
     transition wider than 1.6 px) it is measured again with a profile long enough to
     reach the plateaus on both sides.
     """
-    return _finish_edge(gray, a, b, settings,
-                        _edge_points(gray, a, b, settings.profile_half_px, settings))
+    fits = _fit_edges(gray, [(a, b)], settings)
+    return None if fits is None else fits[0]
+
+
+def _fit_edges(
+    gray: npt.NDArray[np.uint8], segs: list[tuple[FloatArray, FloatArray]], settings: EdgeSettings
+) -> list[EdgeFit] | None:
+    """Fitted lines of the edges ``segs`` (``None`` if any cannot be measured). All edges'
+    profiles are taken in one pass, the blurred ones re-measured in a second (rows are
+    independent: the same result as one edge at a time, without numpy's per-call overhead
+    once per edge)."""
+    r = settings.profile_half_px
+    got = _edge_points_batch(gray, segs, [r] * len(segs), settings)
+    blurred = [(i, g[1]) for i, g in enumerate(got) if g is not None and g[1] > _BLURRED_PX]
+    if blurred:
+        again = _edge_points_batch(gray, [segs[i] for i, _ in blurred],
+                                   [_blur_half_px(r, w, settings) for _, w in blurred], settings)
+        for (i, _), g in zip(blurred, again, strict=True):
+            got[i] = g
+    if any(g is None for g in got):
+        return None
+    return [_fit_points(*g) for g in got if g is not None]
 
 
 _BLURRED_PX = 1.6  # median transition width beyond which an edge is re-measured
@@ -123,21 +127,6 @@ def _blur_half_px(r: float, width: float, settings: EdgeSettings) -> float:
     number of profile steps (so its samples are a subset of a longer profile's)."""
     step = settings.profile_step_px
     return math.ceil(min(max(r, 1.0 + 1.8 * width), 3.0 * r) / step - 1e-9) * step
-
-
-def _finish_edge(
-    gray: npt.NDArray[np.uint8], a: FloatArray, b: FloatArray, settings: EdgeSettings,
-    got: tuple[FloatArray, float, int] | None,
-) -> EdgeFit | None:
-    """From the first (short-profile) pass: re-measure a blurred edge, then fit the line."""
-    if got is None:
-        return None
-    if got[1] > _BLURRED_PX:
-        got = _edge_points(gray, a, b, _blur_half_px(settings.profile_half_px, got[1], settings),
-                           settings)
-        if got is None:
-            return None
-    return _fit_points(*got)
 
 
 def _fit_points(pts: FloatArray, width: float, n_samples: int) -> EdgeFit:
@@ -157,28 +146,20 @@ def _fit_points(pts: FloatArray, width: float, n_samples: int) -> EdgeFit:
     return EdgeFit(fit[0], fit[1], rms, valid)
 
 
-def _edge_points(
-    gray: npt.NDArray[np.uint8], a: FloatArray, b: FloatArray, r: float, settings: EdgeSettings
-) -> tuple[FloatArray, float, int] | None:
-    """Edge crossings on profiles across the edge a -> b, half length ``r`` px.
-
-    Returns (points (M, 2), median transition width px, samples tried) or ``None``.
-    On each profile the edge is where the intensity crosses the midpoint between the
-    inside and outside plateaus; the plateaus are read just beyond the transition,
-    relative to the current crossing, and the crossing is iterated (3 times), so a
-    coarse start 1-2 px off does not bias the levels.
-    """
-    return _edge_points_batch(gray, [(a, b)], [r], settings)[0]
-
-
 def _edge_points_batch(
     gray: npt.NDArray[np.uint8], segs: list[tuple[FloatArray, FloatArray]], rs: list[float],
     settings: EdgeSettings,
 ) -> list[tuple[FloatArray, float, int] | None]:
-    """:func:`_edge_points` for several edges at once, edge ``i`` with profile half length
-    ``rs[i]`` (a whole number of profile steps): their profiles are stacked as rows of one array
-    sampled over the longest half length, every operation below is row-wise and confined to
-    the row's own profile, and the rows are split again at the end."""
+    """Edge crossings on profiles across each edge a -> b, edge ``i`` with profile half length
+    ``rs[i]`` (a whole number of profile steps). Per edge: (points (M, 2), median transition
+    width px, samples tried), or ``None``.
+
+    On each profile the edge is where the intensity crosses the midpoint between the inside
+    and outside plateaus; the plateaus are read just beyond the transition, relative to the
+    current crossing, and the crossing is iterated (3 times), so a coarse start 1-2 px off
+    does not bias the levels. The edges' profiles are stacked as rows of one array sampled
+    over the longest half length; every operation is row-wise and confined to the row's own
+    profile, and the rows are split again at the end."""
     s = settings
     step = s.profile_step_px
     r_max = max(rs)

@@ -276,6 +276,7 @@ def schema_bytes(name: str) -> bytes:
 PROTOBUF_SCHEMAS = frozenset({COMPRESSED_IMAGE, RAW_IMAGE})
 
 
+@functools.cache
 def protobuf_class(name: str) -> Any:
     """The generated protobuf message class of a :data:`PROTOBUF_SCHEMAS` name."""
     if name == COMPRESSED_IMAGE:
