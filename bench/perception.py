@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.camera_sources import FrameHeader, decode_payload, pack_frame  # noqa: E402
+from companion.camera import FrameHeader, decode_payload, pack_frame  # noqa: E402
 from companion.config import load_config  # noqa: E402
 from companion.perception import ArucoDetector, Perception, RectangleDetector  # noqa: E402
 from tests.companion.test_perception import (  # noqa: E402
@@ -159,7 +159,7 @@ def main() -> int:
 
 
 def _flight(path: Path, n: int, as_json: bool) -> int:
-    from companion.log_reader import LogReader
+    from companion.log.reader import LogReader
 
     cfg = load_config()
     frames = []

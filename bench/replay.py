@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 
 from companion.commands.demo import run_demo  # noqa: E402
 from companion.config import DEFAULT_CONFIG  # noqa: E402
-from companion.log_reader import LogReader  # noqa: E402
+from companion.log.reader import LogReader  # noqa: E402
 from companion.replay import replay  # noqa: E402
 
 

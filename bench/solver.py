@@ -26,9 +26,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from companion.config import load_config
+from companion.core.design import design_terminal
 from companion.core.rmpc import Rmpc, RmpcResult, TargetMotion
 from companion.core.rmpc_scenario import closed_loop, initial_error
-from companion.core.terminal import design_terminal
 
 PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
 EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)

@@ -11,7 +11,8 @@ __version__ = "0.1.0"
 
 
 class CompanionError(Exception):
-    """Root of every error this package raises on purpose."""
+    """Root of every error the shell (I/O, config, logs) raises on purpose. The pure core has
+    its own root, :class:`companion.core.errors.CoreError`; the CLI reports both."""
 
 
 class ConfigError(CompanionError):

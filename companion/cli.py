@@ -14,6 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from companion import CompanionError
+from companion.core.errors import CoreError
 
 SUBCOMMANDS = ("certify", "run", "demo", "replay", "report", "log")
 
@@ -44,7 +45,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return int(args.func(args))
-    except CompanionError as exc:
+    except (CompanionError, CoreError) as exc:
         print(f"companion: error: {exc}", file=sys.stderr)
         return 2
 

@@ -22,68 +22,31 @@ from pathlib import Path
 from typing import Any
 
 from companion import ConfigError
+from companion.core.errors import ParamError
+from companion.core.params import (
+    CameraParams,
+    ControlParams,
+    RmpcParams,
+    checked,
+    nonneg,
+    positive,
+)
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "paper.toml"
 _FOREIGN_TABLES = frozenset({"sim"})
 
 
-def _positive(x: float) -> str | None:
-    return None if x > 0 else "must be > 0"
-
-
-def _nonneg(x: float) -> str | None:
-    return None if x >= 0 else "must be >= 0"
-
-
-def _unit(x: float) -> str | None:
-    return None if 0 < x <= 1 else "must be in (0, 1]"
-
-
-def _check(fn: typing.Callable[[Any], str | None]) -> dict[str, Any]:
-    return {"check": fn}
-
-
-@dataclass(frozen=True)
-class CameraConfig:
-    """Pinhole camera and its mount (spec section 1)."""
-
-    focal_length_m: float = field(metadata=_check(_positive))
-    pixel_size_m: float = field(metadata=_check(_positive))
-    width_px: int = field(metadata=_check(_positive))
-    height_px: int = field(metadata=_check(_positive))
-    visible_fraction: float = field(metadata=_check(_unit))
-    report_pixel_size_m: float = field(metadata=_check(_positive))
-    mount_offset_m: tuple[float, float, float]
-    mount_rpy_rad: tuple[float, float, float]
-    calibration_file: str = ""
-
-    @property
-    def visible_half_m(self) -> float:
-        """Half side of the visible area on the image plane (metres): ``u~_b = n~_b``."""
-        return 0.5 * self.visible_fraction * min(self.width_px, self.height_px) * self.pixel_size_m
-
-    @property
-    def r_v(self) -> float:
-        """Radius of the inscribed circle of the visible area, normalised (spec 6)."""
-        return self.visible_half_m / self.focal_length_m
-
-    @property
-    def visible_bound_report_px(self) -> float:
-        """Half side of the visible area in report pixels (the paper's 500 px)."""
-        return self.visible_half_m / self.report_pixel_size_m
-
-
 @dataclass(frozen=True)
 class TargetConfig:
-    length_m: float = field(metadata=_check(_positive))
-    width_m: float = field(metadata=_check(_positive))
-    height_m: float = field(metadata=_check(_nonneg))
+    length_m: float = field(metadata=checked(positive))
+    width_m: float = field(metadata=checked(positive))
+    height_m: float = field(metadata=checked(nonneg))
     pattern: str
     aruco_dictionary: str
-    aruco_id: int = field(metadata=_check(_nonneg))
-    aruco_size_m: float = field(metadata=_check(_positive))
-    mavlink_sysid: int = field(metadata=_check(_positive))
-    mavlink_compid: int = field(metadata=_check(_nonneg))
+    aruco_id: int = field(metadata=checked(nonneg))
+    aruco_size_m: float = field(metadata=checked(positive))
+    mavlink_sysid: int = field(metadata=checked(positive))
+    mavlink_compid: int = field(metadata=checked(nonneg))
     origin_lat_deg: float
     origin_lon_deg: float
     origin_alt_m: float
@@ -98,112 +61,19 @@ class TargetConfig:
 
 
 @dataclass(frozen=True)
-class TerminalConfig:
-    method: str
-    p_scale: float = field(default=1.0, metadata=_check(_positive))
-    # Optional explicit terminal matrices (from an offline LMI design); empty = compute.
-    p_matrix: tuple[tuple[float, ...], ...] = ()
-    k_matrix: tuple[tuple[float, ...], ...] = ()
-    kappa: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.method not in ("dare", "lmi", "given"):
-            raise ConfigError(
-                f"rmpc.terminal.method: {self.method!r} is not 'dare', 'lmi' or 'given'"
-            )
-        if self.method == "given" and (len(self.p_matrix) != 7 or len(self.k_matrix) != 4):
-            raise ConfigError("rmpc.terminal: method 'given' needs p_matrix (7x7), k_matrix (4x7)")
-
-
-@dataclass(frozen=True)
-class RmpcConfig:
-    """The RMPC of spec section 6 with the paper's numbers as defaults (spec section 8)."""
-
-    dt_s: float = field(metadata=_check(_positive))
-    horizon: int = field(metadata=_check(_positive))
-    tube_h: float = field(metadata=_check(_positive))
-    eps: float = field(metadata=_check(_positive))
-    rho: float = field(metadata=_check(_nonneg))
-    desired_depth_m: float = field(metadata=_check(_positive))
-    q_diag: tuple[float, float, float, float, float, float, float]
-    r_diag: tuple[float, float, float, float]
-    eta_max: tuple[float, float, float, float, float, float, float]
-    u_max: tuple[float, float, float, float]
-    g_m_s2: float = field(metadata=_check(_positive))
-    enable_visibility: bool
-    enable_tube: bool
-    enable_terminal: bool
-    recovery_penalty: float = field(metadata=_check(_positive))
-    solver: str
-    jit: bool
-    cache_dir: str
-    max_iter: int = field(metadata=_check(_positive))
-    terminal: TerminalConfig
-    # Which image the visibility circle about M(u(n)) constrains: "spec" = p(n) (spec 6 and
-    # the paper's (2d); the applied input u(0) is in no row), "causal" = p(n+1), the image
-    # taken with the attitude u(n) produces (u(0) checked against the next image).
-    visibility_pairing: str = "spec"
-
-    def __post_init__(self) -> None:
-        if self.visibility_pairing not in ("spec", "causal"):
-            raise ConfigError(
-                f"rmpc.visibility_pairing: {self.visibility_pairing!r} is not 'spec' or 'causal'"
-            )
-        for name in ("q_diag", "r_diag", "eta_max", "u_max"):
-            for i, v in enumerate(getattr(self, name)):
-                if not v > 0:
-                    raise ConfigError(f"rmpc.{name}[{i}]: must be > 0 (got {v})")
-        if self.solver not in ("fatrop", "ipopt"):
-            raise ConfigError(f"rmpc.solver: {self.solver!r} is not 'fatrop' or 'ipopt'")
-        if self.tube_h < 1:
-            raise ConfigError("rmpc.tube_h: must be >= 1 (X(n) must not shrink below eps)")
-        if self.u_max[2] >= self.g_m_s2:
-            raise ConfigError("rmpc.u_max[2]: must be < g (the thrust must stay positive)")
-
-    @property
-    def psidot_max(self) -> float:
-        return self.u_max[3]
-
-    @property
-    def lipschitz_l(self) -> float:
-        """Remark 1: ``L = psidot_max + 1/z*``."""
-        return self.psidot_max + 1.0 / self.desired_depth_m
-
-
-@dataclass(frozen=True)
-class ControlConfig:
-    rate_hz: float = field(metadata=_check(_positive))
-    hover_thrust: float = field(metadata=_check(_unit))
-    thrust_min: float = field(metadata=_check(_nonneg))
-    thrust_max: float = field(metadata=_check(_unit))
-    # Whose clock stamps frames and telemetry: "receipt" (local monotonic clock on arrival:
-    # a real vehicle) or "autopilot" (source stamps: frames and telemetry share the
-    # autopilot's boot clock, as the emulator's do; needed in lockstep).
-    time_source: str = "receipt"
-
-    def __post_init__(self) -> None:
-        if not self.thrust_min < self.hover_thrust < self.thrust_max:
-            raise ConfigError("control: need thrust_min < hover_thrust < thrust_max")
-        if self.time_source not in ("receipt", "autopilot"):
-            raise ConfigError(
-                f"control.time_source: {self.time_source!r} is not 'receipt' or 'autopilot'"
-            )
-
-
-@dataclass(frozen=True)
 class MavlinkConfig:
     url: str
-    source_system: int = field(metadata=_check(_positive))
-    source_component: int = field(metadata=_check(_positive))
-    target_system: int = field(metadata=_check(_positive))
-    target_component: int = field(metadata=_check(_nonneg))
+    source_system: int = field(metadata=checked(positive))
+    source_component: int = field(metadata=checked(positive))
+    target_system: int = field(metadata=checked(positive))
+    target_component: int = field(metadata=checked(nonneg))
     signing_key_file: str = ""
 
 
 @dataclass(frozen=True)
 class OffboardConfig:
-    preflight_stream_s: float = field(metadata=_check(_nonneg))
-    mode_retry_s: float = field(metadata=_check(_positive))
+    preflight_stream_s: float = field(metadata=checked(nonneg))
+    mode_retry_s: float = field(metadata=checked(positive))
     arm: bool
     exit_mode: str
     # Ask for OFFBOARD again after PX4 left it on its own (failsafe). Off on a real vehicle:
@@ -217,24 +87,24 @@ class OffboardConfig:
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    telemetry_timeout_s: float = field(metadata=_check(_positive))
-    target_lost_timeout_s: float = field(metadata=_check(_positive))
-    follow_target_timeout_s: float = field(metadata=_check(_positive))
-    hover_fallback_s: float = field(metadata=_check(_positive))
-    silence_after_s: float = field(metadata=_check(_positive))
-    reacquire_climb_rate_m_s: float = field(metadata=_check(_nonneg))
-    reacquire_max_height_m: float = field(metadata=_check(_positive))
+    telemetry_timeout_s: float = field(metadata=checked(positive))
+    target_lost_timeout_s: float = field(metadata=checked(positive))
+    follow_target_timeout_s: float = field(metadata=checked(positive))
+    hover_fallback_s: float = field(metadata=checked(positive))
+    silence_after_s: float = field(metadata=checked(positive))
+    reacquire_climb_rate_m_s: float = field(metadata=checked(nonneg))
+    reacquire_max_height_m: float = field(metadata=checked(positive))
 
 
 @dataclass(frozen=True)
 class LoggingConfig:
     dir: str
     image_encoding: str
-    chunk_size_bytes: int = field(metadata=_check(_positive))
-    flush_interval_s: float = field(metadata=_check(_positive))
-    queue_size: int = field(metadata=_check(_positive))
+    chunk_size_bytes: int = field(metadata=checked(positive))
+    flush_interval_s: float = field(metadata=checked(positive))
+    queue_size: int = field(metadata=checked(positive))
     # Frames waiting to be encoded, at most (MiB); beyond it frames are dropped (counted) ...
-    max_pending_image_mb: int = field(default=64, metadata=_check(_positive))
+    max_pending_image_mb: int = field(default=64, metadata=checked(positive))
     # ... unless this is set: then logging a frame waits for the writer. Only where no
     # wall-clock deadline exists (lockstep simulation); never on a vehicle.
     block_on_backlog: bool = False
@@ -256,10 +126,10 @@ class LoggingConfig:
 class Config:
     """The whole companion configuration. ``source`` is the file it came from."""
 
-    camera: CameraConfig
+    camera: CameraParams
     target: TargetConfig
-    rmpc: RmpcConfig
-    control: ControlConfig
+    rmpc: RmpcParams
+    control: ControlParams
     mavlink: MavlinkConfig
     offboard: OffboardConfig
     safety: SafetyConfig
@@ -396,6 +266,8 @@ def _build(cls: Any, table: Any, where: str) -> Any:
         return cls(**kwargs)
     except ConfigError:
         raise
+    except ParamError as exc:
+        raise ConfigError(str(exc)) from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
 

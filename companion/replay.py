@@ -24,11 +24,8 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
-from companion import schemas as sch
 from companion.config import Config, config_from_dict, load_config, with_overrides
-from companion.log_reader import LogMessage, LogReader, image_from_raw
-from companion.mcap_log import McapLogger
-from companion.runtime import (
+from companion.control.runtime import (
     TOPIC_FRAME,
     TOPIC_STEP,
     TOPIC_TRUTH,
@@ -36,6 +33,9 @@ from companion.runtime import (
     new_pipeline,
     new_store,
 )
+from companion.log import schemas as sch
+from companion.log.reader import LogMessage, LogReader, image_from_raw
+from companion.log.writer import McapLogger
 
 log = logging.getLogger(__name__)
 

@@ -48,3 +48,51 @@ def test_pure_cores_do_no_io(pure: str) -> None:
     for f in files:
         bad = {m for m in _imports(f) if m.split(".")[0] in FORBIDDEN_IN_PURE}
         assert not bad, f"{f.relative_to(ROOT)} imports {bad}: the math must stay pure"
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def test_core_never_imports_the_shell() -> None:
+    """The pure core owns its parameter types and error root: nothing in ``companion.core``
+    imports the shell (``companion.config``, ``companion`` itself, the link, logs...)."""
+    for f in _files("companion/core"):
+        bad = {m for m in _imports(f)
+               if (m == "companion" or m.startswith("companion.")) and
+               not (m == "companion.core" or m.startswith("companion.core."))}
+        assert not bad, f"{f.relative_to(ROOT)} imports {bad}: the core must not use the shell"
+
+
+def test_core_has_no_import_cycle() -> None:
+    """Imports inside the core (function-level ones included) form no cycle."""
+    files = _files("companion/core")
+    names = {_module_name(f) for f in files}
+    graph = {_module_name(f): {m for m in _imports(f) if m in names} for f in files}
+    state: dict[str, int] = {}  # 1 = on the DFS stack, 2 = done
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = [*path[path.index(nxt):], nxt] if nxt in path else [node, nxt]
+                raise AssertionError(f"import cycle in the core: {' -> '.join(cycle)}")
+            if nxt not in state:
+                visit(nxt, [*path, nxt])
+        state[node] = 2
+
+    for n in sorted(graph):
+        if n not in state:
+            visit(n, [n])
+
+
+def test_boundary_checks_catch_a_violation(tmp_path: Path) -> None:
+    """The import scanner itself sees a shell import and a cross import (so the rules above
+    cannot pass vacuously)."""
+    f = tmp_path / "bad.py"
+    f.write_text("def f():\n    from companion.config import load_config\n"
+                 "import sim_bridge.camera\n")
+    found = _imports(f)
+    assert "companion.config" in found and "sim_bridge.camera" in found

@@ -29,7 +29,8 @@ from companion.core.certificate import (
     feasibility_report,
     inputs_from_design,
 )
-from companion.core.terminal import TerminalDesign, design_terminal
+from companion.core.design import design_terminal
+from companion.core.terminal import TerminalDesign
 
 log = logging.getLogger(__name__)
 

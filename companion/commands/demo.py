@@ -22,7 +22,7 @@ from typing import Any
 
 from companion import CompanionError
 from companion.config import DEFAULT_CONFIG, load_config, read_document
-from companion.reporting import build_report
+from companion.report.files import build_report
 
 log = logging.getLogger(__name__)
 

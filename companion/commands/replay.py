@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from companion.config import load_config
-from companion.log_reader import NotMcapError
+from companion.log.reader import NotMcapError
 from companion.replay import replay, replay_config, terminal_progress
 
 
@@ -38,8 +38,8 @@ def _run(args: argparse.Namespace) -> int:
     summary = res.summary()
     summary["wall_time_s"] = wall
     report: dict[str, object] = {"replay": summary}
-    from companion.log_reader import LogReader
-    from companion.reporting import build_report
+    from companion.log.reader import LogReader
+    from companion.report.files import build_report
 
     if args.config:
         cfg = load_config(args.config, args.set)

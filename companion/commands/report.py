@@ -6,9 +6,9 @@ import argparse
 from pathlib import Path
 
 from companion.config import load_config
-from companion.log_reader import LogReader, NotMcapError
+from companion.log.reader import LogReader, NotMcapError
 from companion.replay import ReplayError, replay_config
-from companion.reporting import build_report
+from companion.report.files import build_report
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

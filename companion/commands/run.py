@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from companion.config import load_config
-from companion.runtime import CompanionApp, FaultWindow
+from companion.control.runtime import CompanionApp, FaultWindow
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion import CompanionError
-from companion.config import CameraConfig
 from companion.core._backend import asin, atan, xp
+from companion.core.errors import CoreError
+from companion.core.params import CameraParams
 
 
 def real_to_virtual(u: Any, n: Any, phi: Any, theta: Any, lam: float) -> tuple[Any, Any]:
@@ -88,7 +88,7 @@ def visible_area_centre(
 # Errors
 
 
-class GeometryError(CompanionError, ValueError):
+class GeometryError(CoreError, ValueError):
     """Geometry cannot be evaluated on these inputs (non-finite, behind the camera, ...)."""
 
 
@@ -399,8 +399,9 @@ class PinholeCamera:
             raise GeometryError("PinholeCamera: principal point must be finite")
 
     @classmethod
-    def from_config(cls, cam: CameraConfig) -> PinholeCamera:
-        """Ideal camera of a :class:`companion.config.CameraConfig` (principal point centred)."""
+    def from_config(cls, cam: CameraParams) -> PinholeCamera:
+        """Ideal camera of a :class:`~companion.core.params.CameraParams` (principal point
+        centred)."""
         cx, cy = principal_point_px(cam.width_px, cam.height_px)
         return cls(cam.focal_length_m, cam.pixel_size_m, cx, cy)
 

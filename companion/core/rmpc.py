@@ -27,9 +27,9 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion import CompanionError
-from companion.config import CameraConfig, RmpcConfig
 from companion.core.dynamics import S_REF, euler_step, input_error, terminal_feedforward
+from companion.core.errors import CoreError
+from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError, compiled_nlp
 from companion.core.rmpc_problem import (
     NU,
@@ -70,7 +70,7 @@ ACCEPT_TOL = 1e-6
 """Largest constraint residual (g rows and bounds, solver units) a 'success' may carry."""
 
 
-class RmpcError(CompanionError):
+class RmpcError(CoreError):
     """Root of the RMPC's errors."""
 
 
@@ -205,7 +205,7 @@ class _Solver:
     """One compiled NLP (hard or soft) with its bounds template."""
 
     def __init__(
-        self, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign, soft: bool,
+        self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
         solver: str,
     ) -> None:
         nlp, layout = build_nlp(rmpc, camera, terminal, soft)
@@ -310,7 +310,7 @@ class Rmpc:
     ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start).
     """
 
-    def __init__(self, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign) -> None:
+    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> None:
         self.cfg = rmpc
         self.camera = camera
         self.terminal = terminal
@@ -504,7 +504,7 @@ class Rmpc:
 
 
 def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarray,
-               rmpc: RmpcConfig, camera: CameraConfig) -> float:
+               rmpc: RmpcParams, camera: CameraParams) -> float:
     """The squared-form value of one path row (as in the NLP), evaluated with numpy."""
     if kind in ("tube", "terminal_set"):
         return float(eta @ p_mat @ eta)
@@ -518,8 +518,8 @@ def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarr
 
 def check_solution(
     result: RmpcResult,
-    rmpc: RmpcConfig,
-    camera: CameraConfig,
+    rmpc: RmpcParams,
+    camera: CameraParams,
     terminal: TerminalDesign,
     tol: float = 1e-6,
     groups: tuple[str, ...] | None = None,
@@ -576,7 +576,7 @@ def check_solution(
 
 
 def visibility_margin(
-    result: RmpcResult, rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign
+    result: RmpcResult, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign
 ) -> np.ndarray:
     """Radius minus distance of every visibility row (:func:`visibility_pairs` order, N-1
     values): 0 means binding."""

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import casadi as ca
 
-from companion import CompanionError
+from companion.core.errors import CoreError
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +33,7 @@ ORACLE_FUNCTIONS = ("nlp_f", "nlp_g", "nlp_grad", "nlp_grad_f", "nlp_jac_g", "nl
 """The oracle's derived functions an ``nlpsol`` loads from a library (plus ``nlp`` itself)."""
 
 
-class RmpcBuildError(CompanionError):
+class RmpcBuildError(CoreError):
     """The RMPC could not be generated, compiled or loaded."""
 
 

@@ -14,7 +14,7 @@ with the gap rows written ``x_{n+1} - F(x_n, u_n)`` (explicit Euler) and the pat
 input and state boxes are bounds on ``w``. Parameters ``p`` (5 N): per stage
 ``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a]`` (m/s, m/s^2, rad/s, virtual frame).
 
-Groups (RmpcConfig switches):
+Groups (RmpcParams switches):
 
 - ``tube``: ``eta(n)' P eta(n) <= X(n)^2``, ``X(n) = ((N-n) H + n)/N eps`` for n = 0..N
   (the row at n = N, ``X(N) = eps``, is the terminal set and is shared with ``terminal``);
@@ -35,9 +35,9 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from companion.config import CameraConfig, RmpcConfig
 from companion.core.dynamics import S_REF, euler_step, input_error
 from companion.core.geometry import attitude_from_accel, visible_area_centre
+from companion.core.params import CameraParams, RmpcParams
 from companion.core.terminal import TerminalDesign
 
 NX = 7
@@ -74,13 +74,13 @@ class Layout:
     slack_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
-def tube_bound(rmpc: RmpcConfig, n: int) -> float:
+def tube_bound(rmpc: RmpcParams, n: int) -> float:
     """``X(n) = ((N - n) H + n)/N eps`` (spec 6)."""
     big_n = rmpc.horizon
     return ((big_n - n) * rmpc.tube_h + n) / big_n * rmpc.eps
 
 
-def visibility_pairs(rmpc: RmpcConfig) -> list[tuple[int, int, int]]:
+def visibility_pairs(rmpc: RmpcParams) -> list[tuple[int, int, int]]:
     """``(stage, image index, input index)`` of every visibility row.
 
     ``spec`` (spec 6, the paper's (2d)): ``|p(n) - M(u(n))|`` for n = 1..N-1: the image at
@@ -96,7 +96,7 @@ def visibility_pairs(rmpc: RmpcConfig) -> list[tuple[int, int, int]]:
     return [(n, n, n) for n in range(1, big_n)]
 
 
-def visibility_radius(rmpc: RmpcConfig, terminal: TerminalDesign, n: int) -> float:
+def visibility_radius(rmpc: RmpcParams, terminal: TerminalDesign, n: int) -> float:
     """``r_v - n rho e^{L (n-1) delta}`` (spec 6), the tightened radius at stage ``n``."""
     return terminal.r_v - n * rmpc.rho * float(np.exp(terminal.lipschitz_l * (n - 1) * rmpc.dt_s))
 
@@ -107,7 +107,7 @@ def image_point(eta: Any) -> tuple[Any, Any]:
     return eta[0] / s3, eta[1] / s3
 
 
-def centre(u: Any, rmpc: RmpcConfig, camera: CameraConfig) -> tuple[Any, Any]:
+def centre(u: Any, rmpc: RmpcParams, camera: CameraParams) -> tuple[Any, Any]:
     """``M(u)``: centre of the visible area in the virtual image at the attitude ``u`` asks."""
     phi, theta, _ = attitude_from_accel(u[0], u[1], u[2], rmpc.g_m_s2)
     half = camera.visible_half_m
@@ -115,7 +115,7 @@ def centre(u: Any, rmpc: RmpcConfig, camera: CameraConfig) -> tuple[Any, Any]:
 
 
 def build_nlp(
-    rmpc: RmpcConfig, camera: CameraConfig, terminal: TerminalDesign, soft: bool
+    rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool
 ) -> tuple[dict[str, ca.SX], Layout]:
     """The NLP ``{x, p, f, g}`` (SX) and its layout. See the module docstring."""
     big_n = rmpc.horizon

@@ -21,12 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion import CompanionError
-from companion.config import ControlConfig, RmpcConfig
+from companion.core.errors import CoreError
 from companion.core.geometry import attitude_from_accel, quat_from_euler_zyx, wrap_pi
+from companion.core.params import ControlParams, RmpcParams
 
 
-class SetpointError(CompanionError, ValueError):
+class SetpointError(CoreError, ValueError):
     """No setpoint can be built from these inputs (non-finite, or no upward thrust)."""
 
 
@@ -109,7 +109,7 @@ def attitude_setpoint(
 
 
 def attitude_setpoint_from_config(
-    u: ArrayLike, yaw_rad: float, control: ControlConfig, rmpc: RmpcConfig
+    u: ArrayLike, yaw_rad: float, control: ControlParams, rmpc: RmpcParams
 ) -> AttitudeSetpoint:
     """:func:`attitude_setpoint` with ``dt_s``, ``g`` and the thrust limits from the config."""
     return attitude_setpoint(

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion import CompanionError
 from companion.core.dynamics import S_REF
+from companion.core.errors import CoreError
 from companion.core.geometry import (
     camera_points_to_body_image,
     real_points_to_virtual,
@@ -34,7 +34,7 @@ from companion.core.geometry import (
 from companion.core.moments import DegenerateTargetError, ImageMoments, image_moments
 
 
-class MeasurementError(CompanionError, ValueError):
+class MeasurementError(CoreError, ValueError):
     """A measurement is non-finite or has the wrong shape: no state is built from it."""
 
 

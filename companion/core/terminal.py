@@ -12,8 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from companion.config import CameraConfig, RmpcConfig
-
 
 def linearised_model(dt: float, z_star: float) -> tuple[np.ndarray, np.ndarray]:
     """Discrete ``(A, B)`` (7x7, 7x4) of the error dynamics at the origin (Euler, step ``dt``)."""
@@ -120,48 +118,3 @@ def terminal_visibility_radius(
                 t = np.clip(-(p0 @ d) / (d @ d), 0.0, 1.0)
                 best = min(best, float(np.linalg.norm(p0 + t * d)))
     return best
-
-
-def design_terminal(rmpc: RmpcConfig, camera: CameraConfig) -> TerminalDesign:
-    """The terminal ingredients for a config (``rmpc.terminal.method``)."""
-    a, b = linearised_model(rmpc.dt_s, rmpc.desired_depth_m)
-    q = np.diag(rmpc.q_diag)
-    r = np.diag(rmpc.r_diag)
-    tc = rmpc.terminal
-    phi_max, theta_max = tilt_limits(rmpc.u_max, rmpc.g_m_s2)
-    gamma = terminal_visibility_radius(
-        phi_max, theta_max, camera.visible_half_m, camera.focal_length_m
-    )
-    kappa: float | None = None  # None: the largest the decay inequality allows
-    if tc.method == "given":
-        k = np.array(tc.k_matrix, dtype=float)
-        p = np.array(tc.p_matrix, dtype=float)
-        kappa = tc.kappa if tc.kappa > 0 else None
-    elif tc.method == "dare":
-        lqr = dare_terminal(a, b, q, r)
-        k, p = lqr.k, lqr.p
-    else:
-        # Remark 2: LMI design aimed at the certificate (companion.core.certificate).
-        from companion.core.certificate import lmi_certified_design, paper_path_feedforward_bound
-
-        lmi = lmi_certified_design(
-            a, b, q, r, eps=rmpc.eps, u_max=rmpc.u_max,
-            gamma_ff_bound=paper_path_feedforward_bound(), gamma=gamma,
-            kappa=tc.kappa if tc.kappa > 0 else 4e-4,
-        )
-        k, p, kappa = lmi.k, lmi.p, lmi.kappa
-    if tc.p_scale != 1.0:
-        p = tc.p_scale * p
-        kappa = None  # a scaled P has its own margin
-    if kappa is None:
-        kappa = max(0.0, decay_margin(a, b, k, p, q, r))
-    return TerminalDesign(
-        p=p,
-        k=k,
-        kappa=kappa,
-        eps=rmpc.eps,
-        gamma=gamma,
-        r_v=camera.r_v,
-        lipschitz_l=rmpc.lipschitz_l,
-        method=tc.method,
-    )

@@ -15,8 +15,9 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from companion.config import CameraConfig, TargetConfig
+from companion.config import TargetConfig
 from companion.core.geometry import opencv_to_spec_pixel, principal_point_px
+from companion.core.params import CameraParams
 from companion.perception._types import (
     Detection,
     DetectionReport,
@@ -49,7 +50,7 @@ class CameraModel:
     focal_length_m: float
 
 
-def camera_model(camera: CameraConfig, calibration: Calibration | None = None) -> CameraModel:
+def camera_model(camera: CameraParams, calibration: Calibration | None = None) -> CameraModel:
     """Intrinsics from the calibration if given, else the ideal pinhole of the config:
     ``f_px = focal_length_m / pixel_size_m`` and the principal point at the image centre
     (``companion.core.geometry.principal_point_px``: ``((width - 1) / 2, (height - 1) / 2)``,
@@ -126,7 +127,7 @@ class Perception:
 
     def __init__(
         self,
-        camera: CameraConfig,
+        camera: CameraParams,
         target: TargetConfig,
         *,
         calibration: Calibration | None = None,

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from companion import CompanionError
-from companion.camera_sources import (
+from companion.camera import (
     FRAME_HEADER,
     CameraError,
     CameraFrame,
@@ -342,7 +342,7 @@ def test_open_camera_dispatch(tmp_path: Path) -> None:
     with pytest.raises(CameraError, match="no such file"):
         open_camera(str(tmp_path / "run.mcap"))
     (tmp_path / "run.mcap").write_bytes(b"")  # opened lazily: a bad file fails on entry
-    from companion.camera_sources import McapSource
+    from companion.camera import McapSource
 
     for url in (str(tmp_path / "run.mcap"), f"mcap://{tmp_path / 'run.mcap'}"):
         assert isinstance(open_camera(url), McapSource)
@@ -363,9 +363,9 @@ def test_mcap_source_gives_back_the_logged_frames(tmp_path: Path, encoding: str)
     """Frames written by the companion's logger (protobuf, mono and colour) come back from an
     MCAP camera URL in log-time order, pixel-exact, with their capture stamps; a frame that
     does not decode is counted and skipped."""
-    from companion import schemas as sch
-    from companion.camera_sources import McapSource
-    from companion.mcap_log import McapLogger
+    from companion.camera import McapSource
+    from companion.log import schemas as sch
+    from companion.log.writer import McapLogger
 
     rng = np.random.default_rng(5)
     imgs = [rng.integers(0, 255, (40, 60), dtype=np.uint8) for _ in range(4)]

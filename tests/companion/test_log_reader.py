@@ -18,9 +18,9 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import Writer
 
 from companion import CompanionError
-from companion import schemas as sch
-from companion.log_reader import LogReader, LogReadError, NotMcapError, read_log
-from companion.mcap_log import McapLogger
+from companion.log import schemas as sch
+from companion.log.reader import LogReader, LogReadError, NotMcapError, read_log
+from companion.log.writer import McapLogger
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 3000
@@ -147,7 +147,7 @@ def test_flipped_byte_costs_only_its_chunk(reference: Path, tmp_path: Path) -> N
 
 _CHILD = """
 import sys, time
-from companion.mcap_log import McapLogger
+from companion.log.writer import McapLogger
 lg = McapLogger(sys.argv[1], chunk_size=1 << 20, flush_interval_s=0.05, queue_size=100000)
 lg.open()
 i = 0
@@ -212,7 +212,7 @@ def test_frames_in_every_stored_form_decode(tmp_path: Path) -> None:
 
     import cv2
 
-    from companion.mcap_log import encode_image
+    from companion.log.encode import encode_image
 
     rng = np.random.default_rng(3)
     mono = rng.integers(0, 255, (24, 32), dtype=np.uint8)

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
-from companion.mavlink_link import (
+from companion.link import (
     ATTITUDE_THRUST_TYPE_MASK,
     PX4_AUTO_SUB_MODES,
     PX4_MAIN_MODES,

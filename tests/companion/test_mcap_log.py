@@ -1,5 +1,5 @@
 """McapLogger on real files (and a real FIFO to stall the writer), read back with mcap's own
-reader and with companion.log_reader."""
+reader and with companion.log.reader."""
 
 from __future__ import annotations
 
@@ -19,10 +19,12 @@ import pytest
 from mcap.reader import make_reader
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion import schemas as sch
-from companion.log_reader import LogReader
-from companion.mavlink_link import Received, Sent
-from companion.mcap_log import McapLogError, McapLogger, encode_json
+from companion.link import Received, Sent
+from companion.log import McapLogError
+from companion.log import schemas as sch
+from companion.log.encode import encode_json
+from companion.log.reader import LogReader
+from companion.log.writer import McapLogger
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -284,8 +286,8 @@ def test_image_backlog_is_bounded_in_bytes_drop_or_wait(tmp_path: Path) -> None:
     default; with ``block_on_backlog`` (lockstep) the caller waits and nothing is lost."""
     import numpy as np
 
-    from companion.log_reader import LogReader
-    from companion.mcap_log import McapLogger
+    from companion.log.reader import LogReader
+    from companion.log.writer import McapLogger
 
     rng = np.random.default_rng(0)
     imgs = [rng.integers(0, 255, (1000, 1000), dtype=np.uint8) for _ in range(3)]
@@ -333,7 +335,7 @@ def test_chunk_compression_from_config(tmp_path: Path, compression: str) -> None
     from mcap.stream_reader import StreamReader
 
     from companion.config import load_config
-    from companion.log_reader import read_log
+    from companion.log.reader import read_log
 
     cfg = load_config(None, [f'logging.compression="{compression}"'])
     path = tmp_path / f"{compression}.mcap"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 
 from companion.config import OffboardConfig, SafetyConfig
-from companion.offboard import OffboardManager, OffboardPhase, VehicleStatus
-from companion.safety import Health, SafetyLevel, SafetySupervisor
+from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.safety import Health, SafetyLevel, SafetySupervisor
 
 OFF = OffboardConfig(preflight_stream_s=1.0, mode_retry_s=1.0, arm=True, exit_mode="hold")
 SAFE = SafetyConfig(

@@ -15,20 +15,23 @@ from hypothesis import strategies as st
 from companion.config import load_config
 from companion.core.certificate import (
     PAPER_ETA0,
-    PAPER_TERMINAL_STATE,
     certify,
     inputs_from_design,
-    lmi_certified_design,
-    lmi_fit_design,
-    lmi_terminal,
     max_visibility_on_omega,
     paper_path_feedforward_bound,
     remainder_ratio_max,
     terminal_reach,
     visibility_of,
 )
+from companion.core.design import design_terminal
 from companion.core.dynamics import euler_step, terminal_feedforward
-from companion.core.terminal import dare_terminal, design_terminal, linearised_model
+from companion.core.lmi import (
+    PAPER_TERMINAL_STATE,
+    lmi_certified_design,
+    lmi_fit_design,
+    lmi_terminal,
+)
+from companion.core.terminal import dare_terminal, linearised_model
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER = ROOT / "config" / "paper.toml"

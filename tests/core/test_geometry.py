@@ -10,8 +10,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from companion import CompanionError
 from companion.config import load_config
+from companion.core.errors import CoreError
 from companion.core.geometry import (
     GeometryError,
     PinholeCamera,
@@ -126,7 +126,7 @@ def test_quaternion_refuses_bad_values() -> None:
         rotation_from_quat([0, 0, 0, 0])
     with pytest.raises(GeometryError):
         rotation_from_quat([1, math.nan, 0, 0])
-    with pytest.raises(CompanionError):
+    with pytest.raises(CoreError):
         quat_from_euler_zyx(0, math.inf, 0)
 
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from companion import CompanionError
+from companion.core.errors import CoreError
 from companion.core.geometry import (
     project_points,
     real_points_to_virtual,
@@ -181,7 +181,7 @@ GOOD = np.array([[1e-4, 1e-4], [3e-4, 1e-4], [3e-4, 2.5e-4], [1e-4, 2.5e-4]])
 def test_degenerate_targets_raise(pts: np.ndarray) -> None:
     with pytest.raises(DegenerateTargetError) as exc:
         image_moments(pts, A_STAR, LAM)
-    assert isinstance(exc.value, CompanionError)
+    assert isinstance(exc.value, CoreError)
 
 
 def test_collinear_tolerance_is_relative() -> None:

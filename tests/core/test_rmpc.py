@@ -17,9 +17,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from companion import CompanionError
 from companion.config import Config, load_config
+from companion.core.design import design_terminal
 from companion.core.dynamics import input_error
+from companion.core.errors import CoreError
 from companion.core.rmpc import (
     Rmpc,
     RmpcParameterError,
@@ -30,7 +31,7 @@ from companion.core.rmpc import (
     visibility_margin,
 )
 from companion.core.rmpc_scenario import closed_loop, horizon_motion, initial_error, paper_agv
-from companion.core.terminal import TerminalDesign, design_terminal
+from companion.core.terminal import TerminalDesign
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
@@ -236,7 +237,7 @@ def test_non_finite_parameters_raise_before_the_solver(fresh: Rmpc, bad: float) 
     calls = fresh._hard.solver.stats().get("n_call_total")
     with pytest.raises(RmpcParameterError, match="eta0") as exc:
         fresh.solve(eta, tm)
-    assert isinstance(exc.value, CompanionError)
+    assert isinstance(exc.value, CoreError)
     with pytest.raises(RmpcParameterError, match="v_a_m_s"):
         TargetMotion.constant([bad, 0.0], [0.0, 0.0], 0.0, fresh.horizon)
     with pytest.raises(RmpcParameterError, match="psidot_a"):
@@ -292,7 +293,7 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
     assert hard is not None and soft is not None and hard.library.exists()
     code = (
         "import json; from companion.config import load_config;"
-        "from companion.core.terminal import design_terminal;"
+        "from companion.core.design import design_terminal;"
         "from companion.core.rmpc import Rmpc; c = load_config();"
         "m = Rmpc(c.rmpc, c.camera, design_terminal(c.rmpc, c.camera));"
         "print(json.dumps([[str(x.library), x.compiled_now] for x in m.compiled]))"

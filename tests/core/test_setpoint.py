@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion import CompanionError
 from companion.config import load_config
+from companion.core.errors import CoreError
 from companion.core.geometry import (
     euler_zyx_from_quat,
     quat_from_euler_zyx,
@@ -109,7 +109,7 @@ def test_non_finite_input_is_refused(bad: float, i: int) -> None:
     u[i] = bad
     with pytest.raises(SetpointError) as exc:
         attitude_setpoint(u, 0.0, 0.05, **LIM)
-    assert isinstance(exc.value, CompanionError)
+    assert isinstance(exc.value, CoreError)
 
 
 @pytest.mark.parametrize("bad", BAD)

@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import load_config
+from companion.core.design import design_terminal
 from companion.core.geometry import real_to_virtual, visible_area_centre
 from companion.core.terminal import (
     dare_terminal,
-    design_terminal,
     linearised_model,
     terminal_visibility_radius,
     tilt_limits,

@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 
 from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG
-from companion.log_reader import LogReader
+from companion.log.reader import LogReader
 from companion.replay import replay
 
 pytestmark = pytest.mark.slow
@@ -108,7 +108,7 @@ def test_mcap_file_reads_back_with_the_mcap_reader(flight: tuple[Path, dict]) ->
 def test_offboard_engaged_as_px4_expects(flight: tuple[Path, dict]) -> None:
     """Setpoints streamed >= 1 s before the mode request, mode confirmed from HEARTBEAT."""
     out, _ = flight
-    from companion.log_reader import LogReader
+    from companion.log.reader import LogReader
 
     with LogReader(out / "flight.mcap") as r:
         _check_offboard(r)
@@ -207,7 +207,7 @@ def test_log_info_lists_channels(flight: tuple[Path, dict], tmp_path: Path) -> N
 def test_mcap_camera_source_yields_the_recorded_frames(flight: tuple[Path, dict]) -> None:
     import asyncio
 
-    from companion.camera_sources import open_camera
+    from companion.camera import open_camera
 
     out, _ = flight
 
@@ -248,8 +248,8 @@ def test_replay_names_a_missing_channel(flight: tuple[Path, dict], tmp_path: Pat
 
 def test_pixel_plot_data_lies_inside_the_drawn_bound(flight: tuple[Path, dict]) -> None:
     from companion.config import load_config
-    from companion.plots import corner_report_pixels
-    from companion.reporting import load_scored_messages, report_settings
+    from companion.report.files import load_scored_messages, report_settings
+    from companion.report.plots import corner_report_pixels
 
     out, rep = flight
     msgs, _ = load_scored_messages(out / "flight.mcap")

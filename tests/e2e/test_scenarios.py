@@ -18,7 +18,7 @@ import pytest
 
 from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG
-from companion.log_reader import LogReader
+from companion.log.reader import LogReader
 
 pytestmark = pytest.mark.slow
 

@@ -1,7 +1,7 @@
 """Flight report figures (the paper's Fig. 2 and more) and a one-page HTML summary.
 
 Input: decoded log messages ``(topic, log_time_ns, payload)`` as for
-:func:`companion.flight_report.compute_report`. Matplotlib with the non-interactive Agg backend.
+:func:`companion.report.figures.compute_report`. Matplotlib with the non-interactive Agg backend.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Rectangle
 
-from companion.flight_report import (
+from companion.report.figures import (
     TOPIC_STEP,
     TOPIC_TRUTH,
     ReportSettings,

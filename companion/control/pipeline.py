@@ -21,6 +21,10 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
+from companion.control.safety import Health, SafetyDecision, SafetyLevel, SafetySupervisor
+from companion.control.seams import Controller, Perceiver
+from companion.control.telemetry import KinematicsSample, TelemetryStore
+from companion.core.design import design_terminal
 from companion.core.estimator import ImageVelocityEstimator
 from companion.core.geometry import euler_zyx_from_quat, rectangle_corners_m, wrap_pi
 from companion.core.moments import DegenerateTargetError, a_star
@@ -29,9 +33,7 @@ from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
 from companion.core.state import ErrorState, MeasurementError, build_error_state
-from companion.core.terminal import TerminalDesign, design_terminal
-from companion.safety import Health, SafetyDecision, SafetyLevel, SafetySupervisor
-from companion.telemetry import TelemetryStore
+from companion.core.terminal import TerminalDesign
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +105,7 @@ class StepResult:
 class ControlPipeline:
     """One object per flight; ``step`` once per camera frame, in order."""
 
-    def __init__(self, cfg: Config, perception: Any, rmpc: Any | None = None,
+    def __init__(self, cfg: Config, perception: Perceiver, rmpc: Controller | None = None,
                  terminal: TerminalDesign | None = None,
                  timer: Callable[[], float] | None = None) -> None:
         self.cfg = cfg
@@ -113,7 +115,7 @@ class ControlPipeline:
             from companion.core.rmpc import Rmpc
 
             rmpc = Rmpc(cfg.rmpc, cfg.camera, self.terminal)
-        self.rmpc = rmpc
+        self.rmpc: Controller = rmpc
         self.safety = SafetySupervisor(cfg.safety)
         self.a_star = a_star(_target_points(cfg), cfg.rmpc.desired_depth_m,
                              cfg.camera.focal_length_m)
@@ -277,7 +279,8 @@ class ControlPipeline:
                                     tgt.yaw_rate_rad_s, "follow_target")
         return VelocityEstimate(self._estimator.v_ned.copy(), np.zeros(3), 0.0, "image_estimator")
 
-    def _reacquire(self, store: TelemetryStore, kin: Any, yaw: float) -> np.ndarray | None:
+    def _reacquire(self, store: TelemetryStore, kin: KinematicsSample,
+                   yaw: float) -> np.ndarray | None:
         tgt = store.target
         if tgt is None:
             return None

@@ -31,15 +31,16 @@ from typing import Any
 import numpy as np
 
 from companion import CompanionError
-from companion import schemas as sch
-from companion.camera_sources import CameraFrame, open_camera
+from companion.camera import CameraFrame, open_camera
 from companion.config import Config
-from companion.mavlink_link import MavlinkLink, NoPeerError, Received
-from companion.mcap_log import McapLogger
-from companion.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.pipeline import ControlPipeline
+from companion.control.seams import FrameSource
+from companion.control.telemetry import TelemetryStore
+from companion.link import MavlinkLink, NoPeerError, Received
+from companion.log import schemas as sch
+from companion.log.writer import McapLogger
 from companion.perception.pipeline import Perception
-from companion.pipeline import ControlPipeline
-from companion.telemetry import TelemetryStore
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +265,7 @@ class CompanionApp:
 
     # -- control ----------------------------------------------------------------------------
 
-    async def _control(self, camera: Any) -> None:
+    async def _control(self, camera: FrameSource) -> None:
         it = camera.__aiter__()
         exit_deadline: float | None = None
         while True:

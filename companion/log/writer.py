@@ -6,21 +6,17 @@ the queue is full the item is dropped and counted (a warning at most once per se
 
 Durability: the current chunk is closed, the file flushed and ``os.fsync``-ed every
 ``flush_interval_s`` (and whenever a chunk reaches ``chunk_size`` bytes), so a process killed
-at any time leaves a file that :mod:`companion.log_reader` salvages up to the last flush.
+at any time leaves a file that :mod:`companion.log.reader` salvages up to the last flush.
 
 Times: ``log_time_ns`` comes from the caller's clock; the logger never reads a clock for data
 (only to pace flushes and warnings). Every channel is JSON with a JSON schema
-(:mod:`companion.schemas`), so the file opens in Foxglove as is. Payload dicts and image arrays
+(:mod:`companion.log.schemas`), so the file opens in Foxglove as is. Payload dicts and image arrays
 are NOT copied: do not mutate them after handing them over.
 """
 
 from __future__ import annotations
 
-import base64
-import dataclasses
-import enum
 import errno
-import json
 import logging
 import math
 import os
@@ -35,8 +31,18 @@ from typing import IO, Any
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from companion import CompanionError, __version__
-from companion import schemas as sch
+from companion import __version__
+from companion.log import McapLogError
+from companion.log import schemas as sch
+from companion.log.encode import (
+    IMAGE_ENCODINGS,
+    encode_image,
+    encode_json,
+    mavlink_payload,
+    stamp,
+    xyz,
+    xyzw,
+)
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +54,6 @@ _COMPRESSION = {
 _STOP = object()
 
 
-class McapLogError(CompanionError):
-    """The logger was misused (unknown schema, topic re-registered) or its writer failed."""
 
 
 @dataclass(frozen=True)
@@ -99,95 +103,6 @@ class _Sink:
     def close(self) -> None:
         self._f.close()
 
-
-def stamp(t_ns: int) -> dict[str, int]:
-    """Foxglove ``time`` ({sec, nsec}) of a non-negative time in ns."""
-    t = max(int(t_ns), 0)
-    return {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000}
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, bytes | bytearray | memoryview):
-        return base64.b64encode(bytes(o)).decode("ascii")
-    if dataclasses.is_dataclass(o) and not isinstance(o, type):
-        return {f.name: getattr(o, f.name) for f in dataclasses.fields(o)}
-    if isinstance(o, enum.Enum):
-        return o.value if isinstance(o.value, int | float | str) else o.name
-    if isinstance(o, set | frozenset | tuple):
-        return list(o)
-    if isinstance(o, Path):
-        return str(o)
-    if isinstance(o, Mapping):
-        return dict(o)
-    raise TypeError(f"cannot log a {type(o).__name__} as JSON")
-
-
-def _finite(o: Any) -> Any:
-    """Replace NaN/inf by None (JSON has no NaN), converting what _json_default knows."""
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [_finite(v) for v in o]
-    if isinstance(o, str | int | bool) or o is None:
-        return o
-    return _finite(_json_default(o))
-
-
-def encode_json(payload: Any) -> bytes:
-    """Compact JSON; NaN/inf become null; numpy, bytes (base64) and dataclasses are handled."""
-    try:
-        text = json.dumps(payload, default=_json_default, allow_nan=False, separators=(",", ":"))
-    except ValueError:  # a non-finite float somewhere
-        text = json.dumps(_finite(payload), allow_nan=False, separators=(",", ":"))
-    return text.encode()
-
-
-def encode_image(
-    image: np.ndarray, encoding: str, log_time_ns: int, frame_id: str, jpeg_quality: int
-) -> tuple[str, bytes]:
-    """(schema name, protobuf bytes) of a foxglove.CompressedImage (jpeg/png) or RawImage (raw).
-
-    Costs per 1000 x 1000 mono frame on this machine: "raw" ~0.5 ms here plus the chunk
-    compression (LZ4 ~2.3 ms, ~0.7 MB); "png" 6.6 ms (lossless too, ~0.35 MB, 6.6 ms to
-    decode); "jpeg" small but lossy."""
-    import cv2
-
-    img = np.ascontiguousarray(image)
-    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
-        raise McapLogError(f"image must be uint8 HxW or HxWx3 (BGR), got {img.dtype} {img.shape}")
-    ts = stamp(log_time_ns)
-    if encoding in ("jpeg", "png"):
-        # Lossless PNG tuned for speed: Huffman-only coding after the SUB filter. On 1000 x 1000
-        # camera frames 6.8 ms / ~349 KB against OpenCV's default 10.4 ms / ~342 KB.
-        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if encoding == "jpeg" else [
-            cv2.IMWRITE_PNG_COMPRESSION, 1,
-            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
-            cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
-        ]
-        ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
-        if not ok:
-            raise McapLogError(f"cv2 could not encode a {encoding} image")
-        cmsg = sch.protobuf_class(sch.COMPRESSED_IMAGE)(
-            frame_id=frame_id, format=encoding, data=buf.tobytes()
-        )
-        cmsg.timestamp.seconds, cmsg.timestamp.nanos = ts["sec"], ts["nsec"]
-        return sch.COMPRESSED_IMAGE, cmsg.SerializeToString()
-    h, w = img.shape[:2]
-    rmsg = sch.protobuf_class(sch.RAW_IMAGE)(
-        frame_id=frame_id, width=w, height=h, encoding="mono8" if img.ndim == 2 else "bgr8",
-        step=w * (1 if img.ndim == 2 else 3), data=img.tobytes(),
-    )  # fmt: skip
-    rmsg.timestamp.seconds, rmsg.timestamp.nanos = ts["sec"], ts["nsec"]
-    return sch.RAW_IMAGE, rmsg.SerializeToString()
-
-
-IMAGE_ENCODINGS = ("jpeg", "png", "raw")
 
 
 class McapLogger:
@@ -441,7 +356,7 @@ class McapLogger:
         msg = {
             "timestamp": stamp(log_time_ns),
             "frame_id": frame_id,
-            "pose": {"position": _xyz(position_m), "orientation": _xyzw(q_wxyz)},
+            "pose": {"position": xyz(position_m), "orientation": xyzw(q_wxyz)},
         }
         return self.log(topic, log_time_ns, msg, schema=sch.POSE_IN_FRAME)
 
@@ -457,13 +372,13 @@ class McapLogger:
         """foxglove.FrameTransform: the child frame's pose in the parent (q w,x,y,z)."""
         msg = {
             "timestamp": stamp(log_time_ns), "parent_frame_id": parent_frame_id,
-            "child_frame_id": child_frame_id, "translation": _xyz(translation_m),
-            "rotation": _xyzw(q_wxyz),
+            "child_frame_id": child_frame_id, "translation": xyz(translation_m),
+            "rotation": xyzw(q_wxyz),
         }  # fmt: skip
         return self.log(topic, log_time_ns, msg, schema=sch.FRAME_TRANSFORM)
 
     def log_mavlink(self, direction: str, item: Any, log_time_ns: int | None = None) -> bool:
-        """Log a :class:`companion.mavlink_link.Received` (``direction`` "in") or ``Sent``
+        """Log a :class:`companion.link.Received` (``direction`` "in") or ``Sent``
         ("out") on ``/mavlink/<direction>/<NAME>``; log time defaults to its link timestamp."""
         if direction not in ("in", "out"):
             raise McapLogError(f"direction {direction!r} is not 'in' or 'out'")
@@ -613,7 +528,7 @@ class McapLogger:
                         self._pending_image_bytes -= int(image.nbytes)
                         self._space.notify_all()
             else:
-                schema_name, data = self._topics[topic], encode_json(_mavlink_payload(*payload))
+                schema_name, data = self._topics[topic], encode_json(mavlink_payload(*payload))
         except (McapLogError, TypeError, ValueError, AttributeError) as e:
             now = time.monotonic()
             with self._lock:
@@ -639,28 +554,3 @@ class McapLogger:
             self._written += 1
 
 
-def _xyz(v: Sequence[float]) -> dict[str, float]:
-    x, y, z = (float(a) for a in v)
-    return {"x": x, "y": y, "z": z}
-
-
-def _xyzw(q_wxyz: Sequence[float]) -> dict[str, float]:
-    w, x, y, z = (float(a) for a in q_wxyz)
-    return {"x": x, "y": y, "z": z, "w": w}
-
-
-def _mavlink_payload(direction: str, item: Any) -> dict[str, Any]:
-    from companion.mavlink_link import message_fields
-
-    out: dict[str, Any] = {
-        "raw_b64": base64.b64encode(item.raw).decode("ascii"),
-        "fields": message_fields(item.msg),
-    }
-    if direction == "in":
-        out.update(
-            t_rx_ns=item.t_rx_ns, sysid=item.src_sysid, compid=item.src_compid, seq=item.seq,
-            signed=item.signed,
-        )  # fmt: skip
-    else:
-        out.update(t_tx_ns=item.t_tx_ns)
-    return out

@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import Config
-from companion.flight_report import TOPIC_STEP, TOPIC_TRUTH, ReportSettings, compute_report
-from companion.log_reader import LogReader
+from companion.log.reader import LogReader
+from companion.report.figures import TOPIC_STEP, TOPIC_TRUTH, ReportSettings, compute_report
 
 SCORED_TOPICS = (TOPIC_TRUTH, TOPIC_STEP, "/mavlink/out/SET_ATTITUDE_TARGET")
 
@@ -39,7 +39,7 @@ def build_report(log_path: Path, cfg: Config, out: Path, plots: bool = True) -> 
     report = compute_report(msgs, st)
     report["log"] = {"path": str(log_path), **recovery}
     if plots:
-        from companion.plots import write_figures, write_html
+        from companion.report.plots import write_figures, write_html
 
         figs = write_figures(msgs, st, out)
         report["figures"] = {k: p.name for k, p in figs.items()}

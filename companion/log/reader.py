@@ -37,7 +37,7 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import breakup_chunk
 
 from companion import CompanionError
-from companion import schemas as sch
+from companion.log import schemas as sch
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,261 @@
+"""The emulator's frame socket (docs/wire.md, camera frames): record header, decoding and
+:class:`FrameSocketSource`, a TCP client that resynchronises on a bad record."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import struct
+import time
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from companion.camera.base import _CHANNELS, CameraError, CameraFrame, CameraSource, _Newest, _stop
+
+_log = logging.getLogger(__name__)
+
+
+# docs/wire.md, camera frames
+FRAME_HEADER = struct.Struct("<4sBBHIQHHII")
+FRAME_MAGIC = b"IBVF"
+FRAME_VERSION = 1
+ENCODINGS = {0: "mono8", 1: "bgr8", 2: "jpeg", 3: "png"}
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+
+# ----------------------------------------------------------------------------------------------
+# The emulator's frame socket (docs/wire.md)
+
+
+class BadRecord(CameraError):
+    """A frame record violates docs/wire.md (the connection must be resynchronised)."""
+
+
+@dataclass(frozen=True)
+class FrameHeader:
+    """The 32-byte record header of docs/wire.md."""
+
+    magic: bytes
+    version: int
+    encoding: int
+    reserved: int
+    seq: int
+    t_us: int
+    width_px: int
+    height_px: int
+    payload_len: int
+    crc32: int
+
+    @classmethod
+    def unpack(cls, data: bytes) -> FrameHeader:
+        return cls(*FRAME_HEADER.unpack(data))
+
+    def check(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES) -> None:
+        """Raise :class:`BadRecord` naming the first field that is not acceptable."""
+        if self.magic != FRAME_MAGIC:
+            raise BadRecord(f"bad magic {self.magic!r}")
+        if self.version != FRAME_VERSION:
+            raise BadRecord(f"unsupported version {self.version}")
+        name = ENCODINGS.get(self.encoding)
+        if name is None:
+            raise BadRecord(f"unknown encoding {self.encoding}")
+        if self.width_px == 0 or self.height_px == 0:
+            raise BadRecord(f"empty image {self.width_px}x{self.height_px}")
+        if self.payload_len > max_payload_bytes:
+            raise BadRecord(f"payload_len {self.payload_len} > {max_payload_bytes}")
+        if name in _CHANNELS:
+            want = self.width_px * self.height_px * _CHANNELS[name]
+            if self.payload_len != want:
+                raise BadRecord(f"payload_len {self.payload_len} != {want} for raw {name}")
+
+
+def pack_frame(
+    seq: int, t_us: int, image: npt.NDArray[np.uint8], encoding: str = "", payload: bytes = b""
+) -> bytes:
+    """One docs/wire.md record for ``image`` (mono8 if 2-D, bgr8 if 3-D, or ``encoding`` =
+    ``"jpeg"``/``"png"`` to compress; ``payload`` overrides the bytes sent). For tests,
+    tools and recorders that re-serve frames."""
+    h, w = image.shape[:2]
+    if not encoding:
+        encoding = "mono8" if image.ndim == 2 else "bgr8"
+    code = {v: k for k, v in ENCODINGS.items()}[encoding]
+    if not payload:
+        if encoding in _CHANNELS:
+            payload = np.ascontiguousarray(image).tobytes()
+        else:
+            ok, buf = cv2.imencode("." + ("jpg" if encoding == "jpeg" else "png"), image)
+            if not ok:
+                raise CameraError(f"cannot encode image as {encoding}")
+            payload = buf.tobytes()
+    head = FRAME_HEADER.pack(
+        FRAME_MAGIC, FRAME_VERSION, code, 0, seq, t_us, w, h, len(payload), zlib.crc32(payload)
+    )
+    return head + payload
+
+
+def decode_payload(header: FrameHeader, payload: bytes) -> tuple[npt.NDArray[np.uint8], str]:
+    """Image and pixel format of a checked record's payload (raises :class:`CameraError`)."""
+    name = ENCODINGS[header.encoding]
+    h, w = header.height_px, header.width_px
+    if name == "mono8":
+        return np.frombuffer(payload, np.uint8).reshape(h, w), "mono8"
+    if name == "bgr8":
+        return np.frombuffer(payload, np.uint8).reshape(h, w, 3), "bgr8"
+    img = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CameraError(f"{name} payload does not decode")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if img.dtype != np.uint8:
+        raise CameraError(f"{name} payload decodes to {img.dtype}, expected 8-bit")
+    if img.shape[:2] != (h, w):
+        raise CameraError(f"{name} payload is {img.shape[1]}x{img.shape[0]}, header {w}x{h}")
+    out = np.asarray(img, dtype=np.uint8)
+    out.setflags(write=False)
+    return out, "mono8" if out.ndim == 2 else "bgr8"
+
+
+@dataclass(frozen=True)
+class _Record:
+    header: FrameHeader
+    payload: bytes
+    t_rx_ns: int
+
+
+class FrameSocketSource(CameraSource):
+    """TCP client of the emulator's camera frames (docs/wire.md).
+
+    Reconnects with exponential backoff (``backoff_initial_s`` doubling up to
+    ``backoff_max_s``; reset by a good frame). A record with a bad magic, version, encoding,
+    size or CRC closes the connection and reconnects at once (``resyncs``). Records are
+    decoded only when the consumer takes them (a dropped frame costs no decoding); JPEG/PNG
+    decode in a worker thread.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        queue_size: int = 1,
+        backoff_initial_s: float = 0.05,
+        backoff_max_s: float = 2.0,
+        connect_timeout_s: float = 2.0,
+        max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+    ) -> None:
+        super().__init__()
+        if not 0 < port < 65536:
+            raise CameraError(f"port: {port} is not a TCP port")
+        if not 0 < backoff_initial_s <= backoff_max_s:
+            raise CameraError("need 0 < backoff_initial_s <= backoff_max_s")
+        self.host = host
+        self.port = port
+        self._queue_size = queue_size
+        self._backoff = (backoff_initial_s, backoff_max_s)
+        self._connect_timeout_s = connect_timeout_s
+        self._max_payload = max_payload_bytes
+        self._buffer: _Newest[_Record] | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._last_seq: int | None = None
+        self.connected = asyncio.Event()
+
+    def __repr__(self) -> str:
+        return f"FrameSocketSource('tcp://{self.host}:{self.port}')"
+
+    async def _start(self) -> None:
+        self._buffer = _Newest(self._queue_size)
+        self._task = asyncio.create_task(self._run(), name=f"frames {self.host}:{self.port}")
+        self._watch(self._task, self._buffer)
+
+    async def _close(self) -> None:
+        if self._task is not None:
+            await _stop(self._task)
+        if self._buffer is not None:
+            self._buffer.close()
+
+    async def _next_frame(self) -> CameraFrame | None:
+        assert self._buffer is not None
+        while True:
+            rec = await self._buffer.get()
+            if rec is None:
+                self._raise_if_failed()
+                return None
+            try:
+                if rec.header.encoding in (2, 3):
+                    image, enc = await asyncio.to_thread(decode_payload, rec.header, rec.payload)
+                else:
+                    image, enc = decode_payload(rec.header, rec.payload)
+            except CameraError as exc:
+                self._count("decode_errors")
+                _log.warning("frame %d dropped: %s", rec.header.seq, exc)
+                continue
+            return CameraFrame(
+                rec.header.seq,
+                rec.header.t_us,
+                rec.t_rx_ns,
+                image,
+                enc,
+                ENCODINGS[rec.header.encoding],
+            )
+
+    async def _run(self) -> None:
+        delay = self._backoff[0]
+        while True:
+            try:
+                reader, writer = await asyncio.wait_for(
+                    asyncio.open_connection(self.host, self.port), self._connect_timeout_s
+                )
+            except (OSError, TimeoutError) as exc:
+                self._count("connect_failures")
+                _log.debug("frame socket %s:%d: connect failed: %s", self.host, self.port, exc)
+                await asyncio.sleep(delay)
+                delay = min(2 * delay, self._backoff[1])
+                continue
+            self._count("connects")
+            self.connected.set()
+            _log.info("frame socket connected to %s:%d", self.host, self.port)
+            resync = False
+            try:
+                resync = await self._read_records(reader)
+            except (asyncio.IncompleteReadError, ConnectionError, OSError) as exc:
+                self._count("disconnects")
+                _log.warning("frame socket %s:%d lost: %s", self.host, self.port, exc)
+            finally:
+                self.connected.clear()
+                writer.close()
+                with contextlib.suppress(OSError, ConnectionError):
+                    await writer.wait_closed()
+            if resync:
+                delay = self._backoff[0]
+                continue  # reconnect at once: the stream restarts at a record boundary
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, self._backoff[1])
+
+    async def _read_records(self, reader: asyncio.StreamReader) -> bool:
+        """Read records until the connection ends (raises) or a bad record (returns True)."""
+        assert self._buffer is not None
+        while True:
+            raw = await reader.readexactly(FRAME_HEADER.size)
+            header = FrameHeader.unpack(raw)
+            try:
+                header.check(self._max_payload)
+                payload = await reader.readexactly(header.payload_len)
+                if zlib.crc32(payload) != header.crc32:
+                    raise BadRecord(f"CRC mismatch in frame {header.seq}")
+            except BadRecord as exc:
+                self._count("bad_records")
+                self._count("resyncs")
+                _log.warning("frame socket: %s: resynchronising", exc)
+                return True
+            t_rx_ns = time.monotonic_ns()
+            self._count("frames_received")
+            if self._last_seq is not None and header.seq > self._last_seq + 1:
+                self._count("seq_gaps", header.seq - self._last_seq - 1)
+            self._last_seq = header.seq
+            if self._buffer.put(_Record(header, payload, t_rx_ns)):
+                self._count("frames_dropped")
+

@@ -1,0 +1,152 @@
+"""Parameter types of the pure core: the camera, the RMPC and its terminal design, the
+thrust mapping. Frozen and validated on construction (:class:`ParamError` names the config
+key); the shell's config loader (``companion.config``) builds them from the TOML file, and each
+field's ``check`` metadata is the per-value rule it applies first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from companion.core.errors import ParamError
+
+
+def positive(x: float) -> str | None:
+    return None if x > 0 else "must be > 0"
+
+
+def nonneg(x: float) -> str | None:
+    return None if x >= 0 else "must be >= 0"
+
+
+def unit(x: float) -> str | None:
+    return None if 0 < x <= 1 else "must be in (0, 1]"
+
+
+def checked(fn: Callable[[Any], str | None]) -> dict[str, Any]:
+    return {"check": fn}
+
+
+@dataclass(frozen=True)
+class CameraParams:
+    """Pinhole camera and its mount (spec section 1)."""
+
+    focal_length_m: float = field(metadata=checked(positive))
+    pixel_size_m: float = field(metadata=checked(positive))
+    width_px: int = field(metadata=checked(positive))
+    height_px: int = field(metadata=checked(positive))
+    visible_fraction: float = field(metadata=checked(unit))
+    report_pixel_size_m: float = field(metadata=checked(positive))
+    mount_offset_m: tuple[float, float, float]
+    mount_rpy_rad: tuple[float, float, float]
+    calibration_file: str = ""
+
+    @property
+    def visible_half_m(self) -> float:
+        """Half side of the visible area on the image plane (metres): ``u~_b = n~_b``."""
+        return 0.5 * self.visible_fraction * min(self.width_px, self.height_px) * self.pixel_size_m
+
+    @property
+    def r_v(self) -> float:
+        """Radius of the inscribed circle of the visible area, normalised (spec 6)."""
+        return self.visible_half_m / self.focal_length_m
+
+    @property
+    def visible_bound_report_px(self) -> float:
+        """Half side of the visible area in report pixels (the paper's 500 px)."""
+        return self.visible_half_m / self.report_pixel_size_m
+
+
+@dataclass(frozen=True)
+class TerminalParams:
+    method: str
+    p_scale: float = field(default=1.0, metadata=checked(positive))
+    # Optional explicit terminal matrices (from an offline LMI design); empty = compute.
+    p_matrix: tuple[tuple[float, ...], ...] = ()
+    k_matrix: tuple[tuple[float, ...], ...] = ()
+    kappa: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.method not in ("dare", "lmi", "given"):
+            raise ParamError(
+                f"rmpc.terminal.method: {self.method!r} is not 'dare', 'lmi' or 'given'"
+            )
+        if self.method == "given" and (len(self.p_matrix) != 7 or len(self.k_matrix) != 4):
+            raise ParamError("rmpc.terminal: method 'given' needs p_matrix (7x7), k_matrix (4x7)")
+
+
+@dataclass(frozen=True)
+class RmpcParams:
+    """The RMPC of spec section 6 with the paper's numbers as defaults (spec section 8)."""
+
+    dt_s: float = field(metadata=checked(positive))
+    horizon: int = field(metadata=checked(positive))
+    tube_h: float = field(metadata=checked(positive))
+    eps: float = field(metadata=checked(positive))
+    rho: float = field(metadata=checked(nonneg))
+    desired_depth_m: float = field(metadata=checked(positive))
+    q_diag: tuple[float, float, float, float, float, float, float]
+    r_diag: tuple[float, float, float, float]
+    eta_max: tuple[float, float, float, float, float, float, float]
+    u_max: tuple[float, float, float, float]
+    g_m_s2: float = field(metadata=checked(positive))
+    enable_visibility: bool
+    enable_tube: bool
+    enable_terminal: bool
+    recovery_penalty: float = field(metadata=checked(positive))
+    solver: str
+    jit: bool
+    cache_dir: str
+    max_iter: int = field(metadata=checked(positive))
+    terminal: TerminalParams
+    # Which image the visibility circle about M(u(n)) constrains: "spec" = p(n) (spec 6 and
+    # the paper's (2d); the applied input u(0) is in no row), "causal" = p(n+1), the image
+    # taken with the attitude u(n) produces (u(0) checked against the next image).
+    visibility_pairing: str = "spec"
+
+    def __post_init__(self) -> None:
+        if self.visibility_pairing not in ("spec", "causal"):
+            raise ParamError(
+                f"rmpc.visibility_pairing: {self.visibility_pairing!r} is not 'spec' or 'causal'"
+            )
+        for name in ("q_diag", "r_diag", "eta_max", "u_max"):
+            for i, v in enumerate(getattr(self, name)):
+                if not v > 0:
+                    raise ParamError(f"rmpc.{name}[{i}]: must be > 0 (got {v})")
+        if self.solver not in ("fatrop", "ipopt"):
+            raise ParamError(f"rmpc.solver: {self.solver!r} is not 'fatrop' or 'ipopt'")
+        if self.tube_h < 1:
+            raise ParamError("rmpc.tube_h: must be >= 1 (X(n) must not shrink below eps)")
+        if self.u_max[2] >= self.g_m_s2:
+            raise ParamError("rmpc.u_max[2]: must be < g (the thrust must stay positive)")
+
+    @property
+    def psidot_max(self) -> float:
+        return self.u_max[3]
+
+    @property
+    def lipschitz_l(self) -> float:
+        """Remark 1: ``L = psidot_max + 1/z*``."""
+        return self.psidot_max + 1.0 / self.desired_depth_m
+
+
+@dataclass(frozen=True)
+class ControlParams:
+    rate_hz: float = field(metadata=checked(positive))
+    hover_thrust: float = field(metadata=checked(unit))
+    thrust_min: float = field(metadata=checked(nonneg))
+    thrust_max: float = field(metadata=checked(unit))
+    # Whose clock stamps frames and telemetry: "receipt" (local monotonic clock on arrival:
+    # a real vehicle) or "autopilot" (source stamps: frames and telemetry share the
+    # autopilot's boot clock, as the emulator's do; needed in lockstep).
+    time_source: str = "receipt"
+
+    def __post_init__(self) -> None:
+        if not self.thrust_min < self.hover_thrust < self.thrust_max:
+            raise ParamError("control: need thrust_min < hover_thrust < thrust_max")
+        if self.time_source not in ("receipt", "autopilot"):
+            raise ParamError(
+                f"control.time_source: {self.time_source!r} is not 'receipt' or 'autopilot'"
+            )

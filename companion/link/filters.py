@@ -1,0 +1,169 @@
+"""What the receive path accepts: the message whitelist per source and the value limits
+(non-finite values, quaternion norm, speeds, rates) checked before a frame is used."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.link.errors import LinkError
+
+log = logging.getLogger(__name__)
+
+
+# ----------------------------------------------------------------------------------------------
+# Whitelist and value checks
+
+
+def msgid_of(name: str) -> int:
+    """MAVLink message id for a message name of the common dialect (``ATTITUDE`` -> 30)."""
+    mid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name.upper()}", None)
+    if mid is None:
+        raise LinkError(f"unknown MAVLink message name {name!r}")
+    return int(mid)
+
+
+@dataclass(frozen=True)
+class AllowRule:
+    """Frames from ``sysid`` (and ``compid``, None = any) with a message in ``msg_names``
+    (None = any) are accepted."""
+
+    sysid: int
+    compid: int | None = None
+    msg_names: frozenset[str] | None = None
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.sysid <= 255:
+            raise LinkError(f"AllowRule.sysid {self.sysid} not in 1..255")
+        if self.msg_names is not None:
+            for n in self.msg_names:
+                msgid_of(n)
+
+    def msgids(self) -> frozenset[int] | None:
+        return None if self.msg_names is None else frozenset(msgid_of(n) for n in self.msg_names)
+
+
+#: What the companion needs from the autopilot (plus a few harmless status messages).
+AUTOPILOT_TELEMETRY: frozenset[str] = frozenset(
+    {
+        "HEARTBEAT",
+        "SYS_STATUS",
+        "ATTITUDE",
+        "ATTITUDE_QUATERNION",
+        "LOCAL_POSITION_NED",
+        "EXTENDED_SYS_STATE",
+        "COMMAND_ACK",
+        "STATUSTEXT",
+        "ATTITUDE_TARGET",
+        "ALTITUDE",
+        "GLOBAL_POSITION_INT",
+        "HOME_POSITION",
+        "AUTOPILOT_VERSION",
+        "TIMESYNC",
+    }
+)
+
+
+def default_allow_rules(
+    autopilot_sysid: int, autopilot_compid: int, agv_sysid: int, agv_compid: int | None
+) -> tuple[AllowRule, ...]:
+    """Autopilot telemetry from (sysid, compid) plus FOLLOW_TARGET (and HEARTBEAT) from the AGV.
+    ``autopilot_compid`` 0 means any component of the autopilot's system."""
+    return (
+        AllowRule(autopilot_sysid, autopilot_compid or None, AUTOPILOT_TELEMETRY),
+        AllowRule(agv_sysid, agv_compid or None, frozenset({"FOLLOW_TARGET", "HEARTBEAT"})),
+    )
+
+
+#: Fields that legitimately carry NaN ("unset") per message.
+DEFAULT_NAN_ALLOWED: Mapping[str, frozenset[str]] = {
+    "COMMAND_LONG": frozenset(f"param{i}" for i in range(1, 8)),
+    "COMMAND_INT": frozenset(f"param{i}" for i in range(1, 5)),
+    "FOLLOW_TARGET": frozenset({"position_cov"}),  # others: see est_capabilities below
+    "ATTITUDE_QUATERNION": frozenset({"repr_offset_q"}),
+    "ALTITUDE": frozenset(
+        {
+            "altitude_monotonic",
+            "altitude_amsl",
+            "altitude_local",
+            "altitude_relative",
+            "altitude_terrain",
+            "bottom_clearance",
+        }
+    ),
+    "HOME_POSITION": frozenset({"q", "approach_x", "approach_y", "approach_z"}),
+}
+_FT_CAP_FIELDS = {0: ("alt",), 1: ("vel",), 2: ("acc",), 3: ("attitude_q", "rates")}
+
+
+@dataclass(frozen=True)
+class ValueLimits:
+    """Plausibility bounds on received values. A frame outside them is dropped and counted."""
+
+    quat_norm_tol: float = 1e-2
+    max_speed_m_s: float = 100.0
+    max_rate_rad_s: float = 50.0
+    nan_allowed: Mapping[str, frozenset[str]] = field(
+        default_factory=lambda: dict(DEFAULT_NAN_ALLOWED)
+    )
+
+
+def _floats(v: Any) -> list[float]:
+    if isinstance(v, float):
+        return [v]
+    if isinstance(v, list | tuple):
+        return [x for x in v if isinstance(x, float)]
+    return []
+
+
+def check_values(msg: Any, limits: ValueLimits) -> str | None:
+    """Reason a decoded message is implausible (``non_finite``, ``quaternion_norm``, ``speed``,
+    ``angular_rate``), or None when it is fine."""
+    name = msg.get_type()
+    allowed = set(limits.nan_allowed.get(name, frozenset()))
+    if name == "FOLLOW_TARGET":
+        caps = int(msg.est_capabilities)
+        for bit, names in _FT_CAP_FIELDS.items():
+            if not caps & (1 << bit):
+                allowed.update(names)
+    for fname in msg.get_fieldnames():
+        if fname in allowed:
+            continue
+        if not all(math.isfinite(x) for x in _floats(getattr(msg, fname))):
+            return "non_finite"
+
+    def qbad(q: Sequence[float]) -> bool:
+        return abs(math.sqrt(sum(x * x for x in q)) - 1.0) > limits.quat_norm_tol
+
+    def too_fast(v: Sequence[float], lim: float) -> bool:
+        return math.sqrt(sum(x * x for x in v)) > lim
+
+    if name == "ATTITUDE_QUATERNION":
+        if qbad((msg.q1, msg.q2, msg.q3, msg.q4)):
+            return "quaternion_norm"
+        if too_fast((msg.rollspeed, msg.pitchspeed, msg.yawspeed), limits.max_rate_rad_s):
+            return "angular_rate"
+    elif name == "ATTITUDE":
+        if too_fast((msg.rollspeed, msg.pitchspeed, msg.yawspeed), limits.max_rate_rad_s):
+            return "angular_rate"
+    elif name == "ATTITUDE_TARGET" and qbad(msg.q):
+        return "quaternion_norm"
+    elif name == "LOCAL_POSITION_NED":
+        if too_fast((msg.vx, msg.vy, msg.vz), limits.max_speed_m_s):
+            return "speed"
+    elif name == "FOLLOW_TARGET":
+        caps = int(msg.est_capabilities)
+        if caps & 2 and too_fast(msg.vel, limits.max_speed_m_s):
+            return "speed"
+        if caps & 8:
+            if qbad(msg.attitude_q):
+                return "quaternion_norm"
+            if too_fast(msg.rates, limits.max_rate_rad_s):
+                return "angular_rate"
+    return None
+

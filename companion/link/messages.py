@@ -1,0 +1,52 @@
+"""What the link hands out and logs: accepted frames (:class:`Received`), sent frames
+(:class:`Sent`) and a message's fields as plain values."""
+
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+# ----------------------------------------------------------------------------------------------
+# Received frames
+
+
+@dataclass(frozen=True)
+class Received:
+    """One accepted MAVLink 2 frame. ``msg`` is the pymavlink message object (treat as
+    read-only), ``raw`` the exact bytes received, ``t_rx_ns`` the link clock at receipt."""
+
+    msg: Any
+    raw: bytes
+    t_rx_ns: int
+    src_sysid: int
+    src_compid: int
+    msgid: int
+    name: str
+    seq: int
+    signed: bool
+
+
+@dataclass(frozen=True)
+class Sent:
+    """One frame the link sent: ``raw`` bytes as written, ``t_tx_ns`` the link clock."""
+
+    msg: Any
+    raw: bytes
+    t_tx_ns: int
+    msgid: int
+    name: str
+
+
+def message_fields(msg: Any) -> dict[str, Any]:
+    """JSON-friendly decoded fields of a pymavlink message (bytes -> str, NaN kept as float)."""
+    out: dict[str, Any] = {}
+    for fname in msg.get_fieldnames():
+        v = getattr(msg, fname)
+        if isinstance(v, bytes | bytearray):
+            v = bytes(v).decode("utf-8", errors="replace")
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[fname] = v
+    return out
+

@@ -1,0 +1,1 @@
+"""Flight reports from a log: figures (``report.json``), plots and the HTML page."""
