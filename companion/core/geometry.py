@@ -1,6 +1,6 @@
 """Camera geometry of spec sections 1, 2, 5 and 6 (the virtual camera and the visible area).
 
-Conventions (shared/spec/rmpc-ibvs.md section 1): world NED, body FRD, ZYX Euler
+Conventions (docs/math.md, section 1): world NED, body FRD, ZYX Euler
 ``R = Rz(psi) Ry(theta) Rx(phi)``. Camera axes = body axes (x forward, y right, z down = optical
 axis). Metric image coordinates ``u = lambda x/z`` (along camera x), ``n = lambda y/z``.
 The virtual camera ``v`` has the camera's origin and yaw, roll = pitch = 0:
