@@ -96,3 +96,21 @@ def test_boundary_checks_catch_a_violation(tmp_path: Path) -> None:
                  "import sim_bridge.camera\n")
     found = _imports(f)
     assert "companion.config" in found and "sim_bridge.camera" in found
+
+
+def test_repository_stands_alone() -> None:
+    """No tracked file points outside the repository (the developers' notes folder is not
+    shipped): every reference a user follows must resolve inside the clone."""
+    import subprocess
+
+    needle = "shared" + "/"
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True,
+                           check=True).stdout.split()
+    hits = []
+    for name in files:
+        path = ROOT / name
+        if path.suffix in {".png", ".mcap", ".parquet"} or not path.is_file():
+            continue
+        text = path.read_text(errors="ignore")
+        hits += [f"{name}:{i + 1}" for i, line in enumerate(text.splitlines()) if needle in line]
+    assert not hits, f"references outside the repository: {hits[:10]}"
