@@ -31,6 +31,9 @@ class ReportSettings:
     visible_bound_report_px: float
     desired_depth_m: float
     settle_window_s: float = 10.0
+    #: the companion's configured hover thrust: commanded thrust / hover = commanded g's
+    hover_thrust: float = 0.5
+    g_m_s2: float = 9.81
 
 
 def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],

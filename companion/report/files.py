@@ -20,6 +20,7 @@ def report_settings(cfg: Config) -> ReportSettings:
         report_pixel_size_m=c.report_pixel_size_m,
         visible_bound_report_px=c.visible_bound_report_px,
         desired_depth_m=cfg.rmpc.desired_depth_m,
+        hover_thrust=cfg.control.hover_thrust, g_m_s2=cfg.rmpc.g_m_s2,
     )
 
 

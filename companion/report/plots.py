@@ -25,6 +25,7 @@ from companion.report.figures import (
     ReportSettings,
     true_features,
 )
+from companion.report.headline import headline
 
 LEVELS = ("tracking", "reacquire", "terminal", "hover", "silent")
 
@@ -51,6 +52,10 @@ def write_figures(
     if steps:
         figs["solver"] = _solver(steps, out_dir / "solver.png")
         figs["safety"] = _safety(steps, out_dir / "safety.png")
+        figs["latency"] = _latency(steps, out_dir / "latency.png")
+    if truth and steps:
+        figs["command_vs_achieved"] = _command_vs_achieved(
+            truth, steps, st, out_dir / "command_vs_achieved.png")
     return figs
 
 
@@ -185,33 +190,139 @@ def _safety(steps: list[Mapping[str, Any]], path: Path) -> Path:
     return path
 
 
+def _latency(steps: list[Mapping[str, Any]], path: Path) -> Path:
+    rec = [(s["t_s"], s["latency_ms"], s.get("timings_ms") or {}) for s in steps
+           if s.get("latency_ms") is not None]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.2), gridspec_kw={"width_ratios": [2, 1]})
+    if rec:
+        t = np.array([r[0] for r in rec])
+        lat = np.array([r[1] for r in rec], dtype=float)
+        axes[0].plot(t, lat, lw=0.6, color="tab:blue", label="frame -> command")
+        stages = sorted({k for r in rec for k in r[2]})
+        med = [float(np.median([r[2].get(k, np.nan) for r in rec])) for k in stages]
+        axes[1].barh(stages, med, color="tab:gray")
+        axes[1].set_xlabel("median (ms)")
+        axes[1].set_title("stages")
+        axes[0].axhline(float(np.median(lat)), color="k", lw=0.8, ls="--", label="median")
+        axes[0].legend(fontsize=7)
+    axes[0].set_xlabel("time (s)")
+    axes[0].set_ylabel("latency (ms)")
+    axes[0].set_title("Frame receipt -> SET_ATTITUDE_TARGET sent")
+    axes[0].grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _euler_zyx(q: np.ndarray) -> np.ndarray:
+    """(N, 4) w, x, y, z quaternions -> (N, 3) roll, pitch, yaw (rad), ZYX."""
+    w, x, y, z = q.T
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.column_stack([roll, pitch, yaw])
+
+
+def _command_vs_achieved(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
+                         st: ReportSettings, path: Path) -> Path:
+    """Commanded attitude and collective thrust (the setpoints sent) against what the vehicle
+    achieved (ground truth). Thrust is shown as specific force in g: commanded
+    ``thrust / hover_thrust`` (the companion's model) against the achieved
+    ``|a - g - d| / g`` from the true acceleration and disturbance."""
+    cmd = [(s["t_s"], s["setpoint"]) for s in steps if s.get("setpoint") and s.get("sent", True)]
+    tt = np.array([r["t_us"] for r in truth], dtype=float) * 1e-6
+    q = np.array([r["uav"]["q_wxyz"] for r in truth], dtype=float)
+    v = np.array([r["uav"]["vel_ned_m_s"] for r in truth], dtype=float)
+    d = np.array([r.get("disturbance_accel_ned_m_s2") or [0.0, 0.0, 0.0] for r in truth],
+                 dtype=float)
+    ach = _euler_zyx(q)
+    fig, axes = plt.subplots(4, 1, figsize=(9, 8), sharex=True)
+    names = ("roll (deg)", "pitch (deg)", "yaw (deg)")
+    for i, name in enumerate(names):
+        axes[i].plot(tt, np.degrees(np.unwrap(ach[:, i])), lw=0.8, label="achieved")
+        if cmd:
+            tc = np.array([c[0] for c in cmd])
+            key = ("roll_rad", "pitch_rad", "yaw_rad")[i]
+            vc = np.array([c[1].get(key, np.nan) for c in cmd], dtype=float)
+            axes[i].plot(tc, np.degrees(np.unwrap(vc)), lw=0.8, ls="--", label="commanded")
+        axes[i].set_ylabel(name)
+    if len(tt) > 2:
+        acc = np.gradient(v, tt, axis=0)
+        f = acc - np.array([0.0, 0.0, st.g_m_s2]) - d
+        axes[3].plot(tt, np.linalg.norm(f, axis=1) / st.g_m_s2, lw=0.8, label="achieved")
+    if cmd:
+        tc = np.array([c[0] for c in cmd])
+        th = np.array([c[1].get("thrust", np.nan) for c in cmd], dtype=float)
+        axes[3].plot(tc, th / st.hover_thrust, lw=0.8, ls="--", label="commanded")
+    axes[3].set_ylabel("thrust (g)")
+    axes[3].set_xlabel("time (s)")
+    axes[0].set_title("Commanded vs achieved attitude and collective thrust")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_html(report: Mapping[str, Any], figs: Mapping[str, Path], out: Path,
                title: str = "Flight report") -> Path:
-    """A one-page HTML summary embedding the figures (relative links) and the figures' table."""
-    rows = []
+    """A one-page HTML report: the headline verdicts first (each against its target), then
+    the figures, then every number of ``report.json`` folded away. Each headline row carries
+    ``data-key`` and ``data-verdict`` so a machine can read the page back."""
+    rows = headline(report)
+    n_miss = sum(r.verdict == "miss" for r in rows)
+    summary = ("every headline target met" if n_miss == 0 else
+               f"{n_miss} of {sum(r.verdict != 'n/a' for r in rows)} headline targets missed")
+    head = "\n".join(
+        f'<tr class="{r.verdict.replace("/", "")}" data-key="{html.escape(r.key)}" '
+        f'data-verdict="{html.escape(r.verdict)}"><td>{html.escape(r.label)}</td>'
+        f"<td><b>{html.escape(r.figure)}</b></td><td>{html.escape(r.target)}</td>"
+        f'<td class="v">{html.escape(r.verdict.upper())}</td></tr>'
+        for r in rows)
+    context = []
+    for k in ("scenario", "sim_time_s", "real_time_factor", "overrides"):
+        if k in report:
+            context.append(f"{k.replace('_', ' ')}: {html.escape(_fmt(report[k]))}")
+    details = []
     for section, vals in report.items():
         if isinstance(vals, Mapping):
             for k, v in vals.items():
-                rows.append((f"{section}.{k}", v))
+                if f"{section}.{k}" != "safety.transitions":
+                    details.append((f"{section}.{k}", v))
         else:
-            rows.append((section, vals))
+            details.append((section, vals))
     table = "\n".join(
         f"<tr><td>{html.escape(k)}</td><td><code>{html.escape(_fmt(v))}</code></td></tr>"
-        for k, v in rows if k != "safety.transitions"
-    )
+        for k, v in details)
     imgs = "\n".join(
         f'<figure><img src="{html.escape(p.name)}" alt="{html.escape(n)}">'
-        f"<figcaption>{html.escape(n)}</figcaption></figure>"
+        f"<figcaption>{html.escape(n.replace('_', ' '))}</figcaption></figure>"
         for n, p in figs.items()
     )
     doc = f"""<!doctype html>
 <html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}
-td{{padding:2px 8px;border-bottom:1px solid #ddd}} img{{max-width:520px}}
-figure{{display:inline-block;margin:6px}}</style></head>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto;color:#222}}
+table.headline{{border-collapse:collapse;margin:12px 0;font-size:15px}}
+table.headline td,table.headline th{{padding:6px 12px;border-bottom:1px solid #ddd;text-align:left}}
+tr.pass td.v{{color:#fff;background:#2e7d32}} tr.miss td.v{{color:#fff;background:#c62828}}
+tr.na td.v{{color:#fff;background:#888}} td.v{{font-weight:bold;text-align:center}}
+p.summary{{font-size:18px}} .context{{color:#666}}
+details td{{padding:2px 8px;border-bottom:1px solid #eee;font-size:13px}}
+img{{max-width:540px}} figure{{display:inline-block;margin:6px;vertical-align:top}}</style>
+</head>
 <body><h1>{html.escape(title)}</h1>
-<table>{table}</table>
+<p class="context">{" &middot; ".join(context)}</p>
+<p class="summary" id="summary">{html.escape(summary)}</p>
+<table class="headline" id="headline">
+<tr><th>what</th><th>figure</th><th>target</th><th>verdict</th></tr>
+{head}
+</table>
+<h2>Figures</h2>
 {imgs}
+<details><summary>All figures of report.json</summary><table>{table}</table></details>
 </body></html>
 """
     out.write_text(doc)
@@ -220,5 +331,7 @@ figure{{display:inline-block;margin:6px}}</style></head>
 
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
-        return f"{v:.6g}"
+        return f"{v:.4g}"
+    if isinstance(v, list) and v and all(isinstance(x, float) for x in v):
+        return "[" + ", ".join(f"{x:.3g}" for x in v) + "]"
     return json.dumps(v) if not isinstance(v, str) else v

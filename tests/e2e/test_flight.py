@@ -290,3 +290,69 @@ def test_replay_cli_writes_its_log_and_report(flight: tuple[Path, dict], tmp_pat
         topics = {c.topic: c.count for c in r.channels}
     assert topics["/control/step"] == rep["steps"] and topics["/truth"] >= rep["steps"]
     assert (tmp_path / "pixels.png").stat().st_size > 10_000
+
+
+def _headline_rows(page: str) -> dict[str, tuple[str, str]]:
+    """(key -> (verdict, figure text)) read back from the HTML page with a real parser."""
+    from html.parser import HTMLParser
+
+    rows: dict[str, tuple[str, str]] = {}
+
+    class P(HTMLParser):
+        def __init__(self) -> None:
+            super().__init__()
+            self.key: str | None = None
+            self.verdict = ""
+            self.cells: list[str] = []
+
+        def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+            a = dict(attrs)
+            if tag == "tr" and a.get("data-key"):
+                self.key, self.cells = a["data-key"], []
+                self.verdict = a.get("data-verdict") or ""
+            elif tag == "td" and self.key:
+                self.cells.append("")
+
+        def handle_data(self, data: str) -> None:
+            if self.key and self.cells:
+                self.cells[-1] += data
+
+        def handle_endtag(self, tag: str) -> None:
+            if tag == "tr" and self.key:
+                rows[self.key] = (self.verdict, self.cells[1].strip())
+                assert self.cells[3].strip().lower() == self.verdict  # shown = attribute
+                self.key = None
+
+    P().feed(page)
+    return rows
+
+
+def test_report_page_headline_matches_report_json(flight: tuple[Path, dict]) -> None:
+    """The page a person reads first says what report.json says: each headline verdict is
+    re-judged here from the JSON figures against the documented targets."""
+    out, _ = flight
+    rep = json.loads((out / "report.json").read_text())
+    rows = _headline_rows((out / "report.html").read_text())
+    vis, trk, sol, lat = rep["visibility"], rep["tracking"], rep["solver"], rep["latency"]
+    in_view = vis["frames_outside_bound"] == 0 and vis["frames_target_lost"] == 0
+    assert rows["in_view"][0] == ("pass" if in_view else "miss")
+    worst = max(vis["max_abs_u_px"], vis["max_abs_n_px"])
+    assert rows["worst_corner"] == ("pass" if worst < vis["bound_px"] else "miss",
+                                    f"{worst:.0f} px")
+    settle = trk["settle_time_s"]
+    assert rows["settle"][0] == ("pass" if settle is not None and settle < 10 else "miss")
+    for key, field in (("steady_horizontal", "rms_horizontal_error_after_settle_m"),
+                       ("steady_height", "rms_height_error_after_settle_m")):
+        v = trk[field]
+        if v is None:  # never settled in a short flight: nothing to judge
+            assert rows[key] == ("n/a", "n/a")
+        else:
+            assert rows[key] == ("pass" if v <= 0.01 else "miss", f"{v * 100:.1f} cm")
+    healthy = (sol["failures"] == 0 and sol["fallbacks"] == 0
+               and sol["recoveries"] <= 0.05 * sol["solves"])
+    assert rows["solver"][0] == ("pass" if healthy else "miss")
+    fast = lat["frame_to_command_median_ms"] <= 3 and lat["p95_ms"] <= 6
+    assert rows["latency"][0] == ("pass" if fast else "miss")
+    assert rows["safety"][0] == ("pass" if not rep["safety"]["transitions"] else "miss")
+    for name in ("command_vs_achieved", "latency"):
+        assert (out / rep["figures"][name]).stat().st_size > 10_000
