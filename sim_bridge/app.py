@@ -33,6 +33,7 @@ from sim_bridge.camera import Camera, RenderedFrame
 from sim_bridge.config import EmulatorConfig, parse_address
 from sim_bridge.follow_target import follow_target_fields, latlon_from_ned
 from sim_bridge.frames import FrameServer
+from sim_bridge.impairment import LinkImpairment, msgid_of
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
 from sim_bridge.physics.vehicle import (
@@ -51,6 +52,7 @@ from sim_bridge.px4 import (
     Px4,
     Px4Params,
 )
+from sim_bridge.signing import SigningState
 from sim_bridge.truth import TruthPublisher, truth_record
 
 log = logging.getLogger(__name__)
@@ -61,6 +63,7 @@ SYS_STATUS = 1
 ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
+SET_ATTITUDE_TARGET = 82
 _STATE_STREAMS = frozenset({30, 31, 32})  # ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED
 GLOBAL_POSITION_INT = 33
 AUTOPILOT_VERSION = 148
@@ -211,6 +214,9 @@ class SimBridge:
         self._last_armed = self.px4.armed
         self._stack = contextlib.AsyncExitStack()
         self.ports: dict[str, int] = {}
+        # one signing state (key, timestamps, streams) for all links, as in PX4
+        self.signing: SigningState | None = (
+            SigningState(sim.signing.key()) if sim.signing.enabled else None)
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> SimBridge:
@@ -231,14 +237,15 @@ class SimBridge:
         for name, port, remote in (("offboard", link.offboard_local_port, link.offboard_remote),
                                    ("gcs", link.gcs_local_port, link.gcs_remote)):
             ml = MavUdpLink(name, self.bind_host, port, parse_address(remote), link.sysid,
-                            link.compid, handler=self._on_message)
+                            link.compid, handler=self._on_message, **self._link_options(name))
             await ml.open()
             self._stack.callback(ml.close)
             self._links[name] = ml
             self._streams[name] = _Streams()
             self.ports[name] = ml.port
         agv_link = MavUdpLink("agv", self.bind_host, link.agv_local_port, None,
-                              cfg.target.mavlink_sysid, cfg.target.mavlink_compid)
+                              cfg.target.mavlink_sysid, cfg.target.mavlink_compid,
+                              **self._link_options("agv"))
         await agv_link.open()
         self._stack.callback(agv_link.close)
         self._links["agv"] = agv_link
@@ -255,6 +262,46 @@ class SimBridge:
                  self.ports["offboard"], link.offboard_remote, self.bind_host,
                  self.ports["gcs"], link.gcs_remote, self.ports["agv"],
                  cfg.target.mavlink_sysid, self.ports.get("frames", "-"), link.truth_remote)
+
+    def _link_options(self, name: str) -> dict[str, Any]:
+        """Signing and impairment of link ``name`` (``[sim.signing]``, ``[sim.impairment]``)."""
+        sim = self.cfg.sim
+        opts: dict[str, Any] = {"time_s": self.now_s, "deferred": self.lockstep}
+        if self.signing is not None and name in sim.signing.links:
+            opts["signing"] = self.signing
+            opts["signing_link_id"] = ("offboard", "gcs", "agv").index(name)
+        imp = sim.impairment
+        if imp.active and name in imp.links:
+            opts["impairment"] = LinkImpairment.build(
+                name, imp.seed, imp.vehicle_to_companion, imp.companion_to_vehicle, imp.cuts,
+                imp.heartbeat_stop_s if imp.heartbeat_stop_s >= 0 else None)
+            opts["on_raw_datagram"] = self._on_raw_datagram
+        return opts
+
+    def _on_raw_datagram(self, data: bytes) -> None:
+        """A datagram reached an impaired link, before the impairment. In lockstep a setpoint
+        releases the step even if the network then drops, corrupts or delays it: the client
+        has answered; what the network does to the answer is the experiment."""
+        if self.lockstep and msgid_of(data) == SET_ATTITUDE_TARGET:
+            self._setpoint_event.set()
+
+    def _deliver_due(self, t_s: float) -> None:
+        """Lockstep: hand on every delayed datagram due by ``t_s`` (simulated time)."""
+        for ml in self._links.values():
+            ml.pump(t_s)
+
+    def _next_delivery_s(self) -> float | None:
+        due = [d for ml in self._links.values() if (d := ml.next_due_s()) is not None]
+        return min(due) if due else None
+
+    def _advance_delivering(self, t_target: float) -> None:
+        """Lockstep: integrate to ``t_target``, stopping at each delayed delivery in between
+        so that a delayed setpoint takes effect at its arrival time (to a physics step)."""
+        while (due := self._next_delivery_s()) is not None and due < t_target:
+            self._advance(due)
+            self.t_s = due
+            self._deliver_due(due)
+        self._advance(t_target)
 
     # ------------------------------------------------------------------ clock
     def now_s(self) -> float:
@@ -499,6 +546,7 @@ class SimBridge:
         while k * step < duration_s - 1e-9:
             t = k * step
             self.t_s = t
+            self._deliver_due(t)
             self.px4.update(t, self.state)
             self._note_changes(t)
             self._send_streams(t)
@@ -513,7 +561,7 @@ class SimBridge:
                 await asyncio.wait_for(self._setpoint_event.wait(), sim.lockstep_timeout_s)
             except TimeoutError:
                 self._timeouts += 1
-            self._advance((k + 1) * step)
+            self._advance_delivering((k + 1) * step)
             self._steps += 1
             k += 1
         self.t_s = k * step
