@@ -33,6 +33,7 @@ from sim_bridge.camera import Camera, RenderedFrame
 from sim_bridge.config import EmulatorConfig, parse_address
 from sim_bridge.follow_target import follow_target_fields, latlon_from_ned
 from sim_bridge.frames import FrameServer
+from sim_bridge.gcs import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, GcsServices, ParamSpec, ParamStore
 from sim_bridge.impairment import LinkImpairment, msgid_of
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
@@ -90,7 +91,40 @@ DEFAULT_RATES_HZ: dict[int, float] = {
 }
 
 FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0 official
-CAPABILITIES = 8192 | 8 | 64 | 128  # MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, POS TARGET
+# MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, SET_POSITION_TARGET_LOCAL_NED, MISSION_INT,
+# PARAM_ENCODE_BYTEWISE (integer parameters travel byte-wise, as PX4's do)
+CAPABILITIES = 8192 | 8 | 64 | 128 | 4 | 16
+
+# PX4 parameters that change what the emulated commander does (others are only stored)
+_PARAM_FIELDS = {"MPC_THR_HOVER": "hover_thrust", "COM_OF_LOSS_T": "com_of_loss_t_s",
+                 "COM_OBL_RC_ACT": "com_obl_rc_act", "COM_DISARM_PRFLT": "com_disarm_prflt_s",
+                 "COM_DISARM_LAND": "com_disarm_land_s", "MPC_TILTMAX_AIR": "max_tilt_rad"}
+
+
+def px4_param_specs(cfg: EmulatorConfig) -> tuple[ParamSpec, ...]:
+    """The parameters a ground station sees (PX4 names, units and ranges; defaults from the
+    scenario where the emulator models them, PX4's defaults otherwise)."""
+    sim, link = cfg.sim, cfg.sim.link
+    real, i32 = PARAM_TYPE_REAL32, PARAM_TYPE_INT32
+    return (
+        ParamSpec("MAV_SYS_ID", i32, link.sysid, 1, 250),
+        ParamSpec("MAV_COMP_ID", i32, link.compid, 1, 250),
+        ParamSpec("MAV_TYPE", i32, 2, 0, 50),                  # quadrotor
+        ParamSpec("SYS_AUTOSTART", i32, 4001, 0, 9_999_999),   # generic quadrotor x
+        ParamSpec("MPC_THR_HOVER", real, sim.vehicle.hover_thrust, 0.1, 0.8),
+        ParamSpec("MPC_TILTMAX_AIR", real, round(math.degrees(sim.vehicle.max_tilt_rad), 3),
+                  20.0, 89.0),                                 # deg
+        ParamSpec("MPC_LAND_SPEED", real, 0.7, 0.6, 10.0),     # m/s (the emulator's fixed value)
+        ParamSpec("MPC_TKO_SPEED", real, 1.5, 1.0, 5.0),       # m/s (fixed)
+        ParamSpec("MIS_TAKEOFF_ALT", real, 2.5, 0.0, 80.0),    # m (fixed)
+        ParamSpec("COM_OF_LOSS_T", real, sim.px4.com_of_loss_t_s, 0.0, 60.0),  # s
+        ParamSpec("COM_OBL_RC_ACT", i32, sim.px4.com_obl_rc_act, 0, 7),
+        ParamSpec("COM_DISARM_PRFLT", real, sim.px4.com_disarm_prflt_s, -1.0, 20.0),  # s
+        ParamSpec("COM_DISARM_LAND", real, 2.0, -1.0, 20.0),   # s
+        ParamSpec("COM_RC_IN_MODE", i32, 4, 0, 4),             # 4: no RC (companion flight)
+        ParamSpec("NAV_DLL_ACT", i32, 0, 0, 6),                # GCS loss: disabled
+        ParamSpec("NAV_RCL_ACT", i32, 2, 0, 6),                # RC loss: Return
+    )
 
 
 @dataclass(frozen=True)
@@ -217,6 +251,7 @@ class SimBridge:
         # one signing state (key, timestamps, streams) for all links, as in PX4
         self.signing: SigningState | None = (
             SigningState(sim.signing.key()) if sim.signing.enabled else None)
+        self.gcs = GcsServices(ParamStore(px4_param_specs(cfg), on_change=self._on_param))
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> SimBridge:
@@ -336,6 +371,21 @@ class SimBridge:
                                                msg.get_srcComponent()), addr)
         elif mtype == "TIMESYNC" and msg.tc1 == 0:
             link.send(link.mav.timesync_encode(int(t * 1e9), msg.ts1), addr)
+        else:
+            self.gcs.handle(link, msg, addr)
+
+    def _on_param(self, name: str, value: float) -> None:
+        """A PARAM_SET changed ``name``: apply it to the commander if it models it."""
+        field_name = _PARAM_FIELDS.get(name)
+        if field_name is None:
+            return
+        v: float | int = value
+        if name == "COM_OBL_RC_ACT":
+            v = int(value)
+        elif name == "MPC_TILTMAX_AIR":
+            v = math.radians(value)
+        self.px4.p = dataclasses.replace(self.px4.p, **{field_name: v})  # type: ignore[arg-type]
+        log.info("param %s = %g", name, value)
 
     def _on_command(self, link: MavUdpLink, msg: Any, addr: Address, t: float) -> None:
         self._commands += 1
