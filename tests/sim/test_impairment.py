@@ -313,3 +313,10 @@ def test_lockstep_delay_counts_in_simulated_time(client: MavClient) -> None:
     # at each later frame the newest applied setpoint is 0.03 s (= 0.15 - 0.12) old
     steady = [a for a in ages[6:] if math.isfinite(a)]
     assert steady and all(math.isclose(a, 0.03, abs_tol=1e-6) for a in steady), steady
+
+
+def test_shipped_lossy_variant() -> None:
+    cfg = load_config(Path(__file__).resolve().parents[2] / "config" / "lossy-link.toml")
+    imp = cfg.sim.impairment
+    assert imp.active and imp.links == ("offboard",) and imp.cuts == ((60.0, 61.5),)
+    assert imp.cuts[0][1] - imp.cuts[0][0] > cfg.sim.px4.com_of_loss_t_s  # as its header says
