@@ -562,7 +562,22 @@ class SimBridge:
             await self._run_lockstep(d)
         else:
             await self._run_realtime(d)
+        self._log_link_faults()
         return self.stats()
+
+    def _log_link_faults(self) -> None:
+        """What the impairment did and what signing rejected, per link (end of run)."""
+        for name, ml in self._links.items():
+            if ml.impairment is not None:
+                for direction, d in (("vehicle->peer", ml.impairment.outgoing),
+                                     ("peer->vehicle", ml.impairment.incoming)):
+                    log.info("impairment %s %s: %s", name, direction,
+                             dataclasses.asdict(d.counters))
+            if ml.signing is not None:
+                c = ml.counters
+                log.info("signing %s: rejected %d unsigned, %d bad signature, %d replayed; "
+                         "accepted %d unsigned (allowed ids)", name, c.rx_unsigned,
+                         c.rx_bad_signature, c.rx_replayed, c.rx_unsigned_allowed)
 
     async def _run_realtime(self, duration_s: float) -> None:
         sim = self.cfg.sim

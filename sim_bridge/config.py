@@ -222,7 +222,7 @@ def _links(x: tuple[str, ...]) -> str | None:
 class ImpairmentConfig:
     """Network impairment of the emulator's MAVLink links (``sim_bridge.impairment``).
 
-    ``links``: which links are impaired (``"offboard"``, ``"gcs"``); ``cuts``: windows
+    ``links``: which links are impaired (``"offboard"``, ``"gcs"``, ``"agv"``); ``cuts``: windows
     ``[t_start_s, t_end_s)`` of boot time in which nothing passes either way;
     ``heartbeat_stop_s``: from then on the vehicle sends no HEARTBEAT on those links (< 0:
     never). The two directions are the sub-tables ``vehicle_to_companion`` and

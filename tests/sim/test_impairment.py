@@ -320,3 +320,17 @@ def test_shipped_lossy_variant() -> None:
     imp = cfg.sim.impairment
     assert imp.active and imp.links == ("offboard",) and imp.cuts == ((60.0, 61.5),)
     assert imp.cuts[0][1] - imp.cuts[0][0] > cfg.sim.px4.com_of_loss_t_s  # as its header says
+
+
+def test_duplicates_and_reordering_seen_by_a_real_client(client: MavClient) -> None:
+    """Every datagram doubled, 30 % held back 60 ms: the client gets each ATTITUDE_QUATERNION
+    twice and sees their stamps go backwards at times (the receiver's job to sort out)."""
+    imp = _impaired(to_peer=ImpairmentParams(duplicate_p=1.0, reorder_p=0.3,
+                                             reorder_delay_s=0.06))
+    with sim_with_client(client, impairment=imp):
+        msgs = client.collect(1.5)
+    stamps = [m.time_boot_ms for m in msgs if m.get_type() == "ATTITUDE_QUATERNION"]
+    assert len(stamps) > 40
+    counts = {s: stamps.count(s) for s in set(stamps)}
+    assert sum(1 for n in counts.values() if n == 2) >= 0.8 * len(counts)
+    assert sum(1 for a, b in itertools.pairwise(stamps) if b < a) >= 3
