@@ -334,3 +334,19 @@ def test_duplicates_and_reordering_seen_by_a_real_client(client: MavClient) -> N
     counts = {s: stamps.count(s) for s in set(stamps)}
     assert sum(1 for n in counts.values() if n == 2) >= 0.8 * len(counts)
     assert sum(1 for a, b in itertools.pairwise(stamps) if b < a) >= 3
+
+
+def test_sim_bridge_runs_the_lossy_variant_and_logs_what_it_did() -> None:
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    p = subprocess.run(
+        [sys.executable, "-m", "sim_bridge", "--config", str(root / "config" / "lossy-link.toml"),
+         "--duration", "1", "--bind", "127.0.0.1", "--offboard-port", "0", "--gcs-port", "0",
+         "--agv-port", "0", "--frame-port", "0", "--offboard-remote", "127.0.0.1:9",
+         "--gcs-remote", "127.0.0.1:9", "--truth-remote", "127.0.0.1:9"],
+        capture_output=True, text=True, timeout=60, cwd=root)
+    assert p.returncode == 0, p.stderr[-2000:]
+    line = next(ln for ln in p.stderr.splitlines() if "impairment offboard vehicle->peer" in ln)
+    assert "'dropped': " in line and "'datagrams': 0" not in line
