@@ -33,6 +33,8 @@ from sim_bridge.camera import Camera, RenderedFrame
 from sim_bridge.config import EmulatorConfig, parse_address
 from sim_bridge.follow_target import follow_target_fields, latlon_from_ned
 from sim_bridge.frames import FrameServer
+from sim_bridge.gcs import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, GcsServices, ParamSpec, ParamStore
+from sim_bridge.impairment import LinkImpairment, msgid_of
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
 from sim_bridge.physics.vehicle import (
@@ -51,6 +53,7 @@ from sim_bridge.px4 import (
     Px4,
     Px4Params,
 )
+from sim_bridge.signing import SigningState
 from sim_bridge.truth import TruthPublisher, truth_record
 
 log = logging.getLogger(__name__)
@@ -61,6 +64,7 @@ SYS_STATUS = 1
 ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
+SET_ATTITUDE_TARGET = 82
 _STATE_STREAMS = frozenset({30, 31, 32})  # ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED
 GLOBAL_POSITION_INT = 33
 AUTOPILOT_VERSION = 148
@@ -87,7 +91,40 @@ DEFAULT_RATES_HZ: dict[int, float] = {
 }
 
 FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0 official
-CAPABILITIES = 8192 | 8 | 64 | 128  # MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, POS TARGET
+# MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, SET_POSITION_TARGET_LOCAL_NED, MISSION_INT,
+# PARAM_ENCODE_BYTEWISE (integer parameters travel byte-wise, as PX4's do)
+CAPABILITIES = 8192 | 8 | 64 | 128 | 4 | 16
+
+# PX4 parameters that change what the emulated commander does (others are only stored)
+_PARAM_FIELDS = {"MPC_THR_HOVER": "hover_thrust", "COM_OF_LOSS_T": "com_of_loss_t_s",
+                 "COM_OBL_RC_ACT": "com_obl_rc_act", "COM_DISARM_PRFLT": "com_disarm_prflt_s",
+                 "COM_DISARM_LAND": "com_disarm_land_s", "MPC_TILTMAX_AIR": "max_tilt_rad"}
+
+
+def px4_param_specs(cfg: EmulatorConfig) -> tuple[ParamSpec, ...]:
+    """The parameters a ground station sees (PX4 names, units and ranges; defaults from the
+    scenario where the emulator models them, PX4's defaults otherwise)."""
+    sim, link = cfg.sim, cfg.sim.link
+    real, i32 = PARAM_TYPE_REAL32, PARAM_TYPE_INT32
+    return (
+        ParamSpec("MAV_SYS_ID", i32, link.sysid, 1, 250),
+        ParamSpec("MAV_COMP_ID", i32, link.compid, 1, 250),
+        ParamSpec("MAV_TYPE", i32, 2, 0, 50),                  # quadrotor
+        ParamSpec("SYS_AUTOSTART", i32, 4001, 0, 9_999_999),   # generic quadrotor x
+        ParamSpec("MPC_THR_HOVER", real, sim.vehicle.hover_thrust, 0.1, 0.8),
+        ParamSpec("MPC_TILTMAX_AIR", real, round(math.degrees(sim.vehicle.max_tilt_rad), 3),
+                  20.0, 89.0),                                 # deg
+        ParamSpec("MPC_LAND_SPEED", real, 0.7, 0.6, 10.0),     # m/s (the emulator's fixed value)
+        ParamSpec("MPC_TKO_SPEED", real, 1.5, 1.0, 5.0),       # m/s (fixed)
+        ParamSpec("MIS_TAKEOFF_ALT", real, 2.5, 0.0, 80.0),    # m (fixed)
+        ParamSpec("COM_OF_LOSS_T", real, sim.px4.com_of_loss_t_s, 0.0, 60.0),  # s
+        ParamSpec("COM_OBL_RC_ACT", i32, sim.px4.com_obl_rc_act, 0, 7),
+        ParamSpec("COM_DISARM_PRFLT", real, sim.px4.com_disarm_prflt_s, -1.0, 20.0),  # s
+        ParamSpec("COM_DISARM_LAND", real, 2.0, -1.0, 20.0),   # s
+        ParamSpec("COM_RC_IN_MODE", i32, 4, 0, 4),             # 4: no RC (companion flight)
+        ParamSpec("NAV_DLL_ACT", i32, 0, 0, 6),                # GCS loss: disabled
+        ParamSpec("NAV_RCL_ACT", i32, 2, 0, 6),                # RC loss: Return
+    )
 
 
 @dataclass(frozen=True)
@@ -211,6 +248,10 @@ class SimBridge:
         self._last_armed = self.px4.armed
         self._stack = contextlib.AsyncExitStack()
         self.ports: dict[str, int] = {}
+        # one signing state (key, timestamps, streams) for all links, as in PX4
+        self.signing: SigningState | None = (
+            SigningState(sim.signing.key()) if sim.signing.enabled else None)
+        self.gcs = GcsServices(ParamStore(px4_param_specs(cfg), on_change=self._on_param))
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> SimBridge:
@@ -231,14 +272,15 @@ class SimBridge:
         for name, port, remote in (("offboard", link.offboard_local_port, link.offboard_remote),
                                    ("gcs", link.gcs_local_port, link.gcs_remote)):
             ml = MavUdpLink(name, self.bind_host, port, parse_address(remote), link.sysid,
-                            link.compid, handler=self._on_message)
+                            link.compid, handler=self._on_message, **self._link_options(name))
             await ml.open()
             self._stack.callback(ml.close)
             self._links[name] = ml
             self._streams[name] = _Streams()
             self.ports[name] = ml.port
         agv_link = MavUdpLink("agv", self.bind_host, link.agv_local_port, None,
-                              cfg.target.mavlink_sysid, cfg.target.mavlink_compid)
+                              cfg.target.mavlink_sysid, cfg.target.mavlink_compid,
+                              **self._link_options("agv"))
         await agv_link.open()
         self._stack.callback(agv_link.close)
         self._links["agv"] = agv_link
@@ -255,6 +297,46 @@ class SimBridge:
                  self.ports["offboard"], link.offboard_remote, self.bind_host,
                  self.ports["gcs"], link.gcs_remote, self.ports["agv"],
                  cfg.target.mavlink_sysid, self.ports.get("frames", "-"), link.truth_remote)
+
+    def _link_options(self, name: str) -> dict[str, Any]:
+        """Signing and impairment of link ``name`` (``[sim.signing]``, ``[sim.impairment]``)."""
+        sim = self.cfg.sim
+        opts: dict[str, Any] = {"time_s": self.now_s, "deferred": self.lockstep}
+        if self.signing is not None and name in sim.signing.links:
+            opts["signing"] = self.signing
+            opts["signing_link_id"] = ("offboard", "gcs", "agv").index(name)
+        imp = sim.impairment
+        if imp.active and name in imp.links:
+            opts["impairment"] = LinkImpairment.build(
+                name, imp.seed, imp.vehicle_to_companion, imp.companion_to_vehicle, imp.cuts,
+                imp.heartbeat_stop_s if imp.heartbeat_stop_s >= 0 else None)
+            opts["on_raw_datagram"] = self._on_raw_datagram
+        return opts
+
+    def _on_raw_datagram(self, data: bytes) -> None:
+        """A datagram reached an impaired link, before the impairment. In lockstep a setpoint
+        releases the step even if the network then drops, corrupts or delays it: the client
+        has answered; what the network does to the answer is the experiment."""
+        if self.lockstep and msgid_of(data) == SET_ATTITUDE_TARGET:
+            self._setpoint_event.set()
+
+    def _deliver_due(self, t_s: float) -> None:
+        """Lockstep: hand on every delayed datagram due by ``t_s`` (simulated time)."""
+        for ml in self._links.values():
+            ml.pump(t_s)
+
+    def _next_delivery_s(self) -> float | None:
+        due = [d for ml in self._links.values() if (d := ml.next_due_s()) is not None]
+        return min(due) if due else None
+
+    def _advance_delivering(self, t_target: float) -> None:
+        """Lockstep: integrate to ``t_target``, stopping at each delayed delivery in between
+        so that a delayed setpoint takes effect at its arrival time (to a physics step)."""
+        while (due := self._next_delivery_s()) is not None and due < t_target:
+            self._advance(due)
+            self.t_s = due
+            self._deliver_due(due)
+        self._advance(t_target)
 
     # ------------------------------------------------------------------ clock
     def now_s(self) -> float:
@@ -289,6 +371,21 @@ class SimBridge:
                                                msg.get_srcComponent()), addr)
         elif mtype == "TIMESYNC" and msg.tc1 == 0:
             link.send(link.mav.timesync_encode(int(t * 1e9), msg.ts1), addr)
+        else:
+            self.gcs.handle(link, msg, addr)
+
+    def _on_param(self, name: str, value: float) -> None:
+        """A PARAM_SET changed ``name``: apply it to the commander if it models it."""
+        field_name = _PARAM_FIELDS.get(name)
+        if field_name is None:
+            return
+        v: float | int = value
+        if name == "COM_OBL_RC_ACT":
+            v = int(value)
+        elif name == "MPC_TILTMAX_AIR":
+            v = math.radians(value)
+        self.px4.p = dataclasses.replace(self.px4.p, **{field_name: v})  # type: ignore[arg-type]
+        log.info("param %s = %g", name, value)
 
     def _on_command(self, link: MavUdpLink, msg: Any, addr: Address, t: float) -> None:
         self._commands += 1
@@ -465,7 +562,22 @@ class SimBridge:
             await self._run_lockstep(d)
         else:
             await self._run_realtime(d)
+        self._log_link_faults()
         return self.stats()
+
+    def _log_link_faults(self) -> None:
+        """What the impairment did and what signing rejected, per link (end of run)."""
+        for name, ml in self._links.items():
+            if ml.impairment is not None:
+                for direction, d in (("vehicle->peer", ml.impairment.outgoing),
+                                     ("peer->vehicle", ml.impairment.incoming)):
+                    log.info("impairment %s %s: %s", name, direction,
+                             dataclasses.asdict(d.counters))
+            if ml.signing is not None:
+                c = ml.counters
+                log.info("signing %s: rejected %d unsigned, %d bad signature, %d replayed; "
+                         "accepted %d unsigned (allowed ids)", name, c.rx_unsigned,
+                         c.rx_bad_signature, c.rx_replayed, c.rx_unsigned_allowed)
 
     async def _run_realtime(self, duration_s: float) -> None:
         sim = self.cfg.sim
@@ -499,6 +611,7 @@ class SimBridge:
         while k * step < duration_s - 1e-9:
             t = k * step
             self.t_s = t
+            self._deliver_due(t)
             self.px4.update(t, self.state)
             self._note_changes(t)
             self._send_streams(t)
@@ -513,7 +626,7 @@ class SimBridge:
                 await asyncio.wait_for(self._setpoint_event.wait(), sim.lockstep_timeout_s)
             except TimeoutError:
                 self._timeouts += 1
-            self._advance((k + 1) * step)
+            self._advance_delivering((k + 1) * step)
             self._steps += 1
             k += 1
         self.t_s = k * step

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from sim_bridge import ConfigError
+from sim_bridge.impairment import ImpairmentParams
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "config" / "paper.toml"
 
@@ -208,6 +209,94 @@ class FaultsConfig:
         return any(a <= t_s < b for a, b in self.telemetry_nan)
 
 
+LINK_NAMES = ("offboard", "gcs", "agv")
+
+
+def _links(x: tuple[str, ...]) -> str | None:
+    bad = [n for n in x if n not in LINK_NAMES]
+    return f"unknown link(s) {', '.join(map(repr, bad))} (have: {', '.join(LINK_NAMES)})" \
+        if bad else None
+
+
+@dataclass(frozen=True)
+class ImpairmentConfig:
+    """Network impairment of the emulator's MAVLink links (``sim_bridge.impairment``).
+
+    ``links``: which links are impaired (``"offboard"``, ``"gcs"``, ``"agv"``); ``cuts``: windows
+    ``[t_start_s, t_end_s)`` of boot time in which nothing passes either way;
+    ``heartbeat_stop_s``: from then on the vehicle sends no HEARTBEAT on those links (< 0:
+    never). The two directions are the sub-tables ``vehicle_to_companion`` and
+    ``companion_to_vehicle`` (:class:`ImpairmentParams`). Times count in simulated time in
+    lockstep.
+    """
+
+    links: tuple[str, ...] = field(default=("offboard",), metadata=_c(_links))
+    seed: int = 1
+    cuts: tuple[tuple[float, float], ...] = ()
+    heartbeat_stop_s: float = -1.0
+    vehicle_to_companion: ImpairmentParams = field(default_factory=ImpairmentParams)
+    companion_to_vehicle: ImpairmentParams = field(default_factory=ImpairmentParams)
+
+    @property
+    def active(self) -> bool:
+        return bool(self.links) and (
+            bool(self.cuts) or self.heartbeat_stop_s >= 0
+            or self.vehicle_to_companion.active or self.companion_to_vehicle.active)
+
+
+def _hex_key(x: str) -> str | None:
+    if x == "":
+        return None
+    try:
+        key = bytes.fromhex(x)
+    except ValueError:
+        return "must be hexadecimal"
+    return None if len(key) == 32 else f"must be 32 bytes (64 hex digits), got {len(key)}"
+
+
+@dataclass(frozen=True)
+class SigningConfig:
+    """MAVLink 2 message signing like PX4 with a provisioned key (``sim_bridge.signing``).
+
+    Off by default (MAVSDK has no signing). ``key_hex`` (64 hex digits) or ``key_file`` (64
+    hex digits as text, or the 32 raw bytes, optionally followed by PX4's 8-byte timestamp;
+    a relative path is relative to the config file). ``links``: where outgoing frames are
+    signed and incoming ones verified (``"agv"``: the AGV node signs its FOLLOW_TARGET).
+    """
+
+    enabled: bool = False
+    key_hex: str = field(default="", metadata=_c(_hex_key))
+    key_file: str = ""
+    links: tuple[str, ...] = field(default=LINK_NAMES, metadata=_c(_links))
+
+    def __post_init__(self) -> None:
+        if self.key_hex and self.key_file:
+            raise ConfigError("sim.signing: give key_hex or key_file, not both")
+        if self.enabled and not (self.key_hex or self.key_file):
+            raise ConfigError("sim.signing.key_hex: a 32-byte key (or key_file) is needed "
+                              "when signing is enabled")
+
+    def key(self) -> bytes:
+        """The 32-byte secret key (reads ``key_file``); raises ConfigError."""
+        if self.key_hex:
+            return bytes.fromhex(self.key_hex)
+        p = Path(self.key_file).expanduser()
+        try:
+            raw = p.read_bytes()
+        except OSError as e:
+            raise ConfigError(f"sim.signing.key_file: cannot read {p} ({e.strerror})") from e
+        text = raw.strip()
+        if len(text) == 64:
+            try:
+                return bytes.fromhex(text.decode("ascii"))
+            except (UnicodeDecodeError, ValueError):
+                pass
+        if len(raw) in (32, 40):  # raw key, or PX4's key + little-endian u64 timestamp
+            return raw[:32]
+        raise ConfigError(f"sim.signing.key_file: {p} holds neither 64 hex digits nor a "
+                          "32-byte key")
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """Initial UAV pose: position (m, NED) and roll, pitch, yaw (rad, ZYX)."""
@@ -233,6 +322,8 @@ class SimConfig:
     agv: AgvConfig
     camera: SimCameraConfig
     faults: FaultsConfig = field(default_factory=FaultsConfig)
+    impairment: ImpairmentConfig = field(default_factory=ImpairmentConfig)
+    signing: SigningConfig = field(default_factory=SigningConfig)
 
     def __post_init__(self) -> None:
         if self.physics_dt_s > self.step_dt_s:
@@ -303,6 +394,14 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{key}: must be an integer, got {value!r}")
         return value
+    if tp == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: must be true or false, got {value!r}")
+        return value
+    if tp == "tuple[str, ...]":
+        if not isinstance(value, list) or not all(isinstance(x, str) for x in value):
+            raise ConfigError(f"{key}: must be a list of strings")
+        return tuple(value)
     if tp == "str":
         if not isinstance(value, str):
             raise ConfigError(f"{key}: must be a string, got {value!r}")
@@ -348,7 +447,10 @@ def _build(cls: Any, table: Any, prefix: str, extra: Mapping[str, Any] | None = 
     unknown = set(table) - known - set(extra or {})
     if unknown:
         raise ConfigError(f"{prefix}: unknown key(s) {', '.join(sorted(unknown))}")
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as e:  # a value type's own check (``__post_init__``) names the field
+        raise ConfigError(f"{prefix}.{e}") from None
 
 
 _SIM_SUBTABLES = {
@@ -359,8 +461,20 @@ _SIM_SUBTABLES = {
     "agv": AgvConfig,
     "camera": SimCameraConfig,
     "faults": FaultsConfig,
+    "impairment": ImpairmentConfig,
+    "signing": SigningConfig,
 }
-_OPTIONAL_SUBTABLES = frozenset({"faults"})
+_OPTIONAL_SUBTABLES = frozenset({"faults", "impairment", "signing"})
+_IMPAIRMENT_DIRECTIONS = ("vehicle_to_companion", "companion_to_vehicle")
+
+
+def _build_impairment(table: Any) -> ImpairmentConfig:
+    if not isinstance(table, Mapping):
+        raise ConfigError("sim.impairment: must be a table")
+    dirs = {d: _build(ImpairmentParams, table.get(d, {}), f"sim.impairment.{d}")
+            for d in _IMPAIRMENT_DIRECTIONS}
+    cfg: ImpairmentConfig = _build(ImpairmentConfig, table, "sim.impairment", extra=dirs)
+    return cfg
 
 
 def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
@@ -379,7 +493,14 @@ def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
                 subs[name] = cls()
                 continue
             raise ConfigError(f"sim.{name}: missing table")
-        subs[name] = _build(cls, sim_t[name], f"sim.{name}")
+        if name == "impairment":
+            subs[name] = _build_impairment(sim_t[name])
+        else:
+            subs[name] = _build(cls, sim_t[name], f"sim.{name}")
+    sig = subs["signing"]
+    if sig.key_file and source and not Path(sig.key_file).expanduser().is_absolute():
+        subs["signing"] = dataclasses.replace(
+            sig, key_file=str(Path(source).resolve().parent / sig.key_file))
     scenarios = sim_t.get("scenarios", {})
     sim_flat = {k: v for k, v in sim_t.items() if k != "scenarios"}
     sim = _build(SimConfig, sim_flat, "sim", extra=subs)
