@@ -31,6 +31,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -40,7 +41,7 @@ from sim_bridge import ConfigError
 from sim_bridge.camera_model import line_kernel
 from sim_bridge.physics.agv import AgvState
 
-__all__ = ["Camera", "RenderedFrame"]
+__all__ = ["Camera", "RenderedFrame", "read_calibration"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,59 @@ _MAX_FULL_KERNEL_PX = 11  # cv2.filter2D switches to a (16x slower) DFT above th
 
 # Our camera axes (x fwd, y right, z down) -> OpenCV's (x right, y down, z fwd = optical axis).
 _CV_FROM_CAM = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def read_calibration(path: str | Path, width_px: int, height_px: int,
+                     relative_to: str | Path = "") -> tuple[np.ndarray, np.ndarray]:
+    """``camera_matrix`` (3, 3) and ``distortion_coefficients`` (n,) of an OpenCV
+    ``cv2.FileStorage`` calibration file (YAML/XML/JSON, the format of OpenCV's calibration
+    sample and of the companion's ``camera.calibration_file``). A relative path is looked up
+    in the working directory, then next to ``relative_to`` (the scenario file), then in the
+    repository root. ``image_width``/``image_height``, when present, must match the camera."""
+    p = Path(path).expanduser()
+    if not p.is_absolute():
+        bases = [Path.cwd()]
+        if relative_to:
+            bases.append(Path(relative_to).expanduser().resolve().parent)
+        bases.append(Path(__file__).resolve().parent.parent)
+        p = next((b / p for b in bases if (b / p).is_file()), p)
+    key = "camera.calibration_file"
+    if not p.is_file():
+        raise ConfigError(f"{key}: {path}: file not found")
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as e:
+        raise ConfigError(f"{key}: {p}: not an OpenCV FileStorage file ({e})") from None
+    try:
+        if not fs.isOpened():
+            raise ConfigError(f"{key}: {p}: not an OpenCV FileStorage file")
+
+        def matrix(name: str) -> np.ndarray | None:
+            node = fs.getNode(name)
+            if node.empty():
+                return None
+            if node.isSeq():
+                return np.array([node.at(i).real() for i in range(node.size())], float)
+            m = node.mat()
+            return None if m is None else np.asarray(m, dtype=float)
+
+        k = matrix("camera_matrix")
+        d = matrix("distortion_coefficients")
+        if d is None:
+            d = matrix("dist_coeffs")
+        if k is None or k.size != 9:
+            raise ConfigError(f"{key}: {p}: missing or bad camera_matrix")
+        if d is None:
+            raise ConfigError(f"{key}: {p}: missing distortion_coefficients")
+        wn, hn = fs.getNode("image_width"), fs.getNode("image_height")
+        if not wn.empty() and not hn.empty():
+            size = (int(wn.real()), int(hn.real()))
+            if size != (width_px, height_px):
+                raise ConfigError(f"{key}: {p}: calibrated at {size[0]} x {size[1]} px, the "
+                                  f"camera renders {width_px} x {height_px} px")
+    finally:
+        fs.release()
+    return k.reshape(3, 3), d.reshape(-1)
 
 
 @dataclass(frozen=True, eq=False)

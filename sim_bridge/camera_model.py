@@ -73,7 +73,7 @@ class DelayLine(Generic[T]):
 
 @dataclass(frozen=True)
 class Capture:
-    """What happens to the frame exposed around ``t_capture_s`` (autopilot clock, s).
+    """What happens to the frame exposed around ``t_capture_s`` (simulation time, s).
 
     ``dropped``: never delivered. ``deliver_s``: when it leaves on the frame socket (same
     clock). ``stamp_us``: the header's ``t_us`` (autopilot or camera clock, see
@@ -93,14 +93,17 @@ class Capture:
 class CameraTiming:
     """Drops, latency and timestamps of the frames (``CameraModelConfig``)."""
 
-    def __init__(self, cfg: CameraModelConfig, seed: int) -> None:
+    def __init__(self, cfg: CameraModelConfig, seed: int, clock_offset_s: float = 0.0) -> None:
         self.cfg = cfg
+        self.clock_offset_s = clock_offset_s  # autopilot clock = simulation time + this
         self._drop_rng, self._lat_rng = rngs(seed * 7919 + 1, 2)
         self._last_deliver_s = -math.inf
 
     def stamp_us(self, t_capture_s: float) -> int:
-        """The header stamp of a frame captured at ``t_capture_s`` (autopilot clock, s)."""
+        """The header stamp of a frame captured at simulation time ``t_capture_s``: the
+        autopilot's clock (``+ clock_offset_s``), or the camera's own clock derived from it."""
         c = self.cfg
+        t_capture_s = t_capture_s + self.clock_offset_s
         if c.timestamp_clock == "camera":
             t = t_capture_s * (1.0 + c.clock_drift_ppm * 1e-6) + c.clock_offset_ms * 1e-3
         else:
