@@ -126,22 +126,25 @@ class CameraTiming:
 def line_kernel(dx_px: float, dy_px: float) -> np.ndarray | None:
     """Normalised float32 kernel of a straight motion by ``(dx, dy)`` pixels (col, row) during
     the exposure, centred (the blurred edge's 50 % level stays at the exposure middle); ``None``
-    below half a pixel. Built by drawing an anti-aliased line (sub-pixel end points)."""
+    below half a pixel. The segment is sampled 8 times per pixel, each sample splatted
+    bilinearly, so the kernel's centroid is exactly its centre and its spread that of the
+    segment (a box of the motion's length, softened by less than a pixel)."""
     length = math.hypot(dx_px, dy_px)
     if length < 0.5:
         return None
     half = math.ceil(max(abs(dx_px), abs(dy_px)) / 2.0) + 1
     n = 2 * half + 1
-    shift = 4
-    k = np.zeros((n, n), np.float32)
-    p0 = (round((half - dx_px / 2) * (1 << shift)), round((half - dy_px / 2) * (1 << shift)))
-    p1 = (round((half + dx_px / 2) * (1 << shift)), round((half + dy_px / 2) * (1 << shift)))
-    cv2.line(k, p0, p1, 1.0, 1, cv2.LINE_AA, shift)
-    total = float(k.sum())
-    if total <= 0:
-        return None
-    k /= total
-    return k
+    s = np.linspace(-0.5, 0.5, max(2, math.ceil(8 * length) + 1))
+    x, y = half + s * dx_px, half + s * dy_px
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    k = np.zeros((n, n), np.float64)
+    np.add.at(k, (y0, x0), (1 - fx) * (1 - fy))
+    np.add.at(k, (y0, x0 + 1), fx * (1 - fy))
+    np.add.at(k, (y0 + 1, x0), (1 - fx) * fy)
+    np.add.at(k, (y0 + 1, x0 + 1), fx * fy)
+    k /= k.sum()
+    return k.astype(np.float32)
 
 
 class Sensor:
