@@ -57,7 +57,7 @@ def test_calibration_file_is_opencv_filestorage(lens: tuple[np.ndarray, np.ndarr
     assert d[0] < 0  # barrel
     with pytest.raises(ConfigError, match=r"calibrated at 1000 x 1000"):
         read_calibration(CALIB, 640, 480)
-    with pytest.raises(ConfigError, match="camera.calibration_file"):
+    with pytest.raises(ConfigError, match=r"camera\.calibration_file"):
         read_calibration("nope.yaml", W, H)
 
 
@@ -189,8 +189,8 @@ def test_motion_blur_spreads_edges_but_keeps_their_mid_level(speed_m_s: float) -
         cols = np.linspace(blur.corners_px[a][0], blur.corners_px[b][0], 9)[2:-2]
         found, widths = [], []
         for c in cols:
-            c = int(round(c))
-            r0 = int(round(row_edge))
+            c = round(c)
+            r0 = round(row_edge)
             rows = np.arange(r0 - reach - 3, r0 + reach + 4)
             for img, out in ((blur.image, found), (sharp.image, None)):
                 prof = img[rows, c].astype(float)
@@ -326,6 +326,6 @@ def test_realistic_sensors_file() -> None:
     assert c.sim.camera_model.level == "realistic" and c.sim.camera_model.latency_ms == 60.0
     assert c.sim.telemetry.level == "realistic" and c.sim.telemetry.rates == "px4"
     assert c.camera.calibration_file.endswith("camera-distorted.yaml")
-    k, d = read_calibration(c.camera.calibration_file, c.camera.width_px, c.camera.height_px,
+    _, d = read_calibration(c.camera.calibration_file, c.camera.width_px, c.camera.height_px,
                             relative_to=c.source)
     assert d.size == 5

@@ -5,6 +5,7 @@ clock starts at its boot offset, TIMESYNC is answered (and asked) like PX4."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import select
 import socket
 import time
@@ -67,7 +68,7 @@ def test_lockstep_frames_arrive_late_by_the_latency_with_capture_stamps(
     assert 0.7 < share_100 < 0.95, share_100  # 5/6 expected
     seqs = [g[0] for g in got]
     assert seqs == sorted(seqs)
-    gaps = sum(b - a - 1 for a, b in zip(seqs, seqs[1:], strict=False))
+    gaps = sum(b - a - 1 for a, b in itertools.pairwise(seqs))
     assert gaps <= stats.frames_dropped
     n = stats.frames
     assert 0.2 * n - 4 * (0.16 * n) ** 0.5 < stats.frames_dropped < 0.2 * n + 4 * (0.16 * n) ** 0.5
