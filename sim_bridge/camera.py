@@ -312,6 +312,7 @@ class Camera:
         self._rw, self._rh = w, h
         self._rcx, self._rcy = float(k[0, 2]), float(k[1, 2])
         self._remap: tuple[np.ndarray, np.ndarray] | None = None
+        self._remap_half: tuple[np.ndarray, np.ndarray] | None = None
 
     def _set_lens(self, k: np.ndarray, dist: Sequence[float] | np.ndarray) -> None:
         """A calibrated lens (OpenCV ``camera_matrix`` + ``distortion_coefficients``): the scene
@@ -357,6 +358,19 @@ class Camera:
         mx = (ideal[..., 0] + ox).astype(np.float32)
         my = (ideal[..., 1] + oy).astype(np.float32)
         self._remap = cv2.convertMaps(mx, my, cv2.CV_16SC2)
+        # The ground is smooth at the image's scale (it is warped at half resolution anyway):
+        # distort it at half the output resolution and upsample; only the box's region is
+        # remapped at full resolution. Half-size pixel (xs, ys) sits at full-size
+        # ((xs + 0.5) / s - 0.5) (cv2.resize's convention): its source is interpolated.
+        wh, hh = (w + 1) // 2, (h + 1) // 2
+        xs = (np.arange(wh) + 0.5) * (w / wh) - 0.5
+        ys = (np.arange(hh) + 0.5) * (h / hh) - 0.5
+        grid_h = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 1, 2)
+        ideal_h = cv2.undistortPoints(grid_h, k, d, R=None, P=k, criteria=_UNDISTORT_CRITERIA)
+        ideal_h = np.asarray(ideal_h, dtype=np.float64).reshape(hh, wh, 2)
+        self._remap_half = cv2.convertMaps((ideal_h[..., 0] + ox).astype(np.float32),
+                                           (ideal_h[..., 1] + oy).astype(np.float32),
+                                           cv2.CV_16SC2)
 
     def ideal_px(self, points_px: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixels (same ``camera_matrix``, no distortion) of image pixels (n, 2)."""
@@ -467,7 +481,7 @@ class Camera:
         image = self._render_ground(r, c_w, ground_z)
 
         top_faces_camera = c_w[2] < agv.pos_ned_m[2]
-        hull_roi = None
+        hull_roi: tuple[int, int, int, int] | None = None
         if not occluded:
             hull_roi = self._draw_box(image, ideal[:8], z_cv[:8], pts[:8], r, t,
                                       top_faces_camera, agv)
@@ -490,14 +504,15 @@ class Camera:
         )
         in_image = inside and bool(top_faces_camera) and not occluded
 
+        spread = 0
         if exposure_s > 0 and uav_vel_ned_m_s is not None and uav_rates_frd_rad_s is not None:
             motion = self.image_motion_px(uav_pos_ned_m, uav_q_wxyz, uav_vel_ned_m_s,
                                           uav_rates_frd_rad_s, agv, exposure_s)
             if motion is not None:
                 image = self._motion_blur(image, motion, hull_roi)
+                spread = math.ceil(max(abs(motion[0]), abs(motion[1])) / 2) + 2
         if self._remap is not None:
-            image = cv2.remap(image, self._remap[0], self._remap[1], cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_REPLICATE)
+            image = self._distort(image, hull_roi, spread)
         if self.blur_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), self.blur_px)
         if self._noise_bank:
@@ -511,6 +526,52 @@ class Camera:
             target_in_image=in_image,
             top_corners_px=top_px.copy(),
         )
+
+    def _distort(self, canvas: np.ndarray, roi: tuple[int, int, int, int] | None,
+                 spread: int) -> np.ndarray:
+        """The canvas seen through the lens: everything at half resolution (upsampled), then
+        the box's canvas ``roi`` grown by ``spread`` px (motion blur) at full resolution."""
+        assert self._remap is not None and self._remap_half is not None
+        w, h = self.width_px, self.height_px
+        half = cv2.remap(canvas, self._remap_half[0], self._remap_half[1], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+        out = cv2.resize(half, (w, h), interpolation=cv2.INTER_LINEAR)
+        if roi is None:
+            return out
+        x0, y0, x1, y1 = roi
+        x0, y0 = max(x0 - spread - 2, 0), max(y0 - spread - 2, 0)
+        x1, y1 = min(x1 + spread + 2, self._rw), min(y1 + spread + 2, self._rh)
+        # the output pixels whose source lies in the region: the region's border through the
+        # lens (a convex-ish blob; its bounding box, plus a pixel of interpolation)
+        n = 16
+        ts = np.linspace(0.0, 1.0, n)
+        border = np.concatenate([
+            np.column_stack([x0 + ts * (x1 - x0), np.full(n, y0)]),
+            np.column_stack([x0 + ts * (x1 - x0), np.full(n, y1)]),
+            np.column_stack([np.full(n, x0), y0 + ts * (y1 - y0)]),
+            np.column_stack([np.full(n, x1), y0 + ts * (y1 - y0)]),
+        ])
+        img_px = self._canvas_to_image(border)
+        c0 = max(math.floor(img_px[:, 0].min()) - 2, 0)
+        r0 = max(math.floor(img_px[:, 1].min()) - 2, 0)
+        c1 = min(math.ceil(img_px[:, 0].max()) + 3, w)
+        r1 = min(math.ceil(img_px[:, 1].max()) + 3, h)
+        if c1 <= c0 or r1 <= r0:
+            return out
+        m1 = self._remap[0][r0:r1, c0:c1]
+        m2 = self._remap[1][r0:r1, c0:c1]
+        out[r0:r1, c0:c1] = cv2.remap(canvas, m1, m2, cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_REPLICATE)
+        return out
+
+    def _canvas_to_image(self, pts: np.ndarray) -> np.ndarray:
+        """Image pixels (through the lens) of canvas pixels (n, 2)."""
+        xn = (pts[:, 0] - self._rk[0, 2]) / self._rk[0, 0]
+        yn = (pts[:, 1] - self._rk[1, 2]) / self._rk[1, 1]
+        obj = np.column_stack([xn, yn, np.ones(len(pts))])
+        img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), self.camera_matrix,
+                                   self._dist)
+        return np.asarray(img, dtype=float).reshape(-1, 2)
 
     def _project_ideal(self, pts: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Canvas pixels (ideal pinhole ``_rk``) of world points (n, 3)."""
