@@ -206,10 +206,11 @@ class Sensor:
         lit = np.minimum(self._levels * gain, 255.0)  # the sensor saturates
         if not self.noisy:
             return cv2.LUT(image, np.rint(lit).astype(np.uint8))
-        mean = cv2.LUT(image, (lit + 0.5).astype(np.float32).reshape(1, 256))
+        mean = cv2.LUT(image, lit.astype(np.float32).reshape(1, 256))
         sigma = cv2.LUT(image, np.asarray(self.sigma_dn(lit), np.float32).reshape(1, 256))
         z = self._bank[int(self._noise_rng.integers(len(self._bank)))]
         dy, dx = (int(v) for v in self._noise_rng.integers(0, _NOISE_PAD, size=2))
-        out = cv2.add(mean, cv2.multiply(z[dy:dy + self.h, dx:dx + self.w], sigma))
-        np.clip(out, 0.0, 255.0, out=out)
-        return out.astype(np.uint8)
+        # rounded to nearest and saturated to 0..255 by OpenCV's conversion
+        out: np.ndarray = cv2.add(mean, cv2.multiply(z[dy:dy + self.h, dx:dx + self.w], sigma),
+                                  dtype=cv2.CV_8U)
+        return out
