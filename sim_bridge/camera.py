@@ -358,6 +358,7 @@ class Camera:
         mx = (ideal[..., 0] + ox).astype(np.float32)
         my = (ideal[..., 1] + oy).astype(np.float32)
         self._remap = cv2.convertMaps(mx, my, cv2.CV_16SC2)
+        self._map_f = (mx, my)
         # The ground is smooth at the image's scale (it is warped at half resolution anyway):
         # distort it at half the output resolution and upsample; only the box's region is
         # remapped at full resolution. Half-size pixel (xs, ys) sits at full-size
@@ -368,9 +369,13 @@ class Camera:
         grid_h = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 1, 2)
         ideal_h = cv2.undistortPoints(grid_h, k, d, R=None, P=k, criteria=_UNDISTORT_CRITERIA)
         ideal_h = np.asarray(ideal_h, dtype=np.float64).reshape(hh, wh, 2)
-        self._remap_half = cv2.convertMaps((ideal_h[..., 0] + ox).astype(np.float32),
-                                           (ideal_h[..., 1] + oy).astype(np.float32),
-                                           cv2.CV_16SC2)
+        # sampled from the half-resolution canvas (the ground as warped): canvas pixel x sits
+        # at (x + 0.5) s - 0.5 there
+        shw, shh = (cw + 1) // 2, (ch + 1) // 2
+        self._remap_half = cv2.convertMaps(
+            ((ideal_h[..., 0] + ox + 0.5) * (shw / cw) - 0.5).astype(np.float32),
+            ((ideal_h[..., 1] + oy + 0.5) * (shh / ch) - 0.5).astype(np.float32),
+            cv2.CV_16SC2)
 
     def ideal_px(self, points_px: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixels (same ``camera_matrix``, no distortion) of image pixels (n, 2)."""
@@ -478,13 +483,22 @@ class Camera:
         top_px, marker_px = px[0:4], px[8:12]
 
         ground_z = float(agv.pos_ned_m[2]) + self.height_m
-        image = self._render_ground(r, c_w, ground_z)
-
         top_faces_camera = c_w[2] < agv.pos_ned_m[2]
-        hull_roi: tuple[int, int, int, int] | None = None
-        if not occluded:
-            hull_roi = self._draw_box(image, ideal[:8], z_cv[:8], pts[:8], r, t,
-                                      top_faces_camera, agv)
+        motion = None
+        if exposure_s > 0 and uav_vel_ned_m_s is not None and uav_rates_frd_rad_s is not None:
+            motion = self.image_motion_px(uav_pos_ned_m, uav_q_wxyz, uav_vel_ned_m_s,
+                                          uav_rates_frd_rad_s, agv, exposure_s)
+        if self._remap is not None:
+            image = self._render_through_lens(r, t, c_w, ground_z, ideal[:8], z_cv[:8],
+                                              pts[:8], top_faces_camera, agv, occluded, motion)
+        else:
+            image = self._render_ground(r, c_w, ground_z)
+            hull_roi: tuple[int, int, int, int] | None = None
+            if not occluded:
+                hull_roi = self._draw_box(image, ideal[:8], z_cv[:8], pts[:8], r, t,
+                                          top_faces_camera, agv)
+            if motion is not None:
+                image = self._motion_blur(image, motion, hull_roi)
 
         target_px = marker_px if self.pattern == "aruco" else top_px
         target_ideal = ideal[8:12] if self.pattern == "aruco" else ideal[0:4]
@@ -504,15 +518,6 @@ class Camera:
         )
         in_image = inside and bool(top_faces_camera) and not occluded
 
-        spread = 0
-        if exposure_s > 0 and uav_vel_ned_m_s is not None and uav_rates_frd_rad_s is not None:
-            motion = self.image_motion_px(uav_pos_ned_m, uav_q_wxyz, uav_vel_ned_m_s,
-                                          uav_rates_frd_rad_s, agv, exposure_s)
-            if motion is not None:
-                image = self._motion_blur(image, motion, hull_roi)
-                spread = math.ceil(max(abs(motion[0]), abs(motion[1])) / 2) + 2
-        if self._remap is not None:
-            image = self._distort(image, hull_roi, spread)
         if self.blur_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), self.blur_px)
         if self._noise_bank:
@@ -527,22 +532,51 @@ class Camera:
             top_corners_px=top_px.copy(),
         )
 
-    def _distort(self, canvas: np.ndarray, roi: tuple[int, int, int, int] | None,
-                 spread: int) -> np.ndarray:
-        """The canvas seen through the lens: everything at half resolution (upsampled), then
-        the box's canvas ``roi`` grown by ``spread`` px (motion blur) at full resolution."""
+    def _render_through_lens(
+        self,
+        r: np.ndarray,
+        t: np.ndarray,
+        c_w: np.ndarray,
+        ground_z: float,
+        box_px: np.ndarray,
+        box_z: np.ndarray,
+        box_pts: np.ndarray,
+        top_faces_camera: bool,
+        agv: AgvState,
+        occluded: bool,
+        motion: np.ndarray | None,
+    ) -> np.ndarray:
+        """The scene through the lens without a full-resolution canvas: the ground (smooth at
+        the image's scale, warped at half resolution anyway) is distorted at half the output
+        resolution and upsampled; only the box's region is drawn on the ideal canvas at full
+        resolution (``box_px``: its corners in canvas pixels) and remapped at full resolution.
+        Motion blur: the line kernel on the box's canvas region, half of it on the ground."""
         assert self._remap is not None and self._remap_half is not None
         w, h = self.width_px, self.height_px
-        half = cv2.remap(canvas, self._remap_half[0], self._remap_half[1], cv2.INTER_LINEAR,
+        small = self._render_ground(r, c_w, ground_z, half=True)
+        half = cv2.remap(small, self._remap_half[0], self._remap_half[1], cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)
+        k_full = None if motion is None else line_kernel(float(motion[0]), float(motion[1]))
+        if motion is not None:
+            k_half = line_kernel(float(motion[0]) / 2, float(motion[1]) / 2)
+            if k_half is not None:
+                half = cv2.filter2D(half, -1, k_half, borderType=cv2.BORDER_REFLECT)
         out = cv2.resize(half, (w, h), interpolation=cv2.INTER_LINEAR)
+        if occluded or not np.all(box_z > _NEAR_M):
+            if not occluded and not np.all(box_z <= _NEAR_M):  # rare: the camera at the box
+                canvas = self._render_ground(r, c_w, ground_z)
+                self._draw_box(canvas, box_px, box_z, box_pts, r, t, top_faces_camera, agv)
+                return cv2.remap(canvas, self._remap[0], self._remap[1], cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE)
+            return out
+        hull = box_px[cv2.convexHull(box_px.astype(np.float32), returnPoints=False).ravel()]
+        roi = _roi(hull, self._rw, self._rh)
         if roi is None:
             return out
-        x0, y0, x1, y1 = roi
-        x0, y0 = max(x0 - spread - 2, 0), max(y0 - spread - 2, 0)
-        x1, y1 = min(x1 + spread + 2, self._rw), min(y1 + spread + 2, self._rh)
-        # the output pixels whose source lies in the region: the region's border through the
-        # lens (a convex-ish blob; its bounding box, plus a pixel of interpolation)
+        spread = 0 if k_full is None else k_full.shape[0] // 2
+        # output pixels that see the (blurred) box: its region's border through the lens
+        x0, y0 = roi[0] - spread - 2, roi[1] - spread - 2
+        x1, y1 = roi[2] + spread + 2, roi[3] + spread + 2
         n = 16
         ts = np.linspace(0.0, 1.0, n)
         border = np.concatenate([
@@ -558,10 +592,27 @@ class Camera:
         r1 = min(math.ceil(img_px[:, 1].max()) + 3, h)
         if c1 <= c0 or r1 <= r0:
             return out
-        m1 = self._remap[0][r0:r1, c0:c1]
-        m2 = self._remap[1][r0:r1, c0:c1]
-        out[r0:r1, c0:c1] = cv2.remap(canvas, m1, m2, cv2.INTER_LINEAR,
-                                      borderMode=cv2.BORDER_REPLICATE)
+        # the canvas pixels those output pixels sample, plus the kernel's reach: upsample the
+        # ground there exactly as cv2.resize would, draw the box, blur
+        mx, my = self._map_f[0][r0:r1, c0:c1], self._map_f[1][r0:r1, c0:c1]
+        pad = spread + 2
+        px0 = max(math.floor(float(mx.min())) - pad, 0)
+        py0 = max(math.floor(float(my.min())) - pad, 0)
+        px1 = min(math.ceil(float(mx.max())) + pad + 1, self._rw)
+        py1 = min(math.ceil(float(my.max())) + pad + 1, self._rh)
+        sx, sy = small.shape[1] / self._rw, small.shape[0] / self._rh
+        up = np.array([[sx, 0.0, (px0 + 0.5) * sx - 0.5], [0.0, sy, (py0 + 0.5) * sy - 0.5]])
+        patch = cv2.warpAffine(small, up, (px1 - px0, py1 - py0),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE)
+        canvas = np.empty((self._rh, self._rw), np.uint8)  # only the patch is ever read
+        canvas[py0:py1, px0:px1] = patch
+        self._draw_box(canvas, box_px, box_z, box_pts, r, t, top_faces_camera, agv)
+        if k_full is not None:
+            canvas[py0:py1, px0:px1] = cv2.filter2D(canvas[py0:py1, px0:px1], -1, k_full,
+                                                    borderType=cv2.BORDER_REFLECT)
+        out[r0:r1, c0:c1] = cv2.remap(canvas[py0:py1, px0:px1], mx - px0, my - py0,
+                                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return out
 
     def _canvas_to_image(self, pts: np.ndarray) -> np.ndarray:
@@ -644,13 +695,17 @@ class Camera:
             out[y0 + m:y1 - m, x0 + m:x1 - m] = sharp[m:sharp.shape[0] - m, m:sharp.shape[1] - m]
         return out
 
-    def _render_ground(self, r: np.ndarray, c_w: np.ndarray, ground_z: float) -> np.ndarray:
+    def _render_ground(self, r: np.ndarray, c_w: np.ndarray, ground_z: float,
+                       half: bool = False) -> np.ndarray:
+        """The ground (and sky) on the canvas, or with ``half`` at half its resolution (the
+        resolution it is warped at)."""
         w, h = self._rw, self._rh
         # Ray of pixel p = (col, row, 1) in NED: d = A p with A = R^T K^-1.
         a = r.T @ self._rk_inv
         depth = ground_z - float(c_w[2])  # camera height above the ground (> 0 when above)
+        wh, hh = (w + 1) // 2, (h + 1) // 2
         if depth <= 1e-6:
-            return np.full((h, w), SKY_LEVEL, np.uint8)
+            return np.full((hh, wh) if half else (h, w), SKY_LEVEL, np.uint8)
         period_m = _GROUND_TEX_PX * _GROUND_TEXEL_M
         pad_m = _GROUND_PAD_PX * _GROUND_TEXEL_M
         # Offsets, whole periods, that put the camera within the first period of the padded
@@ -666,19 +721,18 @@ class Camera:
         # The ground is smooth at the image's scale: warp it at half resolution and upsample
         # (2.5x cheaper than a full-size warp). Half-size pixel xs sits at full-size
         # x = (xs + 0.5) / sx - 0.5 (cv2.resize's pixel-centre convention).
-        wh, hh = (w + 1) // 2, (h + 1) // 2
         sx, sy = wh / w, hh / h
-        half = np.array(
+        to_half = np.array(
             [[1.0 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1.0 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]]
         )
         small = cv2.warpPerspective(
             self._ground_tex,
-            g @ half,
+            g @ to_half,
             (wh, hh),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_WRAP,
         )
-        image = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+        image = small if half else cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
         dz = corners @ a[2]
         if np.all(dz > _SKY_DZ):
@@ -687,6 +741,8 @@ class Camera:
         rect = corners[:, :2] + 0.5 * np.sign(corners[:, :2] - [self._rcx, self._rcy])
         sky = _clip_polygon_halfplane(rect, -a[2, :2], _SKY_DZ - float(a[2, 2]))
         if len(sky) >= 3:
+            if half:
+                sky = (sky + 0.5) * np.array([sx, sy]) - 0.5
             cv2.fillPoly(image, [np.round(sky * 16).astype(np.int32)], SKY_LEVEL, cv2.LINE_8, 4)
         return image
 
