@@ -120,9 +120,6 @@ PX4_NORMAL_RATES_HZ: dict[int, float] = {
     SYSTEM_TIME: 0.0,
     AUTOPILOT_VERSION: 0.0,
 }
-# Replies (not streams): in lockstep they leave at once even with a transport delay, so a
-# client waiting for an ACK cannot stall a step (simulated time stands still meanwhile).
-
 FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0 official
 CAPABILITIES = 8192 | 8 | 64 | 128  # MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, POS TARGET
 
@@ -260,7 +257,7 @@ class SimBridge:
         self._delivered_this_step = 0
         tm = sim.telemetry
         self._tx_delay = (tm.delay_ms * 1e-3, tm.delay_jitter_ms * 1e-3)
-        (self._tx_rng,) = rngs(sim.seed * 7919 + 3, 1)
+        (self._tx_rng,) = rngs(sim.seed, 1, salt=3)
         self._tx_lines: dict[str, DelayLine[tuple[list[bytes], Address | None]]] = {}
         self._timesync_sent_ns: dict[int, float] = {}
         self._timesync_replies = 0

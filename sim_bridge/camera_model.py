@@ -38,9 +38,10 @@ _NOISE_BANK = 3
 _NOISE_PAD = 64
 
 
-def rngs(seed: int, n: int) -> list[np.random.Generator]:
-    """``n`` independent generators derived from ``seed``."""
-    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n)]
+def rngs(seed: int, n: int, salt: int = 0) -> list[np.random.Generator]:
+    """``n`` independent generators derived from ``seed`` (any int) and a per-use ``salt``."""
+    ss = np.random.SeedSequence([seed % 2**32, salt])
+    return [np.random.default_rng(s) for s in ss.spawn(n)]
 
 
 class DelayLine(Generic[T]):
@@ -96,7 +97,7 @@ class CameraTiming:
     def __init__(self, cfg: CameraModelConfig, seed: int, clock_offset_s: float = 0.0) -> None:
         self.cfg = cfg
         self.clock_offset_s = clock_offset_s  # autopilot clock = simulation time + this
-        self._drop_rng, self._lat_rng = rngs(seed * 7919 + 1, 2)
+        self._drop_rng, self._lat_rng = rngs(seed, 2, salt=1)
         self._last_deliver_s = -math.inf
 
     def stamp_us(self, t_capture_s: float) -> int:
@@ -160,7 +161,7 @@ class Sensor:
     def __init__(self, cfg: CameraModelConfig, width_px: int, height_px: int, seed: int) -> None:
         self.cfg = cfg
         self.w, self.h = width_px, height_px
-        self._drift_rng, self._noise_rng = rngs(seed * 7919 + 2, 2)
+        self._drift_rng, self._noise_rng = rngs(seed, 2, salt=2)
         self._x = 0.0
         self._t_s: float | None = None
         self.gain = 1.0
