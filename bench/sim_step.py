@@ -2,6 +2,11 @@
 integration of 50 ms at 2.5 ms steps) + render a frame + encode it for the wire.
 
     python bench/sim_step.py [--steps 1000] [--pattern rectangle|aruco] [--size 1000] [--json]
+                             [--level ideal|mild|realistic|harsh] [--lens]
+
+``--level`` adds the camera model of that level (``sim.camera_model``: motion blur over the
+exposure, sensor noise and brightness drift; latency and drops cost nothing per frame);
+``--lens`` renders through ``config/camera-distorted.yaml`` (1000 px only).
 
 Target (issue "sim_bridge"): median <= 2 ms per step at 1000 x 1000, i.e. >= 25x real time at
 the 20 Hz frame rate. Prints median/p95 per stage and for the whole step.
@@ -23,7 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from sim_bridge.camera import Camera
+from sim_bridge.camera import Camera, read_calibration
+from sim_bridge.camera_model import Sensor
+from sim_bridge.config import CAMERA_LEVELS, CameraModelConfig
 from sim_bridge.frames import encode_frame
 from sim_bridge.physics.agv import AgvTrajectory
 
@@ -53,13 +60,23 @@ def _physics_stub(pos: np.ndarray, vel: np.ndarray, target: np.ndarray) -> None:
         pos += vel * PHYSICS_DT_S
 
 
-def run(steps: int, pattern: str, size: int) -> dict[str, Any]:
+def run(steps: int, pattern: str, size: int, level: str = "ideal",
+        lens: bool = False) -> dict[str, Any]:
     pixel = 5.04e-6 * 1000 / size  # same field of view at any resolution
-    cam = Camera(2.8e-3, pixel, size, size, pattern=pattern, aruco_size_m=0.3)
+    k = d = None
+    if lens:
+        k, d = read_calibration(Path(__file__).resolve().parent.parent / "config"
+                                / "camera-distorted.yaml", size, size)
+    cam = Camera(2.8e-3, pixel, size, size, pattern=pattern, aruco_size_m=0.3,
+                 camera_matrix=k, dist_coeffs=d)
+    model = CameraModelConfig(level=level, **CAMERA_LEVELS[level])
+    sensor = Sensor(model, size, size, seed=1)
+    exposure_s = model.exposure_ms * 1e-3
     agv_traj = AgvTrajectory("paper")
     pos = np.array([-0.2, 0.4, -2.0])
     vel = np.zeros(3)
-    stages: dict[str, list[float]] = {k: [] for k in ("agv", "physics", "render", "encode")}
+    stages: dict[str, list[float]] = {k: [] for k in ("agv", "physics", "render", "sensor",
+                                                       "encode")}
     total: list[float] = []
     in_image = 0
     n_bytes = 0
@@ -70,14 +87,19 @@ def run(steps: int, pattern: str, size: int) -> dict[str, Any]:
         t1 = time.perf_counter()
         _physics_stub(pos, vel, agv.pos_ned_m + np.array([0.0, 0.0, -2.0]))
         q = _quat_from_euler(0.05 * math.sin(t), -0.05 * math.cos(0.7 * t), agv.yaw_rad)
+        rates = np.array([0.3 * math.cos(t), 0.3 * math.sin(0.7 * t), agv.yaw_rate_rad_s])
         t2 = time.perf_counter()
-        frame = cam.render(pos, q, agv)
+        frame = cam.render(pos, q, agv, uav_vel_ned_m_s=vel.copy(), uav_rates_frd_rad_s=rates,
+                           exposure_s=exposure_s)
         t3 = time.perf_counter()
-        rec = encode_frame(k, int(t * 1e6), frame.image)
+        image = sensor.apply(frame.image, t)
+        t35 = time.perf_counter()
+        rec = encode_frame(k, int(t * 1e6), image)
         t4 = time.perf_counter()
         if k < 20:
             continue
-        for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
+        for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t35 - t3, t4 - t35),
+                            strict=True):
             stages[name].append(dt)
         total.append(t4 - t0)
         in_image += frame.target_in_image
@@ -91,6 +113,8 @@ def run(steps: int, pattern: str, size: int) -> dict[str, Any]:
         "steps": steps,
         "size_px": size,
         "pattern": pattern,
+        "level": level,
+        "lens": lens,
         "record_bytes": n_bytes,
         "target_in_image_fraction": in_image / steps,
         "median_ms": ms(total, 50),
@@ -115,14 +139,18 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--pattern", choices=("rectangle", "aruco"), default="rectangle")
     ap.add_argument("--size", type=int, default=1000, help="image side in pixels")
+    ap.add_argument("--level", choices=tuple(CAMERA_LEVELS), default="ideal",
+                    help="camera model level (sim.camera_model)")
+    ap.add_argument("--lens", action="store_true", help="render through the distorted lens")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
-    res = run(args.steps, args.pattern, args.size)
+    res = run(args.steps, args.pattern, args.size, args.level, args.lens)
     if args.json:
         print(json.dumps(res))
         return 0
     print(
-        f"sim step (AGV + physics stub + render {res['size_px']}^2 {res['pattern']} + encode), "
+        f"sim step (AGV + physics stub + render {res['size_px']}^2 {res['pattern']} + sensor + "
+        f"encode), level {res['level']}{', lens' if res['lens'] else ''}, "
         f"{res['steps']} steps, load {res['host']['loadavg_1min']}"
     )
     print(

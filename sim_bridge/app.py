@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from sim_bridge import SimBridgeError
-from sim_bridge.camera import Camera, RenderedFrame
+from sim_bridge.camera import Camera, RenderedFrame, read_calibration
+from sim_bridge.camera_model import CameraTiming, DelayLine, Sensor, rngs
 from sim_bridge.config import EmulatorConfig, parse_address
 from sim_bridge.follow_target import follow_target_fields, latlon_from_ned
 from sim_bridge.frames import FrameServer
@@ -61,12 +62,14 @@ log = logging.getLogger(__name__)
 # MAVLink message ids the emulator streams or answers
 HEARTBEAT = 0
 SYS_STATUS = 1
+SYSTEM_TIME = 2
 ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
 SET_ATTITUDE_TARGET = 82
 _STATE_STREAMS = frozenset({30, 31, 32})  # ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED
 GLOBAL_POSITION_INT = 33
+TIMESYNC = 111
 AUTOPILOT_VERSION = 148
 HOME_POSITION = 242
 EXTENDED_SYS_STATE = 245
@@ -88,8 +91,39 @@ DEFAULT_RATES_HZ: dict[int, float] = {
     EXTENDED_SYS_STATE: 5.0,
     HOME_POSITION: 0.0,
     AUTOPILOT_VERSION: 0.0,
+    SYSTEM_TIME: 0.0,
+    TIMESYNC: 0.0,
 }
 
+# PX4's own defaults (src/modules/mavlink/mavlink_main.cpp, configure_streams_to_default) for
+# the messages the emulator implements: mode "onboard" (the offboard API link, SITL -m onboard)
+# and mode "normal" (the GCS link). HEARTBEAT is always 1 Hz.
+PX4_ONBOARD_RATES_HZ: dict[int, float] = {
+    HEARTBEAT: 1.0,
+    TIMESYNC: 10.0,
+    LOCAL_POSITION_NED: 30.0,
+    ATTITUDE: 100.0,
+    ATTITUDE_QUATERNION: 50.0,
+    EXTENDED_SYS_STATE: 5.0,
+    GLOBAL_POSITION_INT: 50.0,
+    HOME_POSITION: 0.5,
+    SYS_STATUS: 5.0,
+    SYSTEM_TIME: 1.0,
+    AUTOPILOT_VERSION: 0.0,
+}
+PX4_NORMAL_RATES_HZ: dict[int, float] = {
+    HEARTBEAT: 1.0,
+    ATTITUDE: 15.0,
+    EXTENDED_SYS_STATE: 1.0,
+    GLOBAL_POSITION_INT: 5.0,
+    HOME_POSITION: 0.5,
+    LOCAL_POSITION_NED: 1.0,
+    SYS_STATUS: 1.0,
+    ATTITUDE_QUATERNION: 0.0,
+    TIMESYNC: 0.0,
+    SYSTEM_TIME: 0.0,
+    AUTOPILOT_VERSION: 0.0,
+}
 FLIGHT_SW_VERSION = (1 << 24) | (16 << 16) | (0 << 8) | 255  # v1.16.0 official
 # MAVLINK2, COMMAND_INT, SET_ATTITUDE_TARGET, SET_POSITION_TARGET_LOCAL_NED, MISSION_INT,
 # PARAM_ENCODE_BYTEWISE (integer parameters travel byte-wise, as PX4's do)
@@ -141,21 +175,27 @@ class BridgeStats:
     frames: int
     offboard: LinkCounters
     gcs: LinkCounters
+    frames_dropped: int = 0
+    frames_delivered: int = 0
+    timesync_replies: int = 0
+    timesync_offset_us: float | None = None
+    timesync_rtt_us: float | None = None
 
 
 class _Streams:
     """Per-link stream schedule in boot time (s)."""
 
-    def __init__(self) -> None:
+    def __init__(self, rates_hz: dict[int, float] | None = None) -> None:
+        self.rates_hz = DEFAULT_RATES_HZ if rates_hz is None else rates_hz
         self.interval_s: dict[int, float | None] = {
-            mid: (1.0 / hz if hz > 0 else None) for mid, hz in DEFAULT_RATES_HZ.items()}
-        self.next_s: dict[int, float] = dict.fromkeys(DEFAULT_RATES_HZ, 0.0)
+            mid: (1.0 / hz if hz > 0 else None) for mid, hz in self.rates_hz.items()}
+        self.next_s: dict[int, float] = dict.fromkeys(self.rates_hz, 0.0)
 
     def set_interval(self, msgid: int, interval_us: float, now_s: float) -> bool:
-        if msgid not in DEFAULT_RATES_HZ:
+        if msgid not in self.rates_hz:
             return False
         if interval_us == 0:  # default rate
-            hz = DEFAULT_RATES_HZ[msgid]
+            hz = self.rates_hz[msgid]
             self.interval_s[msgid] = 1.0 / hz if hz > 0 else None
         elif interval_us < 0:
             self.interval_s[msgid] = None
@@ -223,19 +263,43 @@ class SimBridge:
                       origin_alt_m=cfg.target.origin_alt_m),
             self.state, armed=airborne, mode=Mode.POSCTL)
         self._t0_wall = time.monotonic()
+        self._unix_t0_s = time.time()  # SYSTEM_TIME: Unix time at simulation time 0
         self.t_s = 0.0
         self._setpoint_event = asyncio.Event()
         self._links: dict[str, MavUdpLink] = {}
         self._streams: dict[str, _Streams] = {}
         c, tg = cfg.camera, cfg.target
         self.agv = AgvTrajectory(sim.agv.trajectory, sim.agv.speed_scale, sim.agv.top_z_m)
+        lens_k = lens_d = None
+        if c.calibration_file:
+            lens_k, lens_d = read_calibration(c.calibration_file, c.width_px, c.height_px,
+                                              relative_to=cfg.source)
         self.camera = Camera(
             c.focal_length_m, c.pixel_size_m, c.width_px, c.height_px,
             mount_rpy_rad=c.mount_rpy_rad, mount_offset_m=c.mount_offset_m,
             target_length_m=tg.length_m, target_width_m=tg.width_m, target_height_m=tg.height_m,
             pattern=tg.pattern, aruco_dictionary=tg.aruco_dictionary, aruco_id=tg.aruco_id,
             aruco_size_m=tg.aruco_size_m, noise_std=sim.camera.noise_std,
-            blur_px=sim.camera.blur_px, seed=sim.seed)
+            blur_px=sim.camera.blur_px, seed=sim.seed, camera_matrix=lens_k,
+            dist_coeffs=lens_d)
+        # The autopilot's clock: simulation time + the boot offset (docs/wire.md, Clocks).
+        self.boot_offset_s = sim.telemetry.boot_offset_s
+        cm = sim.camera_model
+        self.cam_timing = CameraTiming(cm, sim.seed, clock_offset_s=self.boot_offset_s)
+        self.sensor = Sensor(cm, c.width_px, c.height_px, sim.seed)
+        self._exposure_s = cm.exposure_ms * 1e-3
+        self._frame_line: DelayLine[tuple[int, int, np.ndarray]] = DelayLine()
+        self._frames_dropped = 0
+        self._frames_delivered = 0
+        self._delivered_this_step = 0
+        tm = sim.telemetry
+        self._tx_delay = (tm.delay_ms * 1e-3, tm.delay_jitter_ms * 1e-3)
+        (self._tx_rng,) = rngs(sim.seed, 1, salt=3)
+        self._tx_lines: dict[str, DelayLine[tuple[list[bytes], Address | None]]] = {}
+        self._timesync_sent_ns: dict[int, float] = {}
+        self._timesync_replies = 0
+        self._timesync_offset_us: float | None = None
+        self._timesync_rtt_us: float | None = None
         self._frame_server: FrameServer | None = None
         self._truth: TruthPublisher | None = None
         self._frame_seq = 0
@@ -276,7 +340,11 @@ class SimBridge:
             await ml.open()
             self._stack.callback(ml.close)
             self._links[name] = ml
-            self._streams[name] = _Streams()
+            rates = None
+            if cfg.sim.telemetry.rates == "px4":
+                rates = PX4_ONBOARD_RATES_HZ if name == "offboard" else PX4_NORMAL_RATES_HZ
+            self._streams[name] = _Streams(rates)
+            self._tx_lines[name] = DelayLine()
             self.ports[name] = ml.port
         agv_link = MavUdpLink("agv", self.bind_host, link.agv_local_port, None,
                               cfg.target.mavlink_sysid, cfg.target.mavlink_compid,
@@ -291,6 +359,7 @@ class SimBridge:
         self._truth = TruthPublisher(*parse_address(link.truth_remote))
         self._stack.callback(self._truth.close)
         self._t0_wall = time.monotonic()
+        self._unix_t0_s = time.time()
         log.info("sim_bridge %s, scenario %s, start %s: MAVLink offboard udp %s:%d -> %s, "
                  "GCS udp %s:%d -> %s, AGV udp :%d (sysid %d), frames tcp :%s, truth udp -> %s",
                  self.cfg.sim.time_mode, cfg.scenario.name, cfg.sim.start, self.bind_host,
@@ -345,8 +414,39 @@ class SimBridge:
             return self.t_s
         return time.monotonic() - self._t0_wall
 
+    def boot_s(self, t_s: float) -> float:
+        """The autopilot's clock (s since its boot) at simulation time ``t_s``."""
+        return t_s + self.boot_offset_s
+
     def _ms(self, t_s: float) -> int:
-        return int(t_s * 1000) & 0xFFFFFFFF
+        """``time_boot_ms`` at simulation time ``t_s``."""
+        return int(self.boot_s(t_s) * 1000) & 0xFFFFFFFF
+
+    def _us(self, t_s: float) -> int:
+        """``time_usec`` (boot time) at simulation time ``t_s``."""
+        return round(self.boot_s(t_s) * 1e6)
+
+    # ------------------------------------------------------------------ transmit
+    def _tx(self, link: MavUdpLink, msg: Any, addr: Address | None = None, *,
+            reply: bool = False) -> None:
+        """Send ``msg`` on a vehicle link, through the transport delay (``sim.telemetry``).
+        In lockstep a ``reply`` (ACK, requested message, TIMESYNC/PING answer) is not delayed:
+        simulated time stands still while the step waits."""
+        delay, jitter = self._tx_delay
+        if delay <= 0 or (reply and self.lockstep):
+            link.send(msg, addr)
+            return
+        d = delay + jitter * float(self._tx_rng.uniform(-1.0, 1.0))
+        self._tx_lines[link.name].push(self.now_s() + max(0.0, d), (link.pack(msg), addr))
+
+    def _flush_tx(self, now_s: float) -> None:
+        for name, line in self._tx_lines.items():
+            link = self._links[name]
+            for frames, addr in line.pop_due(now_s):
+                link.send_frames(frames, addr)
+
+    def _next_tx_s(self) -> float:
+        return min((line.next_due_s for line in self._tx_lines.values()), default=math.inf)
 
     # ------------------------------------------------------------------ receive
     def _on_message(self, link: MavUdpLink, msg: Any, addr: Address) -> None:
@@ -367,10 +467,10 @@ class SimBridge:
             self._on_command(link, msg, addr, t)
         elif mtype == "PING":
             if msg.target_system == 0 and msg.target_component == 0:
-                link.send(link.mav.ping_encode(msg.time_usec, msg.seq, msg.get_srcSystem(),
-                                               msg.get_srcComponent()), addr)
-        elif mtype == "TIMESYNC" and msg.tc1 == 0:
-            link.send(link.mav.timesync_encode(int(t * 1e9), msg.ts1), addr)
+                self._tx(link, link.mav.ping_encode(msg.time_usec, msg.seq, msg.get_srcSystem(),
+                                                    msg.get_srcComponent()), addr, reply=True)
+        elif mtype == "TIMESYNC":
+            self._on_timesync(link, msg, addr, t)
         else:
             self.gcs.handle(link, msg, addr)
 
@@ -386,6 +486,20 @@ class SimBridge:
             v = math.radians(value)
         self.px4.p = dataclasses.replace(self.px4.p, **{field_name: v})  # type: ignore[arg-type]
         log.info("param %s = %g", name, value)
+
+    def _on_timesync(self, link: MavUdpLink, msg: Any, addr: Address, t: float) -> None:
+        """PX4 (mavlink_timesync.cpp): a request (tc1 == 0) is answered with tc1 = own boot
+        time in ns and ts1 echoed; an answer to one of our requests (ts1 = our stamp) gives
+        PX4's offset sample ``(ts1 + now - 2 tc1) / 2`` and the round trip ``now - ts1``."""
+        now_ns = round(self.boot_s(t) * 1e9)
+        if msg.tc1 == 0:
+            self._tx(link, link.mav.timesync_encode(now_ns, msg.ts1), addr, reply=True)
+            return
+        if msg.tc1 > 0 and int(msg.ts1) in self._timesync_sent_ns:
+            self._timesync_sent_ns.pop(int(msg.ts1))
+            self._timesync_replies += 1
+            self._timesync_offset_us = (msg.ts1 + now_ns - 2 * msg.tc1) / 2 / 1000
+            self._timesync_rtt_us = (now_ns - msg.ts1) / 1000
 
     def _on_command(self, link: MavUdpLink, msg: Any, addr: Address, t: float) -> None:
         self._commands += 1
@@ -416,11 +530,11 @@ class SimBridge:
             if res.text:
                 log.info("command %d from %d/%d: result %d (%s)", cmd, msg.get_srcSystem(),
                          msg.get_srcComponent(), result, res.text)
-        link.send(link.mav.command_ack_encode(cmd, result, 0, 0, msg.get_srcSystem(),
-                                              msg.get_srcComponent()), addr)
+        self._tx(link, link.mav.command_ack_encode(cmd, result, 0, 0, msg.get_srcSystem(),
+                                                   msg.get_srcComponent()), addr, reply=True)
         self._acks += 1
         if after is not None:
-            self._send_message(link, after, t, addr)
+            self._send_message(link, after, t, addr, reply=True)
         self._note_changes(t)
 
     def _note_changes(self, t: float) -> None:
@@ -464,13 +578,21 @@ class SimBridge:
                                                   int(v[0]), int(v[1]), int(v[2]), hdg)
         if mid == EXTENDED_SYS_STATE:
             return mav.extended_sys_state_encode(0, px4.landed_state)
+        if mid == TIMESYNC:  # PX4's own request (streams/TIMESYNC.hpp): tc1 = 0, ts1 = now ns
+            ts1 = round(self.boot_s(t) * 1e9)
+            self._timesync_sent_ns[ts1] = t
+            if len(self._timesync_sent_ns) > 64:
+                self._timesync_sent_ns.pop(next(iter(self._timesync_sent_ns)))
+            return mav.timesync_encode(0, ts1)
+        if mid == SYSTEM_TIME:
+            return mav.system_time_encode(round((self._unix_t0_s + t) * 1e6), ms)
         if mid == HOME_POSITION:
             h = px4.home_ned_m
             lat, lon, alt = self._ned_to_global(h)
             return mav.home_position_encode(int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
                                             float(h[0]), float(h[1]), float(h[2]),
                                             [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-                                            int(t * 1e6))
+                                            self._us(t))
         if mid == AUTOPILOT_VERSION:
             return mav.autopilot_version_encode(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0,
                                                 [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x11,
@@ -478,8 +600,8 @@ class SimBridge:
         raise SimBridgeError(f"no encoder for message {mid}")  # pragma: no cover
 
     def _send_message(self, link: MavUdpLink, mid: int, t: float,
-                      addr: Address | None = None) -> None:
-        link.send(self._encode(link, mid, t), addr)
+                      addr: Address | None = None, *, reply: bool = False) -> None:
+        self._tx(link, self._encode(link, mid, t), addr, reply=reply)
 
     def _send_streams(self, t: float) -> None:
         faults = self.cfg.sim.faults
@@ -489,7 +611,7 @@ class SimBridge:
                 if mid in _STATE_STREAMS and faults.dropout(t):
                     continue  # injected telemetry dropout
                 if mid in _STATE_STREAMS and faults.nan(t):
-                    link.send(self._encode_nan(link, mid, t))
+                    self._tx(link, self._encode_nan(link, mid, t))
                     continue
                 self._send_message(link, mid, t)
 
@@ -519,27 +641,51 @@ class SimBridge:
             agv_link.send(agv_link.mav.follow_target_encode(**fields), a)
 
     async def _publish_frame(self, t: float) -> None:
-        """Render the camera frame at ``t``; publish the ground-truth record, then the frame."""
+        """Capture the camera frame exposed around ``t``: render it, publish the ground-truth
+        record at once, and queue the frame for delivery after the camera's latency (or drop
+        it), then deliver every frame due by ``t``."""
         agv = self.agv.state(t)
         s = self.state
-        frame = self.camera.render(s.pos_ned_m, s.q_wxyz, agv,
-                                   occluded=self.cfg.sim.camera.occluded(t))
+        blur = self._exposure_s > 0
+        frame = self.camera.render(
+            s.pos_ned_m, s.q_wxyz, agv, occluded=self.cfg.sim.camera.occluded(t),
+            uav_vel_ned_m_s=s.vel_ned_m_s if blur else None,
+            uav_rates_frd_rad_s=s.rates_frd_rad_s if blur else None,
+            exposure_s=self._exposure_s)
         seq = self._frame_seq
         self._frame_seq += 1
-        t_us = round(t * 1e6)
+        cap = self.cam_timing.capture(t)
         if self._truth is not None:
-            self._truth.publish(self._truth_record(t_us, seq, agv, frame))
-        if self._frame_server is not None:
-            await self._frame_server.publish(seq, t_us, frame.image)
+            self._truth.publish(self._truth_record(t, seq, agv, frame, cap.stamp_us,
+                                                   None if cap.dropped else cap.deliver_s))
+        if cap.dropped:
+            self._frames_dropped += 1
+        else:
+            image = self.sensor.apply(frame.image, self.boot_s(t))
+            self._frame_line.push(cap.deliver_s, (seq, cap.stamp_us, image))
+        await self._deliver_frames(t)
 
-    def _truth_record(self, t_us: int, seq: int, agv: AgvState, frame: RenderedFrame
-                      ) -> dict[str, Any]:
+    async def _deliver_frames(self, now_s: float) -> None:
+        for seq, stamp_us, image in self._frame_line.pop_due(now_s):
+            self._frames_delivered += 1
+            self._delivered_this_step += 1
+            if self._frame_server is not None:
+                await self._frame_server.publish(seq, stamp_us, image)
+
+    def _truth_record(self, t: float, seq: int, agv: AgvState, frame: RenderedFrame,
+                      stamp_us: int, deliver_s: float | None) -> dict[str, Any]:
         s = self.state
-        age = self.px4.setpoint_age_s(t_us * 1e-6)
-        return truth_record(
-            t_us, seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv, frame,
-            disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
+        age = self.px4.setpoint_age_s(t)
+        rec = truth_record(
+            self._us(t), seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv,
+            frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
             armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
+        if not self.cfg.sim.camera_model.ideal:
+            rec["frame_t_us"] = stamp_us
+            rec["frame_dropped"] = deliver_s is None
+            rec["frame_deliver_t_us"] = None if deliver_s is None else self._us(deliver_s)
+            rec["brightness_gain"] = self.sensor.gain
+        return rec
 
     # ------------------------------------------------------------------ stepping
     def _advance(self, t_target: float) -> None:
@@ -599,8 +745,11 @@ class SimBridge:
                 await self._publish_frame(self.state.t_s)
                 self._steps += 1
                 next_frame = max(next_frame + frame_dt, now)
-            delay = tick - (self.now_s() - now)
-            await asyncio.sleep(max(0.0, delay))
+            now2 = self.now_s()
+            await self._deliver_frames(now2)
+            self._flush_tx(now2)
+            wake = min(now + tick, self._frame_line.next_due_s, self._next_tx_s())
+            await asyncio.sleep(max(0.0, wake - self.now_s()))
 
     async def _run_lockstep(self, duration_s: float) -> None:
         sim = self.cfg.sim
@@ -615,17 +764,23 @@ class SimBridge:
             self.px4.update(t, self.state)
             self._note_changes(t)
             self._send_streams(t)
+            self._flush_tx(t)
             if t + 1e-9 >= next_ft:
                 self._send_follow_target(t)
                 next_ft += ft_dt
+            self._delivered_this_step = 0
             await self._publish_frame(t)
             # only a setpoint that arrives after the frame releases the step: a late answer
-            # to an earlier frame must not (the frame leaves once this coroutine waits)
+            # to an earlier frame must not (the frame leaves once this coroutine waits).
+            # A step that delivers no frame (latency, drop) does not wait: a client that
+            # answers frames has nothing to answer, and PX4 keeps the last setpoint.
             self._setpoint_event.clear()
-            try:
-                await asyncio.wait_for(self._setpoint_event.wait(), sim.lockstep_timeout_s)
-            except TimeoutError:
-                self._timeouts += 1
+            if self._delivered_this_step:
+                try:
+                    await asyncio.wait_for(self._setpoint_event.wait(),
+                                           sim.lockstep_timeout_s)
+                except TimeoutError:
+                    self._timeouts += 1
             self._advance_delivering((k + 1) * step)
             self._steps += 1
             k += 1
@@ -636,7 +791,10 @@ class SimBridge:
             t_s=self.t_s, steps=self._steps, lockstep_timeouts=self._timeouts,
             setpoints_received=self._setpoints, setpoints_ignored=self.px4.ignored_setpoints,
             commands=self._commands, acks_sent=self._acks, frames=self._frame_seq,
-            offboard=self._links["offboard"].counters, gcs=self._links["gcs"].counters)
+            offboard=self._links["offboard"].counters, gcs=self._links["gcs"].counters,
+            frames_dropped=self._frames_dropped, frames_delivered=self._frames_delivered,
+            timesync_replies=self._timesync_replies,
+            timesync_offset_us=self._timesync_offset_us, timesync_rtt_us=self._timesync_rtt_us)
 
 
 def stats_dict(stats: BridgeStats) -> dict[str, Any]:

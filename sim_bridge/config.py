@@ -297,6 +297,97 @@ class SigningConfig:
                           "32-byte key")
 
 
+# Named levels of [sim.camera_model] and [sim.telemetry]: every knob of the level's preset can
+# be overridden by a key of the table (explicit keys win over the level).
+CAMERA_LEVELS: dict[str, dict[str, Any]] = {
+    "ideal": {},
+    "mild": {"latency_ms": 30.0, "latency_jitter_ms": 5.0, "drop_probability": 0.01,
+             "exposure_ms": 4.0, "read_noise_std_dn": 1.0, "shot_noise_dn_per_e": 0.01,
+             "brightness_drift_std": 0.03, "brightness_drift_tau_s": 10.0},
+    "realistic": {"latency_ms": 60.0, "latency_jitter_ms": 15.0, "drop_probability": 0.03,
+                  "exposure_ms": 8.0, "read_noise_std_dn": 2.0, "shot_noise_dn_per_e": 0.03,
+                  "brightness_drift_std": 0.08, "brightness_drift_tau_s": 5.0},
+    "harsh": {"latency_ms": 120.0, "latency_jitter_ms": 40.0, "drop_probability": 0.10,
+              "exposure_ms": 16.0, "read_noise_std_dn": 4.0, "shot_noise_dn_per_e": 0.06,
+              "brightness_drift_std": 0.2, "brightness_drift_tau_s": 3.0},
+}
+TELEMETRY_LEVELS: dict[str, dict[str, Any]] = {
+    "ideal": {},
+    "mild": {"rates": "px4", "delay_ms": 2.0, "delay_jitter_ms": 1.0, "boot_offset_s": 12.0},
+    "realistic": {"rates": "px4", "delay_ms": 4.0, "delay_jitter_ms": 2.0,
+                  "boot_offset_s": 37.25},
+    "harsh": {"rates": "px4", "delay_ms": 20.0, "delay_jitter_ms": 15.0,
+              "boot_offset_s": 1234.5},
+}
+
+
+@dataclass(frozen=True)
+class CameraModelConfig:
+    """The camera's imperfections (``sim_bridge.camera_model``); all off = the ideal camera.
+
+    ``latency_ms`` +- ``latency_jitter_ms`` (uniform): capture (exposure middle) to delivery on
+    the frame socket, in order (a frame never overtakes the previous one); in lockstep the
+    frame leaves at the first step at or after that time. ``drop_probability``: a captured
+    frame is never delivered (its ``seq`` is skipped). ``exposure_ms``: motion blur along the
+    target's image motion over the exposure. ``read_noise_std_dn`` (grey levels) and
+    ``shot_noise_dn_per_e`` (conversion gain: shot-noise variance = gain x signal, DN^2).
+    ``brightness_drift_std`` (relative, stationary std of the log gain) with time constant
+    ``brightness_drift_tau_s``: auto-exposure/gain wandering. ``timestamp_clock``:
+    ``"autopilot"`` (hardware-synced camera: header ``t_us`` = capture time on the autopilot's
+    clock) or ``"camera"`` (its own clock: autopilot time + ``clock_offset_ms`` + drift).
+    """
+
+    level: str = field(default="ideal", metadata=_c(_one_of(*CAMERA_LEVELS)))
+    latency_ms: float = field(default=0.0, metadata=_c(_nonneg))
+    latency_jitter_ms: float = field(default=0.0, metadata=_c(_nonneg))
+    drop_probability: float = field(default=0.0, metadata=_c(
+        lambda x: None if 0 <= x < 1 else "must be in [0, 1)"))
+    exposure_ms: float = field(default=0.0, metadata=_c(_nonneg))
+    read_noise_std_dn: float = field(default=0.0, metadata=_c(_nonneg))
+    shot_noise_dn_per_e: float = field(default=0.0, metadata=_c(_nonneg))
+    brightness_drift_std: float = field(default=0.0, metadata=_c(_nonneg))
+    brightness_drift_tau_s: float = field(default=5.0, metadata=_c(_positive))
+    timestamp_clock: str = field(default="autopilot",
+                                 metadata=_c(_one_of("autopilot", "camera")))
+    clock_offset_ms: float = field(default=0.0, metadata=_c(_nonneg))
+    clock_drift_ppm: float = field(default=0.0, metadata=_c(
+        lambda x: None if abs(x) <= 1000 else "must be in [-1000, 1000]"))
+
+    def __post_init__(self) -> None:
+        if self.latency_jitter_ms > self.latency_ms:
+            raise ConfigError("sim.camera_model.latency_jitter_ms: must be <= latency_ms")
+
+    @property
+    def ideal(self) -> bool:
+        return self == CameraModelConfig(level=self.level)
+
+
+@dataclass(frozen=True)
+class TelemetryConfig:
+    """How the autopilot's MAVLink output departs from the ideal (``docs/wire.md``, Clocks).
+
+    ``rates``: ``"emulator"`` (the emulator's historical stream rates) or ``"px4"`` (PX4's
+    MAVLink "onboard" mode on the offboard link and "normal" mode on the GCS link, with its
+    10 Hz TIMESYNC requests and 1 Hz SYSTEM_TIME). ``delay_ms`` +- ``delay_jitter_ms``
+    (uniform, in order): autopilot -> client transport delay of every message on the vehicle's
+    links (in lockstep a message leaves at the first step at or after its due time).
+    ``boot_offset_s``: the autopilot booted this long before the simulation started: every
+    autopilot stamp (``time_boot_ms``, ``time_usec``, TIMESYNC ``tc1``/``ts1``, the camera's
+    ``t_us`` and the ground truth's ``t_us``) is simulation time + this offset.
+    """
+
+    level: str = field(default="ideal", metadata=_c(_one_of(*TELEMETRY_LEVELS)))
+    rates: str = field(default="emulator", metadata=_c(_one_of("emulator", "px4")))
+    delay_ms: float = field(default=0.0, metadata=_c(_nonneg))
+    delay_jitter_ms: float = field(default=0.0, metadata=_c(_nonneg))
+    boot_offset_s: float = field(default=0.0, metadata=_c(
+        lambda x: None if 0 <= x < 4e6 else "must be in [0, 4e6) (time_boot_ms is a u32)"))
+
+    def __post_init__(self) -> None:
+        if self.delay_jitter_ms > self.delay_ms:
+            raise ConfigError("sim.telemetry.delay_jitter_ms: must be <= delay_ms")
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """Initial UAV pose: position (m, NED) and roll, pitch, yaw (rad, ZYX)."""
@@ -324,6 +415,8 @@ class SimConfig:
     faults: FaultsConfig = field(default_factory=FaultsConfig)
     impairment: ImpairmentConfig = field(default_factory=ImpairmentConfig)
     signing: SigningConfig = field(default_factory=SigningConfig)
+    camera_model: CameraModelConfig = field(default_factory=CameraModelConfig)
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
 
     def __post_init__(self) -> None:
         if self.physics_dt_s > self.step_dt_s:
@@ -463,8 +556,10 @@ _SIM_SUBTABLES = {
     "faults": FaultsConfig,
     "impairment": ImpairmentConfig,
     "signing": SigningConfig,
+    "camera_model": CameraModelConfig,
+    "telemetry": TelemetryConfig,
 }
-_OPTIONAL_SUBTABLES = frozenset({"faults", "impairment", "signing"})
+_OPTIONAL_SUBTABLES = frozenset({"faults", "impairment", "signing", "camera_model", "telemetry"})
 _IMPAIRMENT_DIRECTIONS = ("vehicle_to_companion", "companion_to_vehicle")
 
 
@@ -475,6 +570,21 @@ def _build_impairment(table: Any) -> ImpairmentConfig:
             for d in _IMPAIRMENT_DIRECTIONS}
     cfg: ImpairmentConfig = _build(ImpairmentConfig, table, "sim.impairment", extra=dirs)
     return cfg
+
+
+_LEVELS: dict[str, dict[str, dict[str, Any]]] = {
+    "camera_model": CAMERA_LEVELS, "telemetry": TELEMETRY_LEVELS}
+
+
+def _with_level(name: str, table: Any) -> Any:
+    """``table`` with its ``level``'s preset filled in under the explicit keys."""
+    levels = _LEVELS.get(name)
+    if levels is None or not isinstance(table, Mapping):
+        return table
+    level = table.get("level", "ideal")
+    if not isinstance(level, str) or level not in levels:
+        raise ConfigError(f"sim.{name}.level: must be one of {', '.join(map(repr, levels))}")
+    return {**levels[level], **table}
 
 
 def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
@@ -496,7 +606,7 @@ def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
         if name == "impairment":
             subs[name] = _build_impairment(sim_t[name])
         else:
-            subs[name] = _build(cls, sim_t[name], f"sim.{name}")
+            subs[name] = _build(cls, _with_level(name, sim_t[name]), f"sim.{name}")
     sig = subs["signing"]
     if sig.key_file and source and not Path(sig.key_file).expanduser().is_absolute():
         subs["signing"] = dataclasses.replace(

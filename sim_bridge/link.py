@@ -288,12 +288,21 @@ class MavUdpLink:
     def send(self, msg: Any, addr: Address | None = None) -> None:
         """Pack ``msg`` (a pymavlink message from ``self.mav.xxx_encode``) and send it to
         ``addr`` or, without one, to every current peer."""
+        self.send_frames(self.pack(msg), addr)
+
+    def pack(self, msg: Any) -> list[bytes]:
+        """The wire frames of ``msg`` (takes the link's next sequence number, and the next
+        signing timestamp when signing is on, now)."""
         if self.signing is not None:
             self.mav.signing.timestamp = self.signing.next_timestamp(time.time())
         self.mav.send(msg)
         if self.signing is not None:  # pymavlink counted up once per frame it signed
             self.signing.timestamp = max(self.signing.timestamp, self.mav.signing.timestamp - 1)
         frames, self._sink.frames = self._sink.frames, []
+        return frames
+
+    def send_frames(self, frames: list[bytes], addr: Address | None = None) -> None:
+        """Send frames packed earlier by :meth:`pack` (to ``addr`` or every current peer)."""
         targets = [addr] if addr is not None else self.peers
         if self._transport is None:
             return
