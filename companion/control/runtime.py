@@ -50,6 +50,7 @@ from companion.perception.pipeline import Perception
 
 log = logging.getLogger(__name__)
 
+FIRST_FRAME_TIMEOUT_S = 60.0
 TOPIC_FRAME = "/camera/image"
 TOPIC_STEP = "/control/step"
 TOPIC_SAFETY = "/control/safety"
@@ -327,10 +328,13 @@ class CompanionApp:
             ):
                 break
             try:
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
-                                                           self.idle_timeout_s)
+                # Before the first frame the camera (or a loaded machine's emulator) may
+                # still be starting: wait longer than between frames.
+                wait_s = self.idle_timeout_s if self.steps else max(self.idle_timeout_s,
+                                                                    FIRST_FRAME_TIMEOUT_S)
+                frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
+                log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                 if exit_deadline is None:
                     self._stop.set()
                     continue

@@ -40,6 +40,7 @@ def _fly(tmp: Path, scenario: str, duration: float, overrides: list[str],
     with LogReader(tmp / "flight.mcap") as r:
         rep["_steps"] = [m.data for m in r.messages(topics=["/control/step"]) if m.data]
         rep["_truth"] = [m.data for m in r.messages(topics=["/truth"]) if m.data]
+    assert len(rep["_steps"]) > 0.9 * duration * 20, "the flight did not run"
     return rep
 
 
