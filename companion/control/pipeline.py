@@ -235,7 +235,8 @@ class ControlPipeline:
         if es is not None and vel is not None:
             motion = predict_target_motion(
                 vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
-                cfg.rmpc.horizon, cfg.rmpc.dt_s)
+                cfg.rmpc.horizon, cfg.rmpc.dt_s,
+                None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2))
             eta0 = es.eta_e
             if lat.enabled:
                 v_a, vdot_a, psidot_a = motion.stage(0)

@@ -34,6 +34,7 @@ def _variant(tmp: Path, body: str) -> Path:
 
 def _fly(tmp: Path, scenario: str, duration: float, overrides: list[str],
          sim_body: str | None = None) -> dict[str, Any]:
+    tmp.mkdir(parents=True, exist_ok=True)
     sim = _variant(tmp, sim_body) if sim_body else None
     rep = run_demo(DEFAULT_CONFIG, scenario, duration, tmp, overrides, [], plots=False,
                    sim_config=sim)
