@@ -152,6 +152,11 @@ def main() -> int:
     ap.add_argument("--only", default="paper,wind,hover,latency,reach,cpu")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=None, help="keep the flights here")
+    ap.add_argument("--short", type=float, default=30.0,
+                    help="simulated s of the hover-thrust and reach flights")
+    ap.add_argument("--cpu-repo", type=Path, default=ROOT,
+                    help="checkout whose companion/emulator the cpu case runs (e.g. main's, "
+                    "for the before/after figure); its config/paper.toml is used")
     args = ap.parse_args()
     only = set(args.only.split(","))
     tmp = args.out or Path(tempfile.mkdtemp(prefix="offset-free-"))
@@ -161,9 +166,9 @@ def main() -> int:
     print(f"offset-free bench: {dur:.0f} s flights, load {os.getloadavg()[0]:.2f}, out {tmp}")
 
     def both(tag: str, scenario: str, on: list[str], off: list[str],
-             sim: Path | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-        a = summary(fly(tmp / f"{tag}-on", scenario, dur, on, sim))
-        b = summary(fly(tmp / f"{tag}-off", scenario, dur, off, sim))
+             sim: Path | None = None, d: float = dur) -> tuple[dict[str, Any], dict[str, Any]]:
+        a = summary(fly(tmp / f"{tag}-on", scenario, d, on, sim))
+        b = summary(fly(tmp / f"{tag}-off", scenario, d, off, sim))
         res[tag] = {"on": a, "off": b}
         return a, b
 
@@ -187,14 +192,14 @@ def main() -> int:
     if "hover" in only:
         hover_sim = sim_variant(tmp, "hover-start", "[sim.scenarios.hover]\n"
                                 "uav_pose = [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]")
-        ref = summary(fly(tmp / "hover-ref", "paper", dur, []))
+        ref = summary(fly(tmp / "hover-ref", "paper", args.short, []))
         res["hover_ref"] = ref
         print(f"hover thrust right (0.5): height within 2 cm from {ref['height_2cm_s']} s "
               "(paper start, 1.2 m above the set point)")
         for h in (0.35, 0.65):
             for scen, sim in (("paper", None), ("hover", hover_sim)):
                 ov = [f"control.hover_thrust={h}"]
-                a, b = both(f"hover{h}-{scen}", scen, ov, ov + OFF, sim)
+                a, b = both(f"hover{h}-{scen}", scen, ov, ov + OFF, sim, args.short)
                 t2 = a["height_2cm_s"]
                 ok = a["failures"] == 0 and a["lost"] == 0 and t2 is not None and (
                     t2 <= 5.0 if scen == "hover" else
@@ -218,7 +223,7 @@ def main() -> int:
         for off_m in (1.5, 3.0, 6.0, 10.0):
             sim = sim_variant(tmp, f"reach{off_m}", "[sim.scenarios.far]\n"
                               f"uav_pose = [{-off_m}, 0.0, -3.2, 0.0, 0.0, 0.0]")
-            s = summary(fly(tmp / f"reach{off_m}", "far", min(dur, 30.0), [], sim))
+            s = summary(fly(tmp / f"reach{off_m}", "far", args.short, [], sim))
             tracked = s["levels"].get("tracking", 0)
             reach[str(off_m)] = {**s, "tracking_steps": tracked}
             print(f"reacquire from {off_m} m behind (target out of view): steps tracking "
@@ -237,14 +242,25 @@ def main() -> int:
                 pass
 
         t0 = time.monotonic()
-        rep = fly(tmp / "cpu", "paper", dur, [], monitor=monitor)
+        repo = args.cpu_repo.resolve()
+        os.environ["PYTHONPATH"] = str(repo)  # the children run that checkout's code
+        rep = run_demo(repo / "config" / "paper.toml", "paper", dur, tmp / "cpu", [], [],
+                       plots=False, monitor=monitor)
+        rep["_log"] = str(tmp / "cpu" / "flight.mcap")
         n = len(steps(Path(rep["_log"])))
-        res["cpu"] = {"companion_cpu_s": cpu.get("s"), "steps": n,
+        tot = [sum(v for k, v in (s.get("timings_ms") or {}).items()
+                   if k in ("detect", "moments", "solve", "command"))
+               for s in steps(Path(rep["_log"]))]
+        res["cpu"] = {"median_step_wall_ms": float(np.median(tot)) if tot else None}
+        res["cpu"] |= {"repo": str(repo), "companion_cpu_s": cpu.get("s"), "steps": n,
                       "cpu_ms_per_step": 1e3 * cpu.get("s", float("nan")) / max(n, 1),
                       "wall_s": time.monotonic() - t0, "real_time_factor":
                       rep["real_time_factor"]}
-        print(f"companion CPU on the default paper flight: {res['cpu']['cpu_ms_per_step']:.2f} "
-              f"ms/step over {n} steps (incl. start-up), {rep['real_time_factor']:.2f}x real time "
+        print(f"companion CPU ({repo}) on the default paper flight: "
+              f"{res['cpu']['cpu_ms_per_step']:.2f} "
+              f"ms/step over {n} steps (incl. start-up), median step (detect..command) "
+              f"{res['cpu']['median_step_wall_ms']:.2f} ms wall, "
+              f"{rep['real_time_factor']:.2f}x real time "
               f"(load {os.getloadavg()[0]:.2f})")
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     res["children_cpu_s"] = ru.ru_utime + ru.ru_stime
