@@ -26,16 +26,22 @@ from companion.log.reader import LogReader
 pytestmark = pytest.mark.slow
 
 
+# The emulator waits this long (wall time) for each setpoint: on a loaded machine a step of
+# the companion can take longer than the default 0.5 s, and the flight would stop being
+# lockstep (frames dropped, setpoints applied late). These tests judge the control.
+PATIENT = "[sim]\nlockstep_timeout_s = 10.0\n"
+
+
 def _variant(tmp: Path, body: str) -> Path:
     p = tmp / "sim.toml"
-    p.write_text(f'base = "{DEFAULT_CONFIG}"\n{body}\n')
+    p.write_text(f'base = "{DEFAULT_CONFIG}"\n{PATIENT}{body}\n')
     return p
 
 
 def _fly(tmp: Path, scenario: str, duration: float, overrides: list[str],
          sim_body: str | None = None) -> dict[str, Any]:
     tmp.mkdir(parents=True, exist_ok=True)
-    sim = _variant(tmp, sim_body) if sim_body else None
+    sim = _variant(tmp, sim_body or "")
     rep = run_demo(DEFAULT_CONFIG, scenario, duration, tmp, overrides, [], plots=False,
                    sim_config=sim)
     with LogReader(tmp / "flight.mcap") as r:
