@@ -39,7 +39,7 @@ def _variant(tmp: Path, body: str) -> Path:
 
 
 def _fly(tmp: Path, scenario: str, duration: float, overrides: list[str],
-         sim_body: str | None = None) -> dict[str, Any]:
+         sim_body: str | None = None, min_share: float = 0.9) -> dict[str, Any]:
     tmp.mkdir(parents=True, exist_ok=True)
     sim = _variant(tmp, sim_body or "")
     rep = run_demo(DEFAULT_CONFIG, scenario, duration, tmp, overrides, [], plots=False,
@@ -47,7 +47,7 @@ def _fly(tmp: Path, scenario: str, duration: float, overrides: list[str],
     with LogReader(tmp / "flight.mcap") as r:
         rep["_steps"] = [m.data for m in r.messages(topics=["/control/step"]) if m.data]
         rep["_truth"] = [m.data for m in r.messages(topics=["/truth"]) if m.data]
-    assert len(rep["_steps"]) > 0.9 * duration * 20, "the flight did not run"
+    assert len(rep["_steps"]) > min_share * duration * 20, "the flight did not run"
     return rep
 
 
@@ -99,7 +99,8 @@ def test_a_steady_wind_is_rejected(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def latency_flight(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     lat = "[sim.camera_model]\nlatency_ms = 60.0\nlatency_jitter_ms = 15.0"
-    return _fly(tmp_path_factory.mktemp("latency"), "edge", 6.0, [], lat)
+    # the emulator's run-ahead (below) drops frames: fewer steps than frames
+    return _fly(tmp_path_factory.mktemp("latency"), "edge", 6.0, [], lat, min_share=0.5)
 
 
 def test_camera_latency_edge_keeps_the_target_in_view(latency_flight: dict[str, Any]) -> None:
