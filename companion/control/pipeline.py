@@ -34,6 +34,7 @@ from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
 from companion.core.state import ErrorState, MeasurementError, build_error_state
 from companion.core.terminal import TerminalDesign
+from companion.perception import PerceptionResult
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,8 @@ class StepResult:
     setpoint: AttitudeSetpoint | None
     notes: tuple[str, ...] = ()
     timings_ms: dict[str, float] = field(default_factory=dict)
+    #: ``(x0, y0, x1, y1)`` pixels (end exclusive) of the image perception read, when known
+    input_region: tuple[int, int, int, int] | None = None
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -131,7 +134,11 @@ class ControlPipeline:
 
     # ------------------------------------------------------------------------------------------
 
-    def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore) -> StepResult:
+    def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore,
+             perceived: PerceptionResult | None = None) -> StepResult:
+        """One control step for the frame ``image`` captured at ``t_s`` (s). ``perceived``:
+        the perception result of that frame computed elsewhere (a replay from logged
+        detections); ``image`` is then not looked at."""
         cfg = self.cfg
         notes: list[str] = []
         clock = self._timer
@@ -139,10 +146,14 @@ class ControlPipeline:
         # 1. perception
         corners = None
         points_m = None
-        if image is None:
+        region = None
+        if perceived is None and image is not None:
+            perceived = self.perception.process(image)
+            region = getattr(self.perception, "last_region", None)
+        if perceived is None:
             p_status, p_reason = "lost", "no image"
         else:
-            pr = self.perception.process(image)
+            pr = perceived
             p_status, p_reason = pr.status, pr.reason
             if pr.status == "ok":
                 corners, points_m = pr.corners_px, pr.points_m
@@ -243,7 +254,7 @@ class ControlPipeline:
             timings_ms=timings,
             t_s=t_s, perception_status=p_status, perception_reason=p_reason,
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
-            safety=decision, u=u, setpoint=sp, notes=tuple(notes),
+            safety=decision, u=u, setpoint=sp, notes=tuple(notes), input_region=region,
         )
 
     # ------------------------------------------------------------------------------------------

@@ -35,6 +35,7 @@ from companion.camera import CameraFrame, open_camera
 from companion.config import Config
 from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
 from companion.control.pipeline import ControlPipeline
+from companion.control.recording import FrameRecorder, LogClock
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.link import MavlinkLink, NoPeerError, Received
@@ -154,6 +155,8 @@ class CompanionApp:
         self.config_text = config_text
         self.ready_file = ready_file
         self.timebase = TimeBase(cfg.control.time_source)
+        self.clock = LogClock(cfg.logging.timestamps)
+        self.recorder = FrameRecorder(cfg.logging)
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
@@ -164,6 +167,7 @@ class CompanionApp:
         self._logger: McapLogger | None = None
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
+        self._config_logged = False
         self._streaming = True
 
     # -- wiring -----------------------------------------------------------------------------
@@ -179,11 +183,11 @@ class CompanionApp:
                 loop.add_signal_handler(sig, self._stop.set)
         try:
             with logger:
-                logger.log_config(time.monotonic_ns(), self.config_text, dict(cfg.raw),
-                                  cfg.source)
+                self._log_config()
                 link = MavlinkLink.from_config(
                     dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
-                    on_rx=self._on_rx, on_tx=lambda s: logger.log_mavlink("out", s),
+                    on_rx=self._on_rx,
+                    on_tx=lambda s: logger.log_mavlink("out", s, self._tx_log_ns(s)),
                     on_reject=logger.log_rejected,
                 )
                 self._link = link
@@ -212,12 +216,24 @@ class CompanionApp:
                  self.log_path, logger.stats.written, logger.stats.dropped)
         return 0
 
+    def _log_config(self) -> None:
+        """``/config``, once: at start, or (source log times) at the first stamp seen."""
+        if self._config_logged or not self.clock.started or self._logger is None:
+            return
+        self._config_logged = True
+        self._logger.log_config(self.clock.now_ns(), self.config_text, dict(self.cfg.raw),
+                                self.cfg.source)
+
+    def _tx_log_ns(self, sent: Any) -> int:
+        return int(sent.t_tx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
+
     # -- receive ----------------------------------------------------------------------------
 
     def _on_rx(self, rx: Received) -> None:
         assert self._logger is not None
-        self._logger.log_mavlink("in", rx)
         fields = rx.msg.to_dict()
+        self._logger.log_mavlink("in", rx, self.clock.message_ns(rx.name, fields, rx.t_rx_ns))
+        self._log_config()
         t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
         self.store.ingest(rx.name, fields, t_s, rx.src_sysid)
         self.rx_count += 1
@@ -245,6 +261,7 @@ class CompanionApp:
         """Ground truth from the emulator, logged for scoring only (never read by control)."""
         assert self._logger is not None
         logger = self._logger
+        clock = self.clock
         loop = asyncio.get_running_loop()
 
         class _Proto(asyncio.DatagramProtocol):
@@ -253,7 +270,7 @@ class CompanionApp:
                     rec = json.loads(data)
                 except ValueError:
                     return
-                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec, schema=sch.JSON)
+                logger.log(TOPIC_TRUTH, clock.now_ns(), rec, schema=sch.JSON)
 
         transport, _ = await loop.create_datagram_endpoint(
             _Proto, local_addr=("127.0.0.1", port))
@@ -291,6 +308,8 @@ class CompanionApp:
         assert self._logger is not None and self._link is not None
         logger, link = self._logger, self._link
         t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
+        t_log = self.clock.frame_ns(frame.t_us, frame.t_rx_ns)
+        self._log_config()
         if self._first_frame_s is None:
             self._first_frame_s = t_s
         elapsed = t_s - self._first_frame_s
@@ -313,8 +332,8 @@ class CompanionApp:
         else:
             self.offboard.on_stream_gap()
         # The frame is logged after the command left: a logging backlog never delays it.
-        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
-                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
+        logged_input = self.recorder.record(logger, t_log, np.asarray(frame.image), frame.t_us,
+                                            res.input_region)
         before = self.offboard.phase
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
@@ -326,6 +345,7 @@ class CompanionApp:
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
+            "input": logged_input,
         })
         if sent_ns is not None:
             # decode: receipt -> step start (decoding the frame, then waiting for the loop)
@@ -333,10 +353,10 @@ class CompanionApp:
                                  **rec["timings_ms"],
                                  "send": (sent_ns - t_start_ns) * 1e-6
                                  - sum(rec["timings_ms"].values())}
-        logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
-        self._log_poses(frame.t_rx_ns)
+        logger.log(TOPIC_STEP, t_log, rec, schema=sch.CONTROLLER_STEP)
+        self._log_poses(t_log)
         if res.safety.changed or self.steps == 1:  # the initial state, then each transition
-            logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
+            logger.log_text(TOPIC_SAFETY, t_log,
                             f"{res.safety.level.value}: {res.safety.reason}",
                             level="WARNING", name="safety")
 
@@ -369,7 +389,7 @@ class CompanionApp:
         if self.offboard.phase is not before and self._logger is not None:
             _, phase, reason = self.offboard.transitions[-1]
             log.info("offboard %s -> %s: %s", before.value, phase.value, reason)
-            self._logger.log_text(TOPIC_OFFBOARD, time.monotonic_ns(),
+            self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
                                   f"{before.value} -> {phase.value}: {reason}",
                                   level="INFO", name="offboard")
 
