@@ -21,6 +21,7 @@ import dataclasses
 import json
 import logging
 import math
+import resource
 import signal
 import time
 from collections.abc import Mapping
@@ -113,6 +114,11 @@ class FaultWindow:
         return w
 
 
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
     """The pipeline a flight (live or replayed) uses for this config."""
     return ControlPipeline(cfg, Perception(cfg.camera, cfg.target), timer=timer)
@@ -143,6 +149,7 @@ class CompanionApp:
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
+        progress_file: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.mavlink_url = mavlink_url or cfg.mavlink.url
@@ -154,6 +161,9 @@ class CompanionApp:
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
+        self.progress_file = progress_file
+        self._cpu0: tuple[float, int] | None = None  # (CPU s, steps) at the first frame
+        self.cpu_ms_per_step: float | None = None
         self.timebase = TimeBase(cfg.control.time_source)
         self.clock = LogClock(cfg.logging.timestamps)
         self.recorder = FrameRecorder(cfg.logging)
@@ -167,6 +177,7 @@ class CompanionApp:
         self._logger: McapLogger | None = None
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
+        self._elapsed_s = 0.0  # since the first frame, on the frames' clock
         self._config_logged = False
         self._streaming = True
 
@@ -211,10 +222,26 @@ class CompanionApp:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
+        if self._cpu0 is not None and self.steps > self._cpu0[1]:
+            self.cpu_ms_per_step = 1e3 * (_cpu_s() - self._cpu0[0]) / (self.steps - self._cpu0[1])
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
-                 "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
-                 self.log_path, logger.stats.written, logger.stats.dropped)
+                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads, first "
+                 "frame to exit)", self.steps, self.sent, self.rx_count, self.log_path,
+                 logger.stats.written, logger.stats.dropped,
+                 "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
+        self._write_progress(final=True)
         return 0
+
+    def _write_progress(self, final: bool = False) -> None:
+        """``elapsed_s steps [cpu_ms_per_step]`` for an orchestrator (``companion demo``)."""
+        if self.progress_file is None:
+            return
+        elapsed = self._elapsed_s
+        cpu = f" {self.cpu_ms_per_step:.4f}" if final and self.cpu_ms_per_step else ""
+        with contextlib.suppress(OSError):
+            tmp = self.progress_file.with_suffix(".tmp")
+            tmp.write_text(f"{elapsed:.3f} {self.steps}{cpu}\n")
+            tmp.replace(self.progress_file)
 
     def _log_config(self) -> None:
         """``/config``, once: at start, or (source log times) at the first stamp seen."""
@@ -313,6 +340,7 @@ class CompanionApp:
         if self._first_frame_s is None:
             self._first_frame_s = t_s
         elapsed = t_s - self._first_frame_s
+        self._elapsed_s = elapsed
         if self.duration_s is not None and elapsed >= self.duration_s:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
@@ -339,6 +367,10 @@ class CompanionApp:
             self._act(act, t_s)
         self._log_offboard(before, t_s)
         self.steps += 1
+        if self._cpu0 is None:
+            self._cpu0 = (_cpu_s(), self.steps)
+        elif self.progress_file is not None and self.steps % 20 == 0:
+            self._write_progress()
         rec = res.to_record()
         rec.update({
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
