@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.core.geometry import rot_z
 from companion.core.rmpc import TargetMotion
 
 
@@ -37,19 +36,22 @@ def predict_target_motion(
     tangent = np.array([np.cos(heading), np.sin(heading)])
     a_along = float(a0 @ tangent) if speed > 1e-6 else 0.0
     w = float(psidot_a_rad_s)
-    v_out = np.empty((horizon, 2))
-    vdot_out = np.empty((horizon, 2))
-    for n in range(horizon):
-        t = n * dt_s
-        sp = max(0.0, speed + a_along * t)
+    # all stages at once (the loop's formulas, row n = stage n): ~20x less Python per step
+    t = np.arange(horizon) * dt_s
+    if speed > 1e-6:
+        sp = np.maximum(0.0, speed + a_along * t)
         hd = heading + w * t
-        t_hat = np.array([np.cos(hd), np.sin(hd)])
-        v_ned = sp * t_hat if speed > 1e-6 else v0 + a0 * t
-        a_ned = a_along * t_hat + sp * w * np.array([-t_hat[1], t_hat[0]]) if speed > 1e-6 else a0
-        psi_q = yaw_q_rad + w * t
-        rzt = rot_z(psi_q).T[:2, :2]
-        v_v = rzt @ v_ned
-        # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
-        vdot_out[n] = rzt @ a_ned + w * np.array([v_v[1], -v_v[0]])
-        v_out[n] = v_v
-    return TargetMotion(v_out, vdot_out, np.full(horizon, w))
+        ch, sh = np.cos(hd), np.sin(hd)
+        v_ned = np.column_stack([sp * ch, sp * sh])
+        a_ned = np.column_stack([a_along * ch - sp * w * sh, a_along * sh + sp * w * ch])
+    else:
+        v_ned = v0[None, :] + a0[None, :] * t[:, None]
+        a_ned = np.tile(a0, (horizon, 1))
+    psi_q = yaw_q_rad + w * t
+    c, s = np.cos(psi_q), np.sin(psi_q)
+    # Rz(psi)^T [x, y] = [c x + s y, -s x + c y]
+    v_v = np.column_stack([c * v_ned[:, 0] + s * v_ned[:, 1], -s * v_ned[:, 0] + c * v_ned[:, 1]])
+    a_v = np.column_stack([c * a_ned[:, 0] + s * a_ned[:, 1], -s * a_ned[:, 0] + c * a_ned[:, 1]])
+    # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
+    vdot = a_v + w * np.column_stack([v_v[:, 1], -v_v[:, 0]])
+    return TargetMotion(v_v, vdot, np.full(horizon, w))
