@@ -30,6 +30,7 @@ from companion import CompanionError
 from companion.config import Config, config_from_dict, load_config, with_overrides
 from companion.control.recording import TOPIC_INPUT
 from companion.control.runtime import (
+    STAMPED_MESSAGES,
     TOPIC_FRAME,
     TOPIC_STEP,
     TOPIC_TRUTH,
@@ -37,6 +38,7 @@ from companion.control.runtime import (
     new_pipeline,
     new_store,
 )
+from companion.control.telemetry import TelemetryStore
 from companion.log import schemas as sch
 from companion.log.reader import LogReader
 from companion.log.writer import McapLogger
@@ -203,7 +205,8 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     rx_seen = 0
     recorded_sat = 0
     pending_steps: deque[dict[str, Any]] = deque()
-    mav_in: deque[tuple[int, bytes]] = deque()
+    mav_in: deque[tuple[str, int, bytes]] = deque()
+    used = TelemetryStore.MESSAGES | STAMPED_MESSAGES
     writer = None
     if out_path is not None:
         writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
@@ -211,17 +214,23 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
         writer.log_config(0, "", dict(cfg.raw), cfg.source)
     stage = _perception_stage(log_path, cfg, mode, workers, perceived)
 
-    def ingest(t_ns: int, raw_json: bytes) -> None:
+    def ingest(name: str, t_ns: int, raw_json: bytes) -> None:
         nonlocal rx_seen
-        data = _json(raw_json) or {}
-        msg = _decode(parser, base64.b64decode(data.get("raw_b64", "")))
-        if msg is None:
-            return
-        fields = msg.to_dict()
-        name = msg.get_type()
-        t_s = tb.message_s(name, fields, int(data.get("t_rx_ns", t_ns)))
-        store.ingest(name, fields, t_s, msg.get_srcSystem())
         rx_seen += 1
+        if name not in used:  # neither the store nor the time base reads it: count it only
+            return
+        data = _json(raw_json) or {}
+        fields, sysid = data.get("fields"), data.get("sysid")
+        if (not isinstance(fields, dict) or not isinstance(sysid, int)
+                or any(v is None for v in fields.values())):
+            # the logged fields lost something (JSON has no NaN): decode the raw bytes
+            msg = _decode(parser, base64.b64decode(data.get("raw_b64", "")))
+            if msg is None:
+                return
+            fields, name, sysid = msg.to_dict(), msg.get_type(), msg.get_srcSystem()
+        # logged fields are the decoded values (floats round-trip JSON exactly)
+        t_s = tb.message_s(name, fields, int(data.get("t_rx_ns", t_ns)))
+        store.ingest(name, fields, t_s, sysid)
 
     def run_step(rec_step: dict[str, Any]) -> None:
         want = int(rec_step.get("rx_count", 0))
@@ -272,7 +281,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
                     writer.log(TOPIC_TRUTH, m.log_time_ns, m.raw, schema=sch.JSON)
                 continue
             else:
-                mav_in.append((m.log_time_ns, m.raw))
+                mav_in.append((topic[len("/mavlink/in/"):], m.log_time_ns, m.raw))
                 if not pending_steps:
                     continue
             while pending_steps and ready(pending_steps[0]):

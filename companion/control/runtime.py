@@ -61,6 +61,7 @@ _STAMP_FIELDS = {
     "LOCAL_POSITION_NED": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
 }
+STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
 
 
 class TimeBase:
