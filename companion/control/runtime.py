@@ -61,7 +61,8 @@ _STAMP_FIELDS = {
     "LOCAL_POSITION_NED": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
 }
-STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
+STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)
+FIRST_FRAME_TIMEOUT_S = 60.0  # the messages TimeBase reads a time from
 
 
 class TimeBase:
@@ -322,10 +323,13 @@ class CompanionApp:
             ):
                 break
             try:
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
-                                                           self.idle_timeout_s)
+                # before the first frame allow a slow camera (or a loaded emulator) to start
+                first = not self.steps and exit_deadline is None
+                wait_s = max(self.idle_timeout_s, FIRST_FRAME_TIMEOUT_S) if first \
+                    else self.idle_timeout_s
+                frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
+                log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                 if exit_deadline is None:
                     self._stop.set()
                     continue
