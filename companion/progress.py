@@ -8,6 +8,9 @@ from typing import Any
 
 from tqdm import tqdm
 
+# no monitor thread: replay forks its perception worker, best done from a single thread
+tqdm.monitor_interval = 0
+
 
 def bar(total: float | None, desc: str, unit: str = "it", **kw: Any) -> Any:
     """A tqdm bar (disabled when stderr is not a terminal)."""

@@ -207,12 +207,13 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     pending_steps: deque[dict[str, Any]] = deque()
     mav_in: deque[tuple[str, int, bytes]] = deque()
     used = TelemetryStore.MESSAGES | STAMPED_MESSAGES
+    # the perception worker is forked before this process starts any thread (the writer's)
+    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
     writer = None
     if out_path is not None:
         writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
         writer.open()
         writer.log_config(0, "", dict(cfg.raw), cfg.source)
-    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
 
     def ingest(name: str, t_ns: int, raw_json: bytes) -> None:
         nonlocal rx_seen

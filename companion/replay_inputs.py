@@ -220,6 +220,8 @@ class PerceptionWorker:
     ``with PerceptionWorker(path, cfg) as w: for p in w: ...``"""
 
     def __init__(self, path: Path, cfg: Config) -> None:
+        # fork (fast: nothing to import again) when available; create the worker before the
+        # parent starts threads
         methods = mp.get_all_start_methods()
         ctx: Any = mp.get_context("fork" if "fork" in methods else "spawn")
         self._conn, child = ctx.Pipe(duplex=False)
