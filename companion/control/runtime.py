@@ -39,6 +39,7 @@ from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.link import MavlinkLink, NoPeerError, Received
 from companion.log import schemas as sch
+from companion.log.live import start_live
 from companion.log.writer import McapLogger
 from companion.perception.pipeline import Perception
 
@@ -171,7 +172,9 @@ class CompanionApp:
     async def run(self) -> int:
         cfg = self.cfg
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        live = start_live(cfg.live)  # None when off; a taken port fails here, before the flight
         logger = McapLogger.from_config(cfg.logging, self.log_path)
+        logger.observer = live  # the live view sees what the log writes
         self._logger = logger
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -207,6 +210,8 @@ class CompanionApp:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
+            if live is not None:
+                live.close()
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
                  "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
                  self.log_path, logger.stats.written, logger.stats.dropped)
