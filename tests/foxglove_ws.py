@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import struct
 import time
 from collections.abc import Callable, Iterable
@@ -23,6 +24,7 @@ import websockets
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 _HEAD = struct.Struct("<BIQ")
 OP_MESSAGE_DATA = 0x01
+_UNKNOWN = re.compile(r"Unknown channel ID: (\d+)")
 
 
 @dataclass
@@ -34,6 +36,7 @@ class Capture:
     channels: dict[str, dict[str, Any]] = field(default_factory=dict)
     messages: dict[str, list[tuple[int, float, bytes]]] = field(default_factory=dict)
     connected_at: float | None = None
+    refused: int = 0  # subscriptions the server refused as "Unknown channel ID" (then retried)
 
     def count(self, topic: str) -> int:
         return len(self.messages.get(topic, ()))
@@ -42,8 +45,12 @@ class Capture:
 async def _connect(url: str, deadline: float) -> Any:
     while True:
         try:
-            return await websockets.connect(url, subprotocols=SUBPROTOCOLS,  # type: ignore[list-item]
-                                            max_size=None, open_timeout=5.0)
+            return await websockets.connect(
+                url,
+                subprotocols=SUBPROTOCOLS,  # type: ignore[list-item]
+                max_size=None,
+                open_timeout=5.0,
+            )
         except (OSError, websockets.InvalidHandshake, TimeoutError):
             if time.monotonic() > deadline:
                 raise
@@ -66,6 +73,7 @@ async def capture(
     ws = await _connect(url, time.monotonic() + connect_timeout_s)
     cap.connected_at = time.monotonic()
     subs: dict[int, str] = {}
+    sub_ch: dict[int, int] = {}  # subscription id -> channel id
     end = cap.connected_at + timeout_s
     try:
         while not done(cap) and not stop() and time.monotonic() < end:
@@ -77,7 +85,16 @@ async def capture(
                 break
             if isinstance(raw, str):
                 msg = json.loads(raw)
-                if msg.get("op") == "serverInfo":
+                if msg.get("op") == "status" and (m := _UNKNOWN.search(msg.get("message", ""))):
+                    # foxglove-sdk 0.30.3 may refuse a subscription to a channel it has just
+                    # advertised (a race inside the SDK): ask again, and count it
+                    cid = int(m[1])
+                    cap.refused += 1
+                    if cap.refused <= 1000:
+                        again = [{"id": i, "channelId": c} for i, c in sub_ch.items() if c == cid]
+                        await asyncio.sleep(0.02)
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": again}))
+                elif msg.get("op") == "serverInfo":
                     cap.server_info = msg
                 elif msg.get("op") == "advertise":
                     new = []
@@ -86,6 +103,7 @@ async def capture(
                         if wanted is None or ch["topic"] in wanted:
                             sid = len(subs) + 1
                             subs[sid] = ch["topic"]
+                            sub_ch[sid] = ch["id"]
                             new.append({"id": sid, "channelId": ch["id"]})
                     if new:
                         await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
@@ -95,8 +113,9 @@ async def capture(
             _, sid, t_ns = _HEAD.unpack_from(raw)
             topic = subs.get(sid)
             if topic is not None:
-                cap.messages.setdefault(topic, []).append((t_ns, time.monotonic(),
-                                                           bytes(raw[_HEAD.size:])))
+                cap.messages.setdefault(topic, []).append(
+                    (t_ns, time.monotonic(), bytes(raw[_HEAD.size :]))
+                )
     finally:
         await ws.close()
     return cap

@@ -172,7 +172,8 @@ class CompanionApp:
     async def run(self) -> int:
         cfg = self.cfg
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        live = start_live(cfg.live)  # None when off; a taken port fails here, before the flight
+        # the live view (None when off) fails here on a taken port, before the flight
+        live = start_live(cfg.live, cfg.logging.image_encoding)
         logger = McapLogger.from_config(cfg.logging, self.log_path)
         logger.observer = live  # the live view sees what the log writes
         self._logger = logger

@@ -31,10 +31,12 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, cast
 
 from companion import CompanionError
+from companion.log import schemas as sch
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +102,8 @@ class LiveServer:
         self._q: collections.deque[tuple[str, Any, int, bytes]] = collections.deque()
         self._channels: dict[str, Any] = {}
         self._subs: dict[str, int] = {}
+        self._schema_names: dict[str, str] = {}
+        self._last: dict[str, tuple[Any, int, bytes]] = {}  # per topic: the newest message
         self._offered = self._unsub = self._queued = 0
         self._published = self._dropped = self._errors = 0
         self._last_warn = -1e9
@@ -218,36 +222,58 @@ class LiveServer:
         schema_data: bytes,
         message_encoding: str,
     ) -> None:
-        """Advertise ``topic`` with the schema the MCAP file has for it."""
-        if self._context is None or topic in self._channels:
+        """Advertise ``topic`` with the schema the MCAP file has for it (a topic advertised
+        ahead with another schema is advertised again with this one)."""
+        if self._context is None:
             return
+        old = self._channels.get(topic)
+        if old is not None:
+            if self._schema_names.get(topic) == schema_name:
+                return
+            log.warning(
+                "live view: %s advertised as %s, written as %s: re-advertised",
+                topic,
+                self._schema_names.get(topic),
+                schema_name,
+            )
+            old.close()
         import foxglove
 
         schema = foxglove.Schema(name=schema_name, encoding=schema_encoding, data=schema_data)
         ch = foxglove.Channel(
             topic, schema=schema, message_encoding=message_encoding, context=self._context
         )
+        self._schema_names[topic] = schema_name
         self._channels[topic] = ch
+
+    def advertise(self, topics: Mapping[str, str]) -> None:
+        """Advertise ``{topic: schema name}`` now, before their first message.
+
+        Call it right after :meth:`start`: a channel created while a client is connected can
+        race with that client's subscription in foxglove-sdk 0.30.3 (measured: 14 of 300
+        subscriptions to just-advertised channels were refused as "Unknown channel ID"), so
+        the layout's topics are advertised before any client can connect."""
+        for topic, name in topics.items():
+            enc_s, enc_m = sch.encodings(name)
+            data = (
+                sch.protobuf_schema_bytes(name)
+                if name in sch.PROTOBUF_SCHEMAS
+                else sch.schema_bytes(name)
+            )
+            self.add_channel(topic, name, enc_s, data, enc_m)
 
     def message(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Queue one message for the clients subscribed to ``topic``; never blocks."""
         ch = self._channels.get(topic)
+        if ch is None:
+            return
         with self._wake:
             self._offered += 1
-            if ch is None or self._closing or not self._subs.get(topic):
+            self._last[topic] = (ch, log_time_ns, data)
+            if self._closing or not self._subs.get(topic):
                 self._unsub += 1
                 return
-            if len(self._q) >= self.queue_size:
-                self._q.popleft()
-                self._dropped += 1
-                warn = time.monotonic() - self._last_warn >= 10.0
-                if warn:
-                    self._last_warn = time.monotonic()
-            else:
-                warn = False
-            self._q.append((topic, ch, log_time_ns, data))
-            self._queued += 1
-            self._wake.notify()
+            warn = self._enqueue_locked(topic, ch, log_time_ns, data)
         if warn:
             log.warning(
                 "live view: the publisher is behind, %d messages dropped so far", self._dropped
@@ -255,10 +281,28 @@ class LiveServer:
 
     # -- internals ------------------------------------------------------------------------------
 
+    def _enqueue_locked(self, topic: str, ch: Any, log_time_ns: int, data: bytes) -> bool:
+        warn = False
+        if len(self._q) >= self.queue_size:
+            self._q.popleft()
+            self._dropped += 1
+            warn = time.monotonic() - self._last_warn >= 10.0
+            if warn:
+                self._last_warn = time.monotonic()
+        self._q.append((topic, ch, log_time_ns, data))
+        self._queued += 1
+        self._wake.notify()
+        return warn
+
     def _subscribed(self, topic: str, delta: int) -> None:
-        with self._lock:
+        with self._wake:
             self._subs[topic] = max(0, self._subs.get(topic, 0) + delta)
-        log.info("live view: %s %s", "subscribe" if delta > 0 else "unsubscribe", topic)
+            last = self._last.get(topic) if delta > 0 else None
+            if last is not None and not self._closing:
+                # latched: a client joining late still sees the topic's newest message (the
+                # initial safety state, the config); other subscribers get it once more
+                self._enqueue_locked(topic, *last)
+        log.debug("live view: %s %s", "subscribe" if delta > 0 else "unsubscribe", topic)
 
     def _run(self) -> None:
         while True:
@@ -282,10 +326,24 @@ class LiveServer:
                 self._errors += n_err
 
 
-def start_live(live_cfg: Any, enabled: bool | None = None) -> LiveServer | None:
-    """The started server when the live view is on (``enabled`` overrides the config's), else
+def layout_topics(image_encoding: str) -> dict[str, str]:
+    """The topics the shipped layout (``foxglove/layout.json``) shows, with the schemas the
+    companion writes them with (``logging.image_encoding`` decides the image's)."""
+    return {
+        "/camera/image": sch.RAW_IMAGE if image_encoding == "raw" else sch.COMPRESSED_IMAGE,
+        "/control/step": sch.CONTROLLER_STEP,
+        "/control/safety": sch.LOG,
+        "/vehicle/pose": sch.POSE_IN_FRAME,
+        "/target/pose": sch.POSE_IN_FRAME,
+        "/mavlink/out/SET_ATTITUDE_TARGET": sch.MAVLINK_PREFIX + "SET_ATTITUDE_TARGET",
+    }
+
+
+def start_live(live_cfg: Any, image_encoding: str = "png") -> LiveServer | None:
+    """The started server, the layout's topics advertised, when ``live_cfg.enabled``; else
     None. Raises :class:`LiveViewError` when it cannot serve."""
-    on = live_cfg.enabled if enabled is None else enabled
-    if not on:
+    if not live_cfg.enabled:
         return None
-    return LiveServer.from_config(live_cfg).start()
+    server = LiveServer.from_config(live_cfg).start()
+    server.advertise(layout_topics(image_encoding))
+    return server

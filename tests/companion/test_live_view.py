@@ -39,10 +39,18 @@ def test_client_gets_what_the_file_gets(tmp_path: Path) -> None:
             result: list[Capture] = []
 
             def client() -> None:
-                result.append(asyncio.run(capture(
-                    live.url, ["/control/step", "/camera/image"],
-                    lambda c: c.count("/control/step") >= 20 and c.count("/camera/image") >= 3,
-                    timeout_s=60.0)))
+                result.append(
+                    asyncio.run(
+                        capture(
+                            live.url,
+                            ["/control/step", "/camera/image"],
+                            lambda c: (
+                                c.count("/control/step") >= 20 and c.count("/camera/image") >= 3
+                            ),
+                            timeout_s=60.0,
+                        )
+                    )
+                )
 
             th = threading.Thread(target=client)
             th.start()
@@ -67,12 +75,37 @@ def test_client_gets_what_the_file_gets(tmp_path: Path) -> None:
             assert file_msgs[(topic, t_ns)] == payload  # the same bytes, the same log time
     steps = [json.loads(p) for _, _, p in cap.messages["/control/step"]]
     assert [s["k"] for s in steps] == sorted(s["k"] for s in steps)
-    _, picture = decode_protobuf_image("foxglove.CompressedImage",
-                                       cap.messages["/camera/image"][0][2])
+    _, picture = decode_protobuf_image(
+        "foxglove.CompressedImage", cap.messages["/camera/image"][0][2]
+    )
     assert picture is not None and np.array_equal(picture, img)
     assert cap.channels["/camera/image"]["schemaEncoding"] == "protobuf"
     # before the client subscribed, messages were skipped, not queued
     assert stats.unsubscribed >= 2 and stats.published >= 23 and stats.dropped == 0
+
+
+def test_a_late_client_gets_each_topic_s_newest_message(tmp_path: Path) -> None:
+    """Topics written once or rarely (the initial safety state, the config) are latched."""
+    with LiveServer("127.0.0.1", 0) as live:
+        lg = McapLogger(tmp_path / "a.mcap", flush_interval_s=0.05)
+        lg.observer = live
+        with lg:
+            lg.log_text("/control/safety", 5, "nominal: start", level="WARNING", name="safety")
+            lg.log("/control/step", 6, _step(1), schema="companion.ControllerStep")
+            lg.log("/control/step", 7, _step(2), schema="companion.ControllerStep")
+            while live.stats.offered < 3:  # written by the writer thread
+                threading.Event().wait(0.01)
+            cap = asyncio.run(
+                capture(
+                    live.url,
+                    None,
+                    lambda c: c.count("/control/safety") >= 1 and c.count("/control/step") >= 1,
+                    timeout_s=30.0,
+                )
+            )
+    assert [t for t, _, _ in cap.messages["/control/safety"]] == [5]
+    assert json.loads(cap.messages["/control/safety"][0][2])["message"] == "nominal: start"
+    assert [json.loads(p)["k"] for _, _, p in cap.messages["/control/step"]] == [2]
 
 
 class _Stuck:
@@ -125,9 +158,9 @@ def test_config_off_by_default_and_validated() -> None:
     cfg = load_config()
     assert cfg.live.enabled is False and cfg.live.host == "127.0.0.1"
     assert start_live(cfg.live) is None
-    with pytest.raises(ConfigError, match="live.port"):
+    with pytest.raises(ConfigError, match=r"live\.port"):
         load_config(overrides=["live.port=70000"])
-    with pytest.raises(ConfigError, match="live.queue_size"):
+    with pytest.raises(ConfigError, match=r"live\.queue_size"):
         load_config(overrides=["live.queue_size=0"])
-    with pytest.raises(ConfigError, match="live.enabled"):
+    with pytest.raises(ConfigError, match=r"live\.enabled"):
         load_config(overrides=['live.enabled="yes"'])
