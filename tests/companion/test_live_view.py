@@ -164,3 +164,22 @@ def test_config_off_by_default_and_validated() -> None:
         load_config(overrides=["live.queue_size=0"])
     with pytest.raises(ConfigError, match=r"live\.enabled"):
         load_config(overrides=['live.enabled="yes"'])
+
+
+class _Broken:
+    def add_channel(self, *args: Any) -> None:
+        pass
+
+    def message(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        raise RuntimeError("live view gone")
+
+
+def test_a_failing_observer_is_detached_and_the_log_keeps_everything(tmp_path: Path) -> None:
+    lg = McapLogger(tmp_path / "a.mcap")
+    lg.observer = _Broken()
+    with lg:
+        for i in range(50):
+            lg.log("/control/step", i, _step(i), schema="companion.ControllerStep")
+    assert lg.observer is None and lg.stats.written == 50 and lg.failure is None
+    with LogReader(tmp_path / "a.mcap") as r:
+        assert [json.loads(m.raw)["k"] for m in r.messages()] == list(range(50))
