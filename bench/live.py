@@ -80,58 +80,63 @@ def _client_main(url: str, seconds: float, until_closed: bool) -> int:
     return 0
 
 
-def writer_level(log_path: Path) -> dict[str, Any]:
-    """CPU per control step of re-writing ``log_path`` through McapLogger, three ways."""
+def _writer_pass(recs: list[Any], mode: str, path: Path, speed: float) -> dict[str, Any]:
+    """One paced pass of ``recs`` through a McapLogger with the live view ``mode``."""
+    live = None if mode == "off" else LiveServer("127.0.0.1", 0).start()
+    client = None
+    lg = McapLogger(path, queue_size=1 << 16)
+    lg.observer = live
+    with lg:
+        if live is not None and mode == "on-client":
+            # advertise every topic first (one message each), then let the client subscribe
+            first = {r[0]: r for r in reversed(recs)}
+            for topic, schema, t, raw in first.values():
+                lg.log(topic, t, raw, schema=schema)
+            while len(live._channels) < len(first):
+                time.sleep(0.01)
+            client = _client_proc(live.url, until_closed=True, seconds=600.0)
+            while live.stats.subscriptions < len(first):
+                time.sleep(0.05)
+        t_first = recs[0][2]
+        c0, w0 = _cpu_s(), time.perf_counter()
+        for topic, schema, t, raw in recs:
+            lag = (t - t_first) * 1e-9 / speed - (time.perf_counter() - w0)
+            if lag > 0.0005:
+                time.sleep(lag)  # paced like a flight at `speed` x real time
+            lg.log(topic, t, raw, schema=schema)
+        while lg.stats.written + lg.stats.dropped < lg.stats.enqueued:
+            time.sleep(0.005)
+        if live is not None:
+            while live.stats.published + live.stats.dropped < live.stats.queued:
+                time.sleep(0.005)
+        c1, w1 = _cpu_s(), time.perf_counter()
+    res: dict[str, Any] = {"cpu_s": c1 - c0, "wall_s": w1 - w0}
+    if live is not None:
+        s = live.stats
+        res.update(published=s.published, dropped=s.dropped, unsubscribed=s.unsubscribed)
+        live.close()
+    if client is not None:
+        text, _ = client.communicate(timeout=60)
+        got = json.loads(text.strip().splitlines()[-1])
+        res["client_received"] = sum(got["counts"].values())
+        res["client_refused_subscriptions"] = got["refused_subscriptions"]
+    return res
+
+
+def writer_level(log_path: Path, speed: float, repeat: int) -> dict[str, Any]:
+    """CPU per control step of re-writing ``log_path`` through McapLogger three ways, paced at
+    ``speed`` x real time, the modes interleaved ``repeat`` times."""
     with LogReader(log_path) as r:
         recs = [(m.topic, m.schema_name, m.log_time_ns, m.raw) for m in r.messages(decode=False)]
     steps = sum(1 for t, *_ in recs if t == "/control/step")
-    out: dict[str, Any] = {"messages": len(recs), "steps": steps}
+    out: dict[str, Any] = {"messages": len(recs), "steps": steps, "speed": speed}
     with tempfile.TemporaryDirectory() as d:
-        for mode in ("off", "on-no-client", "on-client"):
-            live = None
-            client = None
-            if mode != "off":
-                live = LiveServer("127.0.0.1", 0).start()
-            lg = McapLogger(Path(d) / f"{mode}.mcap", queue_size=1 << 16)
-            lg.observer = live
-            with lg:
-                if mode == "on-client":
-                    assert live is not None
-                    # advertise every topic first (one message each), then let the client
-                    # subscribe to them all
-                    first = {r[0]: r for r in reversed(recs)}
-                    for topic, schema, t, raw in first.values():
-                        lg.log(topic, t, raw, schema=schema)
-                    while len(live._channels) < len(first):
-                        time.sleep(0.01)
-                    client = _client_proc(live.url, until_closed=True, seconds=600.0)
-                    while live.stats.subscriptions < len(first):
-                        time.sleep(0.05)
-                c0, w0 = _cpu_s(), time.perf_counter()
-                for topic, schema, t, raw in recs:
-                    lg.log(topic, t, raw, schema=schema)
-                    if lg._q.qsize() > 1000:  # keep the writer's queue from overflowing
-                        time.sleep(0.001)
-                while lg.stats.written + lg.stats.dropped < lg.stats.enqueued:
-                    time.sleep(0.005)
-                if live is not None:
-                    while live.stats.published + live.stats.dropped < live.stats.queued:
-                        time.sleep(0.005)
-                c1, w1 = _cpu_s(), time.perf_counter()
-            res: dict[str, Any] = {
-                "cpu_ms_per_step": (c1 - c0) * 1e3 / max(steps, 1),
-                "wall_s": w1 - w0,
-            }
-            if live is not None:
-                s = live.stats
-                res.update(published=s.published, dropped=s.dropped, unsubscribed=s.unsubscribed)
-                live.close()
-            if client is not None:
-                text, _ = client.communicate(timeout=60)
-                got = json.loads(text.strip().splitlines()[-1])
-                res["client_received"] = sum(got["counts"].values())
-                res["client_refused_subscriptions"] = got["refused_subscriptions"]
-            out[mode] = res
+        for i in range(repeat):
+            for mode in ("off", "on-no-client", "on-client"):
+                res = _writer_pass(recs, mode, Path(d) / f"{mode}-{i}.mcap", speed)
+                res["cpu_ms_per_step"] = res["cpu_s"] * 1e3 / max(steps, 1)
+                out.setdefault(mode, []).append(res)
+                print(f"writer {mode} #{i}: {json.dumps(res)}", file=sys.stderr, flush=True)
     return out
 
 
@@ -163,6 +168,7 @@ def flight_level(duration_s: float, out_dir: Path, mode: str) -> dict[str, Any]:
         "steps": rep["steps"],
         "wall_s": rep["wall_time_s"],
         "real_time_factor": rep["real_time_factor"],
+        "latency": rep.get("latency"),
         "companion_cpu_ms_per_step": (last.get("cpu_s", float("nan")) - last["start_cpu_s"])
         * 1e3
         / rep["steps"],
@@ -181,6 +187,14 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=30.0, help="simulated s per flight")
     ap.add_argument("--repeat", type=int, default=2, help="flights per mode")
     ap.add_argument("--log", type=Path, default=None, help="flight log for the writer level")
+    ap.add_argument("--writer-speed", type=float, default=2.0, help="x real time")
+    ap.add_argument("--writer-repeat", type=int, default=3)
+    ap.add_argument(
+        "--flights",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="fly (part 2); --no-flights needs --log",
+    )
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--client", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--client-seconds", type=float, default=60.0, help=argparse.SUPPRESS)
@@ -191,30 +205,39 @@ def main() -> int:
     load = os.getloadavg()
     result: dict[str, Any] = {"load_avg": load, "flights": {}}
     with tempfile.TemporaryDirectory() as d:
-        for i in range(args.repeat):
+        for i in range(args.repeat if args.flights else 0):
             for mode in ("off", "on-no-client", "on-client"):
                 r = flight_level(args.duration, Path(d) / f"{mode}-{i}", mode)
                 result["flights"].setdefault(mode, []).append(r)
                 print(f"flight {mode} #{i}: {json.dumps(r)}", file=sys.stderr, flush=True)
         log_path = args.log or Path(d) / "off-0" / "flight.mcap"
-        result["writer"] = writer_level(log_path)
+        result["writer"] = writer_level(log_path, args.writer_speed, args.writer_repeat)
     result["load_avg_end"] = os.getloadavg()
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
     print(f"load average at start {load[0]:.1f}, at end {result['load_avg_end'][0]:.1f}")
     w = result["writer"]
-    print(f"writer level ({w['messages']} messages, {w['steps']} steps):")
+    print(f"writer level ({w['messages']} messages, {w['steps']} steps, {w['speed']}x real time):")
     for mode in ("off", "on-no-client", "on-client"):
-        print(
-            f"  {mode:<13} {w[mode]['cpu_ms_per_step']:.3f} ms CPU/step "
-            f"{json.dumps({k: v for k, v in w[mode].items() if k != 'cpu_ms_per_step'})}"
-        )
+        runs = w[mode]
+        cpus = ", ".join(f"{r['cpu_ms_per_step']:.3f}" for r in runs)
+        extra = {
+            k: runs[-1][k] for k in ("published", "dropped", "client_received") if k in runs[-1]
+        }
+        print(f"  {mode:<13} CPU/step ms: {cpus}  {json.dumps(extra)}")
     print("flight level (companion CPU per step, ms):")
     for mode, runs in result["flights"].items():
         cpu = [f"{r['companion_cpu_ms_per_step']:.2f}" for r in runs]
         rtf = [f"{r['real_time_factor']:.1f}x" for r in runs]
-        print(f"  {mode:<13} {', '.join(cpu)}  (speed {', '.join(rtf)})")
+        lat = [
+            f"{(r['latency'] or {}).get('frame_to_command_median_ms', float('nan')):.1f}"
+            for r in runs
+        ]
+        print(
+            f"  {mode:<13} {', '.join(cpu)}  (speed {', '.join(rtf)}; frame -> command "
+            f"median ms {', '.join(lat)})"
+        )
     for r in result["flights"].get("on-client", []):
         rates = r["client_rates_per_sim_s"]
         print(
