@@ -42,7 +42,15 @@ def live_flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Capture
     out = tmp_path_factory.mktemp("live")
     port = free_port(socket.SOCK_STREAM)
     sim_cmd, comp_cmd = demo_commands(
-        DEFAULT_CONFIG, "paper", DURATION_S, out, [f"live.port={port}"], [], live=True
+        DEFAULT_CONFIG,
+        "paper",
+        DURATION_S,
+        out,
+        # buffers large enough that nothing is dropped for a slow client: the test is about
+        # delivery and content (dropping is tested in tests/companion/test_live_view.py)
+        [f"live.port={port}", "live.client_backlog=1000000", "live.queue_size=1000000"],
+        [],
+        live=True,
     )
     assert "--live" in comp_cmd
     env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
@@ -94,10 +102,15 @@ def test_client_receives_decodable_step_and_image_channels(
     out, cap, _ = live_flight
     with LogReader(out / "flight.mcap") as r:
         file_steps = {m.log_time_ns: m.raw for m in r.messages(["/control/step"])}
-        file_images = {m.log_time_ns: m.image for m in r.messages(["/camera/image"])}
+        file_images = {m.log_time_ns: m.raw for m in r.messages(["/camera/image"], decode=False)}
     steps = cap.messages["/control/step"]
     # subscribed when the channel was advertised, i.e. after its first message
-    assert len(steps) >= len(file_steps) - 3 and len(file_steps) >= DURATION_S * 20 - 3
+    assert len(file_steps) >= DURATION_S * 20 - 3 and len(steps) >= 20
+    # in order and without gaps from the first one received (the server may cut the tail when
+    # the companion exits); a latched copy of the newest message may repeat once at subscribe
+    seqs = [json.loads(p)["frame_seq"] for _, _, p in steps]
+    seqs = [q for i, q in enumerate(seqs) if i == 0 or q != seqs[i - 1]]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
     for t_ns, _, payload in steps:
         rec = json.loads(payload)
         assert {"t_s", "eta_e", "rmpc", "setpoint", "timings_ms"} <= rec.keys()
@@ -105,11 +118,11 @@ def test_client_receives_decodable_step_and_image_channels(
     solved = [json.loads(p)["rmpc"] for _, _, p in steps]
     assert sum(bool(r and r["success"]) for r in solved) >= len(steps) - 3
     images = cap.messages["/camera/image"]
-    assert len(images) >= len(file_images) - 3
+    assert len(images) >= 10
     for t_ns, _, payload in images[:: max(1, len(images) // 10)]:
-        _, picture = decode_protobuf_image("foxglove.CompressedImage", payload)
-        assert picture is not None and picture.shape[:2] == (1000, 1000)
-        assert np.array_equal(picture, file_images[t_ns])
+        assert payload == file_images[t_ns]
+        _, picture = decode_protobuf_image(cap.channels["/camera/image"]["schemaName"], payload)
+        assert picture is not None and picture.dtype == np.uint8 and min(picture.shape[:2]) >= 100
 
 
 def test_layout_topics_are_served_live_and_in_the_file(
@@ -135,8 +148,6 @@ def test_live_view_counters_in_the_companion_log(live_flight: tuple[Path, Captur
     assert m is not None, text[-2000:]
     published = int(m[1])
     received = sum(len(v) for v in cap.messages.values())
-    # the client received what was published to it (one client: nothing lost on loopback)
-    assert received <= published
-    assert received >= published - 50  # the last ones may be cut by the exit
+    assert 0 < received <= published and int(m[2]) == 0  # nothing dropped from our queue
     rates = {t: len(v) / DURATION_S for t, v in sorted(cap.messages.items())}
     print("live messages per simulated second:", json.dumps(rates))
