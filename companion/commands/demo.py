@@ -159,8 +159,9 @@ def _run(args: argparse.Namespace) -> int:
     out = args.out or Path("out") / (args.scenario + ("-novis" if args.no_visibility else ""))
     if args.live:
         lc = load_config(args.config, overrides).live
-        print(f"live view: ws://{lc.host}:{lc.port} (Foxglove: Open connection, Foxglove "
-              "WebSocket; layout foxglove/layout.json)", flush=True)
+        where = f"ws://{lc.host}:{lc.port}" if lc.port else f"a free port ({out}/companion.log)"
+        print(f"live view: {where} (Foxglove: Open connection, Foxglove WebSocket; layout "
+              "foxglove/layout.json)", flush=True)
     rep = run_demo(args.config, args.scenario, args.duration, out, overrides,
                    args.inject_fault, plots=not args.no_plots, live=args.live)
     vis = rep["visibility"]
