@@ -657,7 +657,7 @@ class SimBridge:
             frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
             armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
         if not self._vehicle_ideal:
-            rec["hover_thrust_true"] = s.hover_thrust_true
+            rec["hover_thrust_true"] = self.model.true_hover_thrust(t)
         if not self.cfg.sim.camera_model.ideal:
             rec["frame_t_us"] = stamp_us
             rec["frame_dropped"] = deliver_s is None

@@ -191,10 +191,11 @@ def rate_control(
         if gains.dgyro_cutoff_hz > 0
         else 1.0
     )
-    acc = tuple(
-        state.ang_acc_rad_s2[i]
-        + alpha * ((rates[i] - state.prev_rates_rad_s[i]) / dt_s - state.ang_acc_rad_s2[i])
-        for i in range(3)
+    a0, w0 = state.ang_acc_rad_s2, state.prev_rates_rad_s
+    acc = (
+        a0[0] + alpha * ((rates[0] - w0[0]) / dt_s - a0[0]),
+        a0[1] + alpha * ((rates[1] - w0[1]) / dt_s - a0[1]),
+        a0[2] + alpha * ((rates[2] - w0[2]) / dt_s - a0[2]),
     )
     torque = []
     integral = list(state.integral)
@@ -271,19 +272,21 @@ def allocate(torque: V3, thrust: float) -> tuple[list[float], V3]:
     and the unallocated torque (set - achieved, normalised), whose signs give the rate
     controller's saturation flags."""
     r, p, y = torque
-    u = [thrust + QUAD_X_ROLL[i] * r + QUAD_X_PITCH[i] * p for i in range(4)]
-    _desaturate(u, _THRUST, reduce_only=True)
-    _desaturate(u, QUAD_X_ROLL)
-    _desaturate(u, QUAD_X_PITCH)
-    for i in range(4):
-        u[i] += QUAD_X_YAW[i] * y
-    _desaturate(u, QUAD_X_YAW, hi=1.0 + MINIMUM_YAW_MARGIN)
-    _desaturate(u, _THRUST, reduce_only=True)
-    u = [_clamp(v, 0.0, 1.0) for v in u]
+    a, b = _S * r, _S * p
+    u = [thrust - a + b, thrust + a - b, thrust + a + b, thrust - a - b]
+    if min(u) < 0.0 or max(u) > 1.0:  # (desaturation gains are all zero otherwise)
+        _desaturate(u, _THRUST, reduce_only=True)
+        _desaturate(u, QUAD_X_ROLL)
+        _desaturate(u, QUAD_X_PITCH)
+    u = [u[0] + y, u[1] + y, u[2] - y, u[3] - y]
+    if min(u) < 0.0 or max(u) > 1.0:
+        _desaturate(u, QUAD_X_YAW, hi=1.0 + MINIMUM_YAW_MARGIN)
+        _desaturate(u, _THRUST, reduce_only=True)
+        u = [_clamp(v, 0.0, 1.0) for v in u]
     # achieved torque: the mixer's pseudo-inverse (sum s_i u_i / sum s_i^2)
-    ar = sum(QUAD_X_ROLL[i] * u[i] for i in range(4)) / 2.0
-    ap = sum(QUAD_X_PITCH[i] * u[i] for i in range(4)) / 2.0
-    ay = sum(QUAD_X_YAW[i] * u[i] for i in range(4)) / 4.0
+    ar = _S * (-u[0] + u[1] + u[2] - u[3]) / 2.0
+    ap = _S * (u[0] - u[1] + u[2] - u[3]) / 2.0
+    ay = (u[0] + u[1] - u[2] - u[3]) / 4.0
     return u, (r - ar, p - ap, y - ay)
 
 

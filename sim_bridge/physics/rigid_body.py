@@ -21,15 +21,12 @@ quaternion and body rates) travels in ``VehicleState.cascade``, so ``step`` is a
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from sim_bridge.physics.px4_control import (
-    QUAD_X_POS,
-    QUAD_X_YAW,
     V3,
     Px4Gains,
     Quat,
@@ -204,18 +201,23 @@ class Px4VehicleModel:
                 torque, rs = rate_control(w, w_sp, rs, dt, on_ground, g)
                 u, unalloc = allocate(torque, thrust_cmd)
                 sat_pos, sat_neg = saturation_flags(unalloc)
-                rs = dataclasses.replace(rs, sat_pos=sat_pos, sat_neg=sat_neg)
+                if sat_pos != rs.sat_pos or sat_neg != rs.sat_neg:
+                    rs = RateState(
+                        rs.integral, rs.ang_acc_rad_s2, rs.prev_rates_rad_s, sat_pos, sat_neg
+                    )
                 for i in range(4):
                     target = thrust_curve(thrust_curve_inverse(u[i], thr_fac), true_fac)
                     f[i] += (target - f[i]) * ma
             else:
                 for i in range(4):
                     f[i] -= f[i] * ma
-            forces = [fi * f_max for fi in f]
-            total = forces[0] + forces[1] + forces[2] + forces[3]
-            tx = -d_arm * sum(QUAD_X_POS[i][1] * forces[i] for i in range(4))
-            ty = d_arm * sum(QUAD_X_POS[i][0] * forces[i] for i in range(4))
-            tz = km * sum(QUAD_X_YAW[i] * forces[i] for i in range(4))
+            f0, f1, f2, f3 = f[0] * f_max, f[1] * f_max, f[2] * f_max, f[3] * f_max
+            total = f0 + f1 + f2 + f3
+            # rotors at d QUAD_X_POS with yaw signs QUAD_X_YAW (px4_control):
+            # tau = sum r_i x (0, 0, -F_i) + km yaw_i F_i
+            tx = -d_arm * (f0 - f1 - f2 + f3)
+            ty = d_arm * (f0 - f1 + f2 - f3)
+            tz = km * (f0 + f1 - f2 - f3)
             p, qq, r = w
             if on_ground and (total <= m * grav or not motors_on):
                 # resting on the ground: level, no rotation (yaw kept)
