@@ -461,7 +461,7 @@ class Px4:
             att = self._rate_att if self._rate_att is not None else np.array(
                 [s.roll_rad, s.pitch_rad, s.yaw_rad])
             return AttitudeCommand(float(att[0]), float(att[1]), wrap_pi(float(att[2])),
-                                   sp.thrust_norm)
+                                   sp.thrust_norm, body_rates_frd_rad_s=sp.body_rates_rad_s)
         if self.landed and m in (Mode.AUTO_LAND, Mode.AUTO_RTL):
             return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self._hover)
         if m in (Mode.STABILIZED, Mode.MANUAL, Mode.ACRO):

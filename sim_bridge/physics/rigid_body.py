@@ -189,6 +189,7 @@ class Px4VehicleModel:
             float(v) for v in quat_from_euler(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad)
         )  # type: ignore[assignment]
         ff = cmd.yaw_rate_ff_rad_s
+        rates_sp = cmd.body_rates_frd_rad_s  # offboard rate setpoint: straight to the rate loop
         ma = self._motor_alpha
         thr_fac, true_fac = g.thr_mdl_fac, a.motor_curve_factor
         d_arm, km = a.arm_xy_m, a.km_m
@@ -197,7 +198,7 @@ class Px4VehicleModel:
         for _ in range(n):
             f_max = self.f_max_n * battery_factor(t, a.battery_loss_per_s, a.battery_max_loss)
             if motors_on:
-                w_sp = attitude_control(q, qd, ff, g)
+                w_sp = rates_sp if rates_sp is not None else attitude_control(q, qd, ff, g)
                 torque, rs = rate_control(w, w_sp, rs, dt, on_ground, g)
                 u, unalloc = allocate(torque, thrust_cmd)
                 sat_pos, sat_neg = saturation_flags(unalloc)

@@ -211,6 +211,8 @@ class AttitudeCommand:
     ``roll/pitch/yaw_rad``: setpoint (ZYX, rad). ``thrust_norm``: 0..1 along body -z.
     ``yaw_rate_ff_rad_s``: Earth-frame yaw-rate feed-forward added to the yaw loop.
     ``motors_on``: False when disarmed or terminated (no thrust, attitude uncontrolled).
+    ``body_rates_frd_rad_s``: an offboard body-rate setpoint; the px4 model feeds it to its
+    rate controller (as PX4 does), the first-order model tracks the attitude integrated from it.
     """
 
     roll_rad: float
@@ -219,6 +221,7 @@ class AttitudeCommand:
     thrust_norm: float
     yaw_rate_ff_rad_s: float = 0.0
     motors_on: bool = True
+    body_rates_frd_rad_s: tuple[float, float, float] | None = None
 
     @staticmethod
     def from_quat(q_wxyz: Vec, thrust_norm: float, yaw_rate_ff_rad_s: float = 0.0
