@@ -162,6 +162,8 @@ class Disturbance:
         self._cache_w = np.zeros(3)
         self._turb_k = -1
         self._turb = np.zeros(3)
+        self._held_k: int | None = None
+        self._held = np.zeros(3)
         self._turb_sigma = params.turbulence_std_m_s2 * np.array([1.0, 1.0, 0.5])
         self._turb_a = math.exp(-params.random_hold_s / params.turbulence_tau_s)
 
@@ -192,15 +194,22 @@ class Disturbance:
         return self._cache_w
 
     def accel_ned_m_s2(self, t_s: float) -> Vec:
+        """``d(t)`` (m/s^2, NED). Read-only: without a gust the value is constant over each
+        ``random_hold_s`` and the same array is returned for the whole interval."""
         p = self.params
+        k = math.floor(t_s / p.random_hold_s)
+        if p.gust_amplitude_m_s2 <= 0 and k == self._held_k:
+            return self._held
         d = self._wind.copy()
         if p.gust_amplitude_m_s2 > 0:
             d += p.gust_amplitude_m_s2 * math.sin(2 * math.pi * t_s / p.gust_period_s) \
                 * self._gust_dir
         if p.random_bound_m_s2 > 0:
-            d += self._random(math.floor(t_s / p.random_hold_s))
+            d += self._random(k)
         if p.turbulence_std_m_s2 > 0:
-            d += self._turbulence(max(0, math.floor(t_s / p.random_hold_s)))
+            d += self._turbulence(max(0, k))
+        d.flags.writeable = False
+        self._held_k, self._held = k, d
         return d
 
 
