@@ -43,6 +43,19 @@ class CameraParams:
     mount_rpy_rad: tuple[float, float, float]
     calibration_file: str = ""
 
+    def __post_init__(self) -> None:
+        # The control pipeline builds the virtual image from the camera's own roll/pitch, which
+        # equal the body's only for the paper's mount (camera axes = body axes, at the body
+        # origin). A tilted or offset camera would be flown with the wrong geometry, so refuse it
+        # here instead of failing in the air (docs/limits.md).
+        for name in ("mount_offset_m", "mount_rpy_rad"):
+            value = getattr(self, name)
+            if any(float(v) != 0.0 for v in value):
+                raise ParamError(
+                    f"camera.{name}: {list(value)} is not supported by the companion yet "
+                    "(only the paper's mount: camera axes = body axes at the body origin)"
+                )
+
     @property
     def visible_half_m(self) -> float:
         """Half side of the visible area on the image plane (metres): ``u~_b = n~_b``."""
