@@ -21,13 +21,15 @@ def predict_target_motion(
     yaw_q_rad: float,
     horizon: int,
     dt_s: float,
+    d_ned_m_s2: np.ndarray | None = None,
 ) -> TargetMotion:
     """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
 
     ``v_a_ned_m_s``, ``a_a_ned_m_s2`` (3,): the target's velocity/acceleration now (NED);
     ``psidot_a_rad_s``: its yaw rate; ``yaw_q_rad``: the vehicle's (= virtual frame's) yaw now.
     The along-track acceleration (projection of ``a`` on ``v``) is kept constant; the
-    cross-track part is carried by the turn rate.
+    cross-track part is carried by the turn rate. ``d_ned_m_s2`` (3,): the estimated
+    disturbance acceleration (NED, held constant), expressed in each stage's virtual frame.
     """
     v0 = np.asarray(v_a_ned_m_s, dtype=float)[:2]
     a0 = np.asarray(a_a_ned_m_s2, dtype=float)[:2]
@@ -36,7 +38,7 @@ def predict_target_motion(
     tangent = np.array([np.cos(heading), np.sin(heading)])
     a_along = float(a0 @ tangent) if speed > 1e-6 else 0.0
     w = float(psidot_a_rad_s)
-    # all stages at once (the loop's formulas, row n = stage n): ~20x less Python per step
+    # all stages at once (the loop's formulas, row n = stage n): ~4x less CPU per step
     t = np.arange(horizon) * dt_s
     if speed > 1e-6:
         sp = np.maximum(0.0, speed + a_along * t)
@@ -49,9 +51,17 @@ def predict_target_motion(
         a_ned = np.tile(a0, (horizon, 1))
     psi_q = yaw_q_rad + w * t
     c, s = np.cos(psi_q), np.sin(psi_q)
-    # Rz(psi)^T [x, y] = [c x + s y, -s x + c y]
-    v_v = np.column_stack([c * v_ned[:, 0] + s * v_ned[:, 1], -s * v_ned[:, 0] + c * v_ned[:, 1]])
-    a_v = np.column_stack([c * a_ned[:, 0] + s * a_ned[:, 1], -s * a_ned[:, 0] + c * a_ned[:, 1]])
+
+    def to_virtual(x: np.ndarray) -> np.ndarray:
+        """Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y], row by row."""
+        return np.column_stack([c * x[:, 0] + s * x[:, 1], -s * x[:, 0] + c * x[:, 1]])
+
+    v_v = to_virtual(v_ned)
     # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
-    vdot = a_v + w * np.column_stack([v_v[:, 1], -v_v[:, 0]])
-    return TargetMotion(v_v, vdot, np.full(horizon, w))
+    vdot = to_virtual(a_ned) + w * np.column_stack([v_v[:, 1], -v_v[:, 0]])
+    d_out = np.zeros((horizon, 3))
+    if d_ned_m_s2 is not None:
+        d_ned = np.asarray(d_ned_m_s2, dtype=float).reshape(3)
+        d_out[:, :2] = to_virtual(np.tile(d_ned[:2], (horizon, 1)))
+        d_out[:, 2] = d_ned[2]
+    return TargetMotion(v_v, vdot, np.full(horizon, w), d_out)
