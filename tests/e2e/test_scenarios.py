@@ -42,7 +42,7 @@ def edge_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
         "unconstrained": _fly(tmp_path_factory.mktemp("edge-novis"), "edge", EDGE_S,
                               ["rmpc.enable_visibility=false"]),
         "spec_pairing": _fly(tmp_path_factory.mktemp("edge-spec"), "edge", EDGE_S,
-                             ['rmpc.visibility_pairing="spec"']),
+                             ['rmpc.visibility_pairing="spec"', 'rmpc.visibility="centroid"']),
     }
 
 
@@ -71,7 +71,8 @@ def test_edge_with_the_spec_pairing_the_applied_input_is_unchecked(
 
 
 def test_yaw_offset_recovers_then_tracks(tmp_path: Path) -> None:
-    rep = _fly(tmp_path, "yaw-offset", 8.0, [])
+    """With the paper's tube on the yaw error (rmpc.heading = "tube")."""
+    rep = _fly(tmp_path, "yaw-offset", 8.0, ['rmpc.heading="tube"'])
     sol = rep["solver"]
     assert sol["recoveries"] > 0 and sol["optimal"] > 0
     assert sol["failures"] == 0 and sol["fallbacks"] == 0
