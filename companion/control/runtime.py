@@ -52,6 +52,9 @@ TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 
+FIRST_FRAME_TIMEOUT_S = 60.0
+"""How long to wait for the first camera frame (then ``idle_timeout_s`` between frames)."""
+
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
     "ATTITUDE_QUATERNION": "time_boot_ms",
@@ -276,11 +279,14 @@ class CompanionApp:
                 time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
             ):
                 break
+            # before the first frame the camera may still be starting (a loaded machine takes
+            # seconds to start the emulator): wait longer than between frames
+            wait_s = (self.idle_timeout_s if self._first_frame_s is not None
+                      else max(self.idle_timeout_s, FIRST_FRAME_TIMEOUT_S))
             try:
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
-                                                           self.idle_timeout_s)
+                frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
+                log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                 if exit_deadline is None:
                     self._stop.set()
                     continue
