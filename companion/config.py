@@ -123,6 +123,27 @@ class LoggingConfig:
 
 
 @dataclass(frozen=True)
+class LiveConfig:
+    """Live view: the log's channels served over the Foxglove WebSocket protocol
+    (:mod:`companion.log.live`). Off by default: on a vehicle it is one more open port."""
+
+    enabled: bool = False
+    # Interface to bind: loopback by default; "0.0.0.0" serves every interface (see docs)
+    host: str = "127.0.0.1"
+    port: int = field(default=8765, metadata=checked(nonneg))  # TCP; 0 picks a free port
+    # Messages waiting for the publisher thread, at most; beyond it the oldest are dropped (counted)
+    queue_size: int = field(default=512, metadata=checked(positive))
+    # Messages buffered per connected client by the SDK; a slow client loses the oldest
+    client_backlog: int = field(default=256, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        if not self.host or any(c.isspace() for c in self.host):
+            raise ConfigError(f"live.host: {self.host!r} is not a host name or address")
+        if self.port > 65535:
+            raise ConfigError(f"live.port: {self.port} is not a TCP port (0..65535)")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole companion configuration. ``source`` is the file it came from."""
 
@@ -134,6 +155,7 @@ class Config:
     offboard: OffboardConfig
     safety: SafetyConfig
     logging: LoggingConfig
+    live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
@@ -162,6 +184,8 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
         if f.name in ("source", "raw"):
             continue
         if f.name not in data:
+            if f.default_factory is not dataclasses.MISSING:  # an optional table
+                continue
             raise ConfigError(f"{f.name}: missing table [{f.name}]")
         sections[f.name] = _build(_resolve(f.type), data[f.name], f.name)
     plain = {k: v for k, v in data.items() if k not in _FOREIGN_TABLES}

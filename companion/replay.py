@@ -158,7 +158,11 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
             res.frames_missing += 1
         t_s = tb.frame_s(int(rec_step["frame_t_us"]), int(rec_step["t_rx_ns"]))
         pipeline.force_solver_failure = bool(rec_step.get("fault_injected", False))
-        out = pipeline.step(img, t_s, store)
+        t_now = rec_step.get("t_now_s")  # the live step's "now" (latency compensation)
+        ic = rec_step.get("in_control")
+        out = pipeline.step(img, t_s, store,
+                            t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
+                            in_control=ic if isinstance(ic, bool) else None)
         res.steps += 1
         new = out.to_record()
         new.update({k: rec_step.get(k) for k in ("frame_seq", "frame_t_us", "t_rx_ns",

@@ -41,6 +41,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1")
     p.add_argument("--out", type=Path, default=None, help="output dir (default out/SCENARIO)")
     p.add_argument("--no-plots", action="store_true", help="report.json only")
+    p.add_argument("--live", action="store_true",
+                   help="serve the flight live to Foxglove (ws://live.host:live.port)")
     p.set_defaults(func=_run)
 
 
@@ -51,7 +53,8 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
 
 
 def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
-                  overrides: list[str], faults: list[str]) -> tuple[list[str], list[str]]:
+                  overrides: list[str], faults: list[str],
+                  live: bool = False) -> tuple[list[str], list[str]]:
     """The two command lines (emulator, companion) of a lockstep flight on free ports."""
     p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = (free_port() for _ in range(6))
     p_frame = free_port(socket.SOCK_STREAM)
@@ -72,6 +75,7 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / ".companion-ready"),
+        *(["--live"] if live else []),
     ]
     return sim, comp
 
@@ -79,16 +83,18 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
 def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
              overrides: list[str], faults: list[str], plots: bool = True,
              monitor: Callable[[subprocess.Popen[bytes]], None] | None = None,
-             sim_config: Path | None = None) -> dict[str, Any]:
+             sim_config: Path | None = None, live: bool = False) -> dict[str, Any]:
     """Fly a scenario; ``monitor(companion_process)`` is called every 50 ms during the flight
     (benchmarks sample its memory); ``sim_config`` gives the emulator a different file (e.g.
-    with fault injection) than the companion's ``config``."""
+    with fault injection) than the companion's ``config``; with ``live`` the companion serves
+    its channels to Foxglove while it flies (``[live]`` config)."""
     cfg = load_config(config, overrides)  # fail early, in this process, on a bad config
     if duration_s is None:
         # the emulator's own setting, through the file's base chain
         duration_s = float(read_document(config).get("sim", {}).get("duration_s", 251.0))
     out.mkdir(parents=True, exist_ok=True)
-    sim_cmd, comp_cmd = demo_commands(config, scenario, duration_s, out, overrides, faults)
+    sim_cmd, comp_cmd = demo_commands(config, scenario, duration_s, out, overrides, faults,
+                                      live=live)
     if sim_config is not None:
         sim_cmd[sim_cmd.index("--config") + 1] = str(sim_config)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -151,8 +157,13 @@ def _run(args: argparse.Namespace) -> int:
     if args.no_visibility:
         overrides.append("rmpc.enable_visibility=false")
     out = args.out or Path("out") / (args.scenario + ("-novis" if args.no_visibility else ""))
+    if args.live:
+        lc = load_config(args.config, overrides).live
+        where = f"ws://{lc.host}:{lc.port}" if lc.port else f"a free port ({out}/companion.log)"
+        print(f"live view: {where} (Foxglove: Open connection, Foxglove WebSocket; layout "
+              "foxglove/layout.json)", flush=True)
     rep = run_demo(args.config, args.scenario, args.duration, out, overrides,
-                   args.inject_fault, plots=not args.no_plots)
+                   args.inject_fault, plots=not args.no_plots, live=args.live)
     vis = rep["visibility"]
     trk = rep["tracking"]
     print(f"scenario {args.scenario}: {rep['sim_time_s']:.1f} s simulated in "

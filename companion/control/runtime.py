@@ -33,17 +33,25 @@ import numpy as np
 from companion import CompanionError
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
-from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.offboard import (
+    PX4_MAIN_MODE_OFFBOARD,
+    OffboardManager,
+    OffboardPhase,
+    VehicleStatus,
+)
 from companion.control.pipeline import ControlPipeline
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
+from companion.control.timesync import TimeSync
 from companion.link import MavlinkLink, NoPeerError, Received
 from companion.log import schemas as sch
+from companion.log.live import start_live
 from companion.log.writer import McapLogger
 from companion.perception.pipeline import Perception
 
 log = logging.getLogger(__name__)
 
+FIRST_FRAME_TIMEOUT_S = 60.0
 TOPIC_FRAME = "/camera/image"
 TOPIC_STEP = "/control/step"
 TOPIC_SAFETY = "/control/safety"
@@ -154,6 +162,7 @@ class CompanionApp:
         self.config_text = config_text
         self.ready_file = ready_file
         self.timebase = TimeBase(cfg.control.time_source)
+        self.timesync = TimeSync()
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
@@ -171,7 +180,10 @@ class CompanionApp:
     async def run(self) -> int:
         cfg = self.cfg
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        # the live view (None when off) fails here on a taken port, before the flight
+        live = start_live(cfg.live, cfg.logging.image_encoding)
         logger = McapLogger.from_config(cfg.logging, self.log_path)
+        logger.observer = live  # the live view sees what the log writes
         self._logger = logger
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -194,6 +206,8 @@ class CompanionApp:
                         control = tg.create_task(self._control(camera))
                         aux = [tg.create_task(self._drain(link)),
                                tg.create_task(self._heartbeat(link))]
+                        if cfg.control.time_source == "timesync":
+                            aux.append(tg.create_task(self._timesync(link)))
                         if self.truth_port is not None:
                             ready = asyncio.Event()
                             aux.append(tg.create_task(self._truth(self.truth_port, ready)))
@@ -207,6 +221,8 @@ class CompanionApp:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
+            if live is not None:
+                live.close()
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
                  "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
                  self.log_path, logger.stats.written, logger.stats.dropped)
@@ -227,6 +243,12 @@ class CompanionApp:
                 before = self.offboard.phase
                 self.offboard.on_heartbeat(VehicleStatus(m.armed, m.main_mode, m.sub_mode, t_s))
                 self._log_offboard(before, t_s)
+        elif rx.name == "TIMESYNC" and is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
+            answer = self.timesync.on_timesync(int(fields["tc1"]), int(fields["ts1"]),
+                                               time.monotonic_ns())
+            if answer is not None and self._link is not None:
+                with contextlib.suppress(NoPeerError):
+                    self._link.send_timesync(*answer)
         elif rx.name == "COMMAND_ACK":
             log.info("COMMAND_ACK command %s result %s", fields.get("command"),
                      fields.get("result"))
@@ -240,6 +262,41 @@ class CompanionApp:
             with contextlib.suppress(NoPeerError):
                 link.send_heartbeat()
             await asyncio.sleep(1.0)
+
+    async def _timesync(self, link: MavlinkLink) -> None:
+        """TIMESYNC requests at 10 Hz, like PX4's onboard link (the replies feed
+        :attr:`timesync` in :meth:`_on_rx`)."""
+        while True:
+            with contextlib.suppress(NoPeerError):
+                link.send_timesync(*self.timesync.request(time.monotonic_ns()))
+            await asyncio.sleep(0.1)
+
+    def _in_control(self) -> bool:
+        """Our setpoints fly the vehicle: armed, and OFFBOARD confirmed (HEARTBEAT) or just
+        requested (PX4 switches at once; the 1 Hz HEARTBEAT confirms up to 1 s later, a
+        rejection shows there too and ends it)."""
+        m = self.store.mode
+        if m is None or not m.armed:
+            return False
+        if self.offboard.phase is OffboardPhase.REQUESTING:
+            return True
+        return m.main_mode == PX4_MAIN_MODE_OFFBOARD and self.offboard.phase in (
+            OffboardPhase.ACTIVE, OffboardPhase.LOST, OffboardPhase.EXITING)
+
+    def now_s(self) -> float | None:
+        """"Now" on the frames' time base, for the latency compensation: ``None`` with
+        receipt stamps (a frame's age is unknown); else the newest attitude/position stamp,
+        or later by the TIMESYNC-mapped local clock (``control.time_source = "timesync"``).
+        In lockstep the autopilot's clock stands still while it waits for our setpoint, so
+        the wall-clock mapping runs ahead there: the demo uses ``"autopilot"``."""
+        if self.timebase.source == "receipt":
+            return None
+        now = self.store.newest_autopilot_s()
+        if self.timebase.source == "timesync":
+            mapped = self.timesync.autopilot_s(time.monotonic_ns())
+            if mapped is not None and math.isfinite(mapped):
+                now = max(now, mapped)
+        return now if math.isfinite(now) else None
 
     async def _truth(self, port: int, ready: asyncio.Event) -> None:
         """Ground truth from the emulator, logged for scoring only (never read by control)."""
@@ -277,10 +334,13 @@ class CompanionApp:
             ):
                 break
             try:
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
-                                                           self.idle_timeout_s)
+                # Before the first frame the camera (or a loaded machine's emulator) may
+                # still be starting: wait longer than between frames.
+                wait_s = self.idle_timeout_s if self.steps else max(self.idle_timeout_s,
+                                                                    FIRST_FRAME_TIMEOUT_S)
+                frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
+                log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                 if exit_deadline is None:
                     self._stop.set()
                     continue
@@ -299,7 +359,8 @@ class CompanionApp:
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
         t_start_ns = time.monotonic_ns()
-        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
+        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store,
+                                 t_now_s=self.now_s(), in_control=self._in_control())
         sent_ns = None
         if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
             try:

@@ -10,7 +10,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from companion.core.disturbance import EstimatorParams
 from companion.core.errors import ParamError
+from companion.core.latency import LatencyParams
 
 
 def positive(x: float) -> str | None:
@@ -153,13 +155,26 @@ class ControlParams:
     thrust_max: float = field(metadata=checked(unit))
     # Whose clock stamps frames and telemetry: "receipt" (local monotonic clock on arrival:
     # a real vehicle) or "autopilot" (source stamps: frames and telemetry share the
-    # autopilot's boot clock, as the emulator's do; needed in lockstep).
+    # autopilot's boot clock, as the emulator's do; needed in lockstep) or "timesync" (source
+    # stamps as "autopilot", and "now" on the autopilot's clock from MAVLink TIMESYNC: what the
+    # latency compensation measures the frame's age with; docs/offset-free.md).
     time_source: str = "receipt"
+    # Offset-free estimator (hover thrust, disturbance) and latency compensation
+    # (companion/core/disturbance.py, latency.py; docs/offset-free.md).
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)
+    latency: LatencyParams = field(default_factory=LatencyParams)
 
     def __post_init__(self) -> None:
         if not self.thrust_min < self.hover_thrust < self.thrust_max:
             raise ParamError("control: need thrust_min < hover_thrust < thrust_max")
-        if self.time_source not in ("receipt", "autopilot"):
+        if self.time_source not in ("receipt", "autopilot", "timesync"):
+            raise ParamError(f"control.time_source: {self.time_source!r} is not 'receipt', "
+                             "'autopilot' or 'timesync'")
+        est = self.estimator
+        if est.enabled and not est.hover_min <= self.hover_thrust <= est.hover_max:
             raise ParamError(
-                f"control.time_source: {self.time_source!r} is not 'receipt' or 'autopilot'"
-            )
+                f"control.hover_thrust: {self.hover_thrust} is outside control.estimator's "
+                f"[hover_min, hover_max] = [{est.hover_min}, {est.hover_max}]")
+        if est.hover_max >= self.thrust_max or est.hover_min <= self.thrust_min:
+            raise ParamError("control.estimator: need thrust_min < hover_min and "
+                             "hover_max < thrust_max")

@@ -22,13 +22,15 @@ def predict_target_motion(
     yaw_q_rad: float,
     horizon: int,
     dt_s: float,
+    d_ned_m_s2: np.ndarray | None = None,
 ) -> TargetMotion:
     """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
 
     ``v_a_ned_m_s``, ``a_a_ned_m_s2`` (3,): the target's velocity/acceleration now (NED);
     ``psidot_a_rad_s``: its yaw rate; ``yaw_q_rad``: the vehicle's (= virtual frame's) yaw now.
     The along-track acceleration (projection of ``a`` on ``v``) is kept constant; the
-    cross-track part is carried by the turn rate.
+    cross-track part is carried by the turn rate. ``d_ned_m_s2`` (3,): the estimated
+    disturbance acceleration (NED, held constant), expressed in each stage's virtual frame.
     """
     v0 = np.asarray(v_a_ned_m_s, dtype=float)[:2]
     a0 = np.asarray(a_a_ned_m_s2, dtype=float)[:2]
@@ -39,6 +41,8 @@ def predict_target_motion(
     w = float(psidot_a_rad_s)
     v_out = np.empty((horizon, 2))
     vdot_out = np.empty((horizon, 2))
+    d_out = np.zeros((horizon, 3))
+    d_ned = None if d_ned_m_s2 is None else np.asarray(d_ned_m_s2, dtype=float).reshape(3)
     for n in range(horizon):
         t = n * dt_s
         sp = max(0.0, speed + a_along * t)
@@ -52,4 +56,7 @@ def predict_target_motion(
         # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
         vdot_out[n] = rzt @ a_ned + w * np.array([v_v[1], -v_v[0]])
         v_out[n] = v_v
-    return TargetMotion(v_out, vdot_out, np.full(horizon, w))
+        if d_ned is not None:
+            d_out[n, :2] = rzt @ d_ned[:2]
+            d_out[n, 2] = d_ned[2]
+    return TargetMotion(v_out, vdot_out, np.full(horizon, w), d_out)

@@ -26,7 +26,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
@@ -54,6 +54,16 @@ _COMPRESSION = {
 _STOP = object()
 
 
+
+
+class LogObserver(Protocol):
+    """Sees exactly what the MCAP writer writes, in the writer thread, after each write
+    (:class:`companion.log.live.LiveServer`). Both calls must return at once (never block)."""
+
+    def add_channel(self, topic: str, schema_name: str, schema_encoding: str,
+                    schema_data: bytes, message_encoding: str) -> None: ...
+
+    def message(self, topic: str, log_time_ns: int, data: bytes) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -159,6 +169,9 @@ class McapLogger:
         self._sink: _Sink | None = None
         self._open = False
         self._closed = False
+        #: Set before :meth:`open` to see every channel; a failing observer is dropped, never
+        #: the log.
+        self.observer: LogObserver | None = None
 
     @classmethod
     def from_config(cls, logging_cfg: Any, path: str | Path) -> McapLogger:
@@ -549,8 +562,21 @@ class McapLogger:
                 schema_ids[schema_name] = sid
             cid = writer.register_channel(topic, sch.encodings(schema_name)[1], sid)
             channels[topic] = cid
+            enc_s, enc_m = sch.encodings(schema_name)
+            self._observe("add_channel", topic, schema_name, enc_s,
+                          self._schema_text(schema_name), enc_m)
         writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
         with self._lock:
             self._written += 1
+        self._observe("message", topic, t, data)
+
+    def _observe(self, what: str, *args: Any) -> None:
+        if self.observer is None:
+            return
+        try:
+            getattr(self.observer, what)(*args)
+        except Exception as e:  # the live view is optional: stop feeding it, keep logging
+            log.error("log observer failed, detached: %r", e)
+            self.observer = None
 
 
