@@ -110,6 +110,19 @@ class LoggingConfig:
     block_on_backlog: bool = False
     # MCAP chunk compression: "lz4" (fast), "zstd" (smaller, ~2x the CPU) or "none"
     compression: str = "lz4"
+    # What perception read, on /perception/input, encoded with ``image_encoding``: "crop"
+    # (the region the detector read: the whole frame when it searched), "full" (every frame
+    # whole) or "none" (replay then needs an old log's full frames, or --from-detections)
+    perception_input: str = "crop"
+    # The preview for people on /camera/image (JPEG): at most this many frames per second of
+    # camera time (0: none), scaled by ``preview_scale``, JPEG quality ``preview_jpeg_quality``
+    preview_rate_hz: float = field(default=5.0, metadata=checked(nonneg))
+    preview_scale: float = 0.5
+    preview_jpeg_quality: int = 75
+    # Log times: "receipt" (the companion's monotonic clock; a real vehicle) or "source" (the
+    # autopilot's clock carried by frames and telemetry: a lockstep simulation then plays at
+    # its real speed)
+    timestamps: str = "receipt"
 
     def __post_init__(self) -> None:
         if self.image_encoding not in ("png", "jpeg", "raw"):
@@ -120,6 +133,17 @@ class LoggingConfig:
             raise ConfigError(
                 f"logging.compression: {self.compression!r} is not 'lz4', 'zstd' or 'none'"
             )
+        if self.perception_input not in ("crop", "full", "none"):
+            raise ConfigError(f"logging.perception_input: {self.perception_input!r} is not "
+                              "'crop', 'full' or 'none'")
+        if not 0.0 < self.preview_scale <= 1.0:
+            raise ConfigError(f"logging.preview_scale: {self.preview_scale!r} is not in (0, 1]")
+        if not 1 <= self.preview_jpeg_quality <= 100:
+            raise ConfigError(f"logging.preview_jpeg_quality: {self.preview_jpeg_quality!r} "
+                              "is not in 1..100")
+        if self.timestamps not in ("receipt", "source"):
+            raise ConfigError(
+                f"logging.timestamps: {self.timestamps!r} is not 'receipt' or 'source'")
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                         "(live.host:live.port, default 127.0.0.1:8765; see [live] config)")
     p.add_argument("--ready-file", type=Path, default=None,
                    help="write this file once every socket is open (for orchestration)")
+    p.add_argument("--progress-file", type=Path, default=None,
+                   help="keep 'ELAPSED_S STEPS' in this file (for orchestration)")
     p.set_defaults(func=_run)
 
 
@@ -47,6 +49,10 @@ def _run(args: argparse.Namespace) -> int:
         cfg, mavlink_url=args.mavlink, camera_url=args.camera, log_path=log_path,
         truth_port=args.truth_port, duration_s=args.duration,
         faults=tuple(FaultWindow.parse(f) for f in args.inject_fault), config_text=text,
-        ready_file=args.ready_file,
+        ready_file=args.ready_file, progress_file=args.progress_file,
     )
-    return asyncio.run(app.run())
+    rc = asyncio.run(app.run())
+    if app.cpu_ms_per_step is not None:
+        print(f"companion: {app.steps} steps, CPU {app.cpu_ms_per_step:.2f} ms per step "
+              "(getrusage, all threads)")
+    return rc

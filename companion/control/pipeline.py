@@ -46,6 +46,7 @@ from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
 from companion.core.state import ErrorState, MeasurementError, build_error_state
 from companion.core.terminal import TerminalDesign
+from companion.perception import PerceptionResult
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,8 @@ class StepResult:
     prediction: Prediction | None = None  # latency compensation (None: not applied)
     t_now_s: float | None = None  # "now" on the frame's time base when the step ran
     in_control: bool | None = None  # the runtime's view: our setpoints fly the vehicle
+    #: ``(x0, y0, x1, y1)`` pixels (end exclusive) of the image perception read, when known
+    input_region: tuple[int, int, int, int] | None = None
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -164,11 +167,13 @@ class ControlPipeline:
     # ------------------------------------------------------------------------------------------
 
     def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore,
-             t_now_s: float | None = None, in_control: bool | None = None) -> StepResult:
+             t_now_s: float | None = None, in_control: bool | None = None,
+             perceived: PerceptionResult | None = None) -> StepResult:
         """One frame captured at ``t_s``; ``t_now_s``: the time the step runs (same time base;
         default ``t_s``, i.e. no latency known); ``in_control``: our setpoints fly the vehicle
         (the runtime knows OFFBOARD was requested before the 1 Hz HEARTBEAT confirms it;
-        default: the HEARTBEAT's mode)."""
+        default: the HEARTBEAT's mode). ``perceived``: the perception result of that frame
+        computed elsewhere (a replay from logged detections); ``image`` is then not looked at."""
         cfg = self.cfg
         t_now = t_s if t_now_s is None or not math.isfinite(t_now_s) else max(t_s, t_now_s)
         notes: list[str] = []
@@ -177,10 +182,14 @@ class ControlPipeline:
         # 1. perception
         corners = None
         points_m = None
-        if image is None:
+        region = None
+        if perceived is None and image is not None:
+            perceived = self.perception.process(image)
+            region = getattr(self.perception, "last_region", None)
+        if perceived is None:
             p_status, p_reason = "lost", "no image"
         else:
-            pr = self.perception.process(image)
+            pr = perceived
             p_status, p_reason = pr.status, pr.reason
             if pr.status == "ok":
                 corners, points_m = pr.corners_px, pr.points_m
@@ -316,7 +325,7 @@ class ControlPipeline:
             t_s=t_s, perception_status=p_status, perception_reason=p_reason,
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
             safety=decision, u=u, setpoint=sp, notes=tuple(notes), estimator=est,
-            prediction=pred, t_now_s=t_now, in_control=in_control,
+            prediction=pred, t_now_s=t_now, in_control=in_control, input_region=region,
         )
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,

@@ -263,6 +263,8 @@ class _Solver:
         for row in layout.rows:
             self.lbg[row.g_index] = -np.inf
             self.ubg[row.g_index] = row.upper
+        self._lbg_dm = ca.DM(self.lbg)
+        self._ubg_dm = ca.DM(self.ubg)
         self.eta_max = np.asarray(rmpc.eta_max, dtype=float)
         self.eq_rows = layout.gap_index.ravel()
         self.ineq_rows = np.array([row.g_index for row in layout.rows], dtype=int)
@@ -287,15 +289,18 @@ class _Solver:
     ) -> tuple[bool, str, dict[str, Any], np.ndarray, float, int, float]:
         """Solve; return (accepted, status, stats, w, cost, iterations, t_wall_s)."""
         try:
-            sol = self.solver(x0=w0, p=par, lbx=lbx, ubx=ubx, lbg=self.lbg, ubg=self.ubg)
+            # positional call with the constant bounds converted once: no keyword dict in, no
+            # output dict out (CasADi's Python-side overhead per call)
+            x, f, gdm = self.solver.call([ca.DM(w0), ca.DM(par), ca.DM(lbx), ca.DM(ubx),
+                                          self._lbg_dm, self._ubg_dm, _EMPTY, _EMPTY])[:3]
         except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
             log.warning("RMPC %s solve raised: %s", self.kind, exc)
             return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
         st = self.solver.stats()
         status = _status_string(st)
-        w = sol["x"].full().ravel()
-        g = sol["g"].full().ravel()
-        cost = float(sol["f"])
+        w = x.full().ravel()
+        g = gdm.full().ravel()
+        cost = float(f)
         it = int(st.get("iter_count", 0))
         t = float(st.get("t_wall_total", float("nan")))
         ok = bool(st.get("success", False))
@@ -311,6 +316,9 @@ class _Solver:
             if resid > ACCEPT_TOL:
                 ok, status = False, f"{status} (residual {resid:.3g} > {ACCEPT_TOL:g})"
         return ok, status, st, w, cost, it, t
+
+
+_EMPTY = ca.DM()  # an input left at its default (the multipliers' initial guesses: 0)
 
 
 def _status_string(st: dict[str, Any]) -> str:

@@ -54,6 +54,12 @@ _COMPRESSION = {
 _STOP = object()
 
 
+def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
+    import cv2
+
+    h, w = image.shape[:2]
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
 
 
 class LogObserver(Protocol):
@@ -294,11 +300,21 @@ class McapLogger:
         encoding: str = "jpeg",
         frame_id: str = "camera",
         stamp_ns: int | None = None,
+        *,
+        scale: float = 1.0,
+        jpeg_quality: int | None = None,
     ) -> bool:
         """Log a uint8 mono (HxW) or BGR (HxWx3) image as foxglove.CompressedImage ("jpeg",
-        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw")."""
+        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw").
+        ``scale`` (0, 1]: downscale first (area interpolation, in the writer thread);
+        ``jpeg_quality``: this image's, instead of the logger's."""
         if encoding not in IMAGE_ENCODINGS:
             raise McapLogError(f"image encoding {encoding!r} not in {IMAGE_ENCODINGS}")
+        if not 0.0 < scale <= 1.0:
+            raise McapLogError(f"image scale {scale!r} not in (0, 1]")
+        quality = self._jpeg_quality if jpeg_quality is None else int(jpeg_quality)
+        if not 1 <= quality <= 100:
+            raise McapLogError("jpeg_quality must be in 1..100")
         self._ensure_topic(topic, sch.RAW_IMAGE if encoding == "raw" else sch.COMPRESSED_IMAGE)
         t = int(log_time_ns)
         item = (
@@ -306,7 +322,7 @@ class McapLogger:
             topic,
             t,
             None,
-            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns),
+            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns, scale, quality),
         )
         nbytes = int(image.nbytes)
         with self._space:
@@ -532,10 +548,10 @@ class McapLogger:
             elif kind == "bytes":
                 schema_name, data = self._topics[topic], bytes(payload)
             elif kind == "image":
-                image, enc, frame_id, stamp_ns = payload
+                image, enc, frame_id, stamp_ns, scale, quality = payload
                 try:
-                    schema_name, data = encode_image(image, enc, stamp_ns, frame_id,
-                                                     self._jpeg_quality)
+                    small = _downscale(image, scale) if scale != 1.0 else image
+                    schema_name, data = encode_image(small, enc, stamp_ns, frame_id, quality)
                 finally:
                     with self._space:
                         self._pending_image_bytes -= int(image.nbytes)
