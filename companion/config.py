@@ -110,8 +110,19 @@ class LoggingConfig:
     block_on_backlog: bool = False
     # MCAP chunk compression: "lz4" (fast), "zstd" (smaller, ~2x the CPU) or "none"
     compression: str = "lz4"
+    # Log every Nth camera frame only (1 = every frame; replay is exact only with 1). Long
+    # flights and soaks: the other channels are still logged at full rate.
+    image_every_n: int = field(default=1, metadata=checked(positive))
+    # When the writer thread forces the file to the disk: "interval" (os.fsync every
+    # flush_interval_s and at each full chunk: power loss costs at most that much), "close"
+    # (only at the end: the OS writes back when it likes) or "never".
+    fsync: str = "interval"
 
     def __post_init__(self) -> None:
+        if self.fsync not in ("interval", "close", "never"):
+            raise ConfigError(
+                f"logging.fsync: {self.fsync!r} is not 'interval', 'close' or 'never'"
+            )
         if self.image_encoding not in ("png", "jpeg", "raw"):
             raise ConfigError(
                 f"logging.image_encoding: {self.image_encoding!r} is not 'png', 'jpeg' or 'raw'"

@@ -313,8 +313,9 @@ class CompanionApp:
         else:
             self.offboard.on_stream_gap()
         # The frame is logged after the command left: a logging backlog never delays it.
-        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
-                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
+        if self.steps % self.cfg.logging.image_every_n == 0:
+            logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
+                             self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
         before = self.offboard.phase
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
