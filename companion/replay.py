@@ -120,7 +120,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
                     ((rec.last_log_time_ns or 0) - (rec.first_log_time_ns or 0)) * 1e-9)
     pipeline = new_pipeline(cfg, timer=timer)
     store = new_store(cfg)
-    tb = TimeBase(cfg.control.time_source)
+    tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
     parser = mavlink2.MAVLink(None)
     parser.robust_parsing = True
     total_steps = counts.get(TOPIC_STEP, 0)
