@@ -78,7 +78,7 @@ class MavlinkConfig:
     # datagrams from unknown addresses, rejected frames logged per second, socket buffer.
     max_datagram_bytes: int = field(default=2048, metadata=checked(positive))
     max_datagrams_per_wakeup: int = field(default=256, metadata=checked(positive))
-    untrusted_parse_per_s: float = field(default=2000.0, metadata=checked(positive))
+    untrusted_parse_per_s: float = field(default=500.0, metadata=checked(positive))
     reject_log_per_s: float = field(default=200.0, metadata=checked(positive))
     recv_buffer_bytes: int = field(default=4194304, metadata=checked(positive))
     # Link counters on /mavlink/stats every this many seconds.

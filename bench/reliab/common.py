@@ -61,6 +61,24 @@ def proc_cpu_s(pid: int) -> float | None:
         return None
 
 
+def udp_socket_drops(port: int) -> dict[str, int]:
+    """Datagrams the kernel dropped (receive buffer full) on the UDP sockets bound to ``port``,
+    from /proc/net/udp: ``bound`` (unconnected: unknown senders) and ``connected`` (the
+    companion's per-source sockets)."""
+    out = {"bound": 0, "connected": 0}
+    try:
+        lines = Path("/proc/net/udp").read_text().splitlines()[1:]
+    except OSError:
+        return out
+    want = f":{port:04X}"
+    for ln in lines:
+        cols = ln.split()
+        if len(cols) > 12 and cols[1].endswith(want):
+            kind = "bound" if cols[2].endswith(":0000") else "connected"
+            out[kind] += int(cols[-1])
+    return out
+
+
 def children_cpu_s() -> float:
     r = resource.getrusage(resource.RUSAGE_CHILDREN)
     return r.ru_utime + r.ru_stime

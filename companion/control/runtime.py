@@ -52,6 +52,7 @@ TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 TOPIC_STATS = "/mavlink/stats"
+_FIRST_FRAME_GRACE_S = 60.0
 
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
@@ -169,6 +170,10 @@ class FaultWindow:
         if w.kind != "solver" or not w.t1_s > w.t0_s:
             raise CompanionError(f"--inject-fault {text!r}: kind 'solver' and T1 > T0 only")
         return w
+
+
+def _finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
 
 
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
@@ -359,10 +364,12 @@ class CompanionApp:
             ):
                 break
             try:
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
-                                                           self.idle_timeout_s)
+                # before the first frame the camera (or the emulator) may still be starting
+                wait_s = (self.idle_timeout_s if self._first_frame_s is not None
+                          else max(self.idle_timeout_s, _FIRST_FRAME_GRACE_S))
+                frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
+                log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                 if exit_deadline is None:
                     self._stop.set()
                     continue
@@ -373,6 +380,7 @@ class CompanionApp:
         assert self._logger is not None and self._link is not None
         logger, link = self._logger, self._link
         t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
+        frame_late_s = self.timebase.last_excess_s
         if self.timebase.last_excess_s > self.cfg.safety.max_frame_age_s:
             # a frame from a backlog (the process or the link stalled): never control from it
             self.stale_frames += 1
@@ -418,6 +426,8 @@ class CompanionApp:
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
+            "frame_late_s": frame_late_s,
+            "telemetry_age_s": _finite_or_none(self.store.telemetry_age_s(t_s)),
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
         })
         if sent_ns is not None:

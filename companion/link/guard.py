@@ -18,7 +18,9 @@ a flood of garbage competes with the real telemetry for the one socket. The guar
   ``rate_limited``, unparsed). Rejected frames reach the log at most ``reject_log_per_s``
   per second (5 s burst; all are counted). The link itself reads at most
   ``max_datagrams_per_wakeup`` datagrams per event-loop wake-up, so the control loop runs
-  between batches.
+  between batches, and gives every pinned source a socket of its own (connected to it, on the
+  same port): a flood from other addresses fills the bound socket's buffer, never the one the
+  real vehicle's datagrams arrive in.
 
 Before an identity is pinned, the first valid frame wins: an attacker already on the network
 before the vehicle's first HEARTBEAT could take the pin. MAVLink 2 signing closes that gap.
@@ -47,7 +49,7 @@ class GuardParams:
     repin_after_s: float = 5.0
     max_datagram_bytes: int = 2048
     max_datagrams_per_wakeup: int = 256
-    untrusted_parse_per_s: float = 2000.0
+    untrusted_parse_per_s: float = 500.0
     untrusted_burst: int = 256
     reject_log_per_s: float = 200.0
     recv_buffer_bytes: int = 4 << 20
@@ -121,6 +123,9 @@ class SourceGuard:
             if p.sysid == sysid and p.addr is not None:
                 return p.addr
         return None
+
+    def is_pinned_address(self, addr: tuple[str, int]) -> bool:
+        return any(p.addr == addr for p in self._pins)
 
     def allowed(self, addr: tuple[str, int]) -> bool:
         return any(h == addr[0] and (pt is None or pt == addr[1]) for h, pt in self._allowed)

@@ -145,6 +145,8 @@ class MavlinkLink:
         self._reject_tokens = 5.0 * self.guard_params.reject_log_per_s  # 5 s burst
         self._t_reject_ns = 0
         self._sock: socket.socket | None = None
+        # udpin: one socket connected to each pinned source (see _attach_pinned)
+        self._pinned_socks: dict[tuple[str, int], socket.socket] = {}
         self.limits = limits or ValueLimits()
         self._clock_ns = clock_ns
         self._on_rx, self._on_tx, self._on_reject = on_rx, on_tx, on_reject
@@ -193,7 +195,7 @@ class MavlinkLink:
             repin_after_s=float(getattr(mavlink_cfg, "repin_after_s", 5.0)),
             max_datagram_bytes=int(getattr(mavlink_cfg, "max_datagram_bytes", 2048)),
             max_datagrams_per_wakeup=int(getattr(mavlink_cfg, "max_datagrams_per_wakeup", 256)),
-            untrusted_parse_per_s=float(getattr(mavlink_cfg, "untrusted_parse_per_s", 2000.0)),
+            untrusted_parse_per_s=float(getattr(mavlink_cfg, "untrusted_parse_per_s", 500.0)),
             reject_log_per_s=float(getattr(mavlink_cfg, "reject_log_per_s", 200.0)),
             recv_buffer_bytes=int(getattr(mavlink_cfg, "recv_buffer_bytes", 4 << 20)),
         ))
@@ -245,23 +247,65 @@ class MavlinkLink:
         datagram transport reads one datagram per loop iteration: under a flood the kernel
         buffer overflows and drops the real vehicle's datagrams with the garbage)."""
         assert self._loop is not None
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if local[1] != 0:
+            # our sockets share the port (SO_REUSEADDR) with each other only: refuse a port
+            # another program (or another link) holds, as a plain bind would
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                probe.bind(local)
+        sock = self._udp_socket()
         try:
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF,
-                                self.guard_params.recv_buffer_bytes)
             sock.bind(local)
-            sock.setblocking(False)
         except OSError:
             sock.close()
             raise
         self._sock = sock
-        self._loop.add_reader(sock.fileno(), self._on_udp_readable)
+        self._loop.add_reader(sock.fileno(), self._on_udp_readable, sock)
 
-    def _on_udp_readable(self) -> None:
-        sock = self._sock
-        if sock is None:
+    def _udp_socket(self) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            # SO_REUSEADDR: the per-source sockets of _attach_pinned share the bound port
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF,
+                                self.guard_params.recv_buffer_bytes)
+            sock.setblocking(False)
+        except OSError:
+            sock.close()
+            raise
+        return sock
+
+    def _attach_pinned(self, addr: tuple[str, int]) -> None:
+        """Give a pinned source its own socket, bound to our port and connected to it: the
+        kernel then delivers that source's datagrams there (a connected socket matches better
+        than the bound one), in a buffer a flood from other addresses cannot fill, read on
+        every loop iteration. Everything else stays on the bound socket."""
+        if (self.endpoint.kind != "udpin" or self._sock is None or self._loop is None
+                or addr in self._pinned_socks):
             return
+        for old in [a for a in self._pinned_socks if not self.guard.is_pinned_address(a)]:
+            self._detach_pinned(old)
+        sock = self._udp_socket()
+        try:
+            sock.bind(self._sock.getsockname())
+            sock.connect(addr)
+        except OSError as e:
+            sock.close()
+            self._count("pinned_socket_error")
+            log.warning("MAVLink: no dedicated socket for %s:%d (%s); sharing the bound one",
+                        *addr, e)
+            return
+        self._pinned_socks[addr] = sock
+        self._loop.add_reader(sock.fileno(), self._on_udp_readable, sock)
+
+    def _detach_pinned(self, addr: tuple[str, int]) -> None:
+        sock = self._pinned_socks.pop(addr, None)
+        if sock is not None:
+            if self._loop is not None:
+                self._loop.remove_reader(sock.fileno())
+            sock.close()
+
+    def _on_udp_readable(self, sock: socket.socket) -> None:
         for _ in range(self.guard_params.max_datagrams_per_wakeup):
             try:
                 data, addr = sock.recvfrom(65536)
@@ -313,6 +357,8 @@ class MavlinkLink:
         self._closed = True
         if self._transport is not None:
             self._transport.close()
+        for a in list(self._pinned_socks):
+            self._detach_pinned(a)
         if self._sock is not None:
             if self._loop is not None:
                 self._loop.remove_reader(self._sock.fileno())
@@ -512,8 +558,8 @@ class MavlinkLink:
         recent.append(raw)
         is_autopilot = sysid == self.target_system and (
             self.target_component == 0 or compid == self.target_component)
-        if addr is not None:
-            self.guard.on_valid(sysid, compid, name, addr, t_ns)
+        if addr is not None and self.guard.on_valid(sysid, compid, name, addr, t_ns):
+            self._attach_pinned(addr)
         if self.endpoint.kind == "udpin" and addr is not None and is_autopilot:
             if not self.guard_params.pin_source:
                 self._peer = (addr[0], addr[1])
