@@ -10,6 +10,7 @@ was ever accepted: a command sent after an accepted attacker frame counts as bui
 
 from __future__ import annotations
 
+import itertools
 import math
 import random
 import socket
@@ -163,7 +164,7 @@ def run_flood(out: Path, n: int = 100_000, rate_per_s: float = 21_700.0,
     t1 = window.get("t1", math.nan)
     in_win = [(t, lvl) for t, lvl in _step_levels(log) if t0 <= t <= t1 + 1.0]
     not_tracking = sum(1 for _, lvl in in_win if lvl != "tracking")
-    changes = sum(1 for a, b in zip(in_win, in_win[1:], strict=False) if a[1] != b[1])
+    changes = sum(1 for a, b in itertools.pairwise(in_win) if a[1] != b[1])
     bad_cmds = _commands_after(log, first_bad_ns) if first_bad_ns is not None else 0
     stats = _last_stats(log)
     ok = (sim_rc == 0 and comp_rc == 0 and accepted == 0 and bad_cmds == 0
@@ -184,7 +185,8 @@ def run_flood(out: Path, n: int = 100_000, rate_per_s: float = 21_700.0,
                    f"rate_limited {stats.get('rate_limited', 0)}"),
         bad_commands=bad_cmds + figs.non_finite_commands,
         figures={"flight": figs.to_json(), "link_counters": stats, "send_errors":
-                 window.get("errors"), "kernel_drops": drops, "load_before": load0, "load_after": load_avg(),
+                 window.get("errors"), "kernel_drops": drops, "load_before": load0,
+                 "load_after": load_avg(),
                  "flood_window_s": [t0 - f.t_start, t1 - f.t_start] if "t0" in window else None},
         wall_s=time.monotonic() - t_w,
         cpu_s=children_cpu_s() - c0,
