@@ -109,11 +109,10 @@ def stall_figures(log: Path, stop_ns: int, cont_ns: int) -> dict[str, Any]:
             late = d.get("frame_late_s")
             lvl = str((d.get("safety") or {}).get("level"))
             age = d.get("telemetry_age_s")
-            if late is not None and late > cfg.safety.max_frame_age_s:
-                stale_cmds += 1
-            elif lvl in ("tracking", "terminal", "reacquire") and (
-                    age is None or age > cfg.safety.telemetry_timeout_s):
-                stale_cmds += 1
+            late_frame = late is not None and late > cfg.safety.max_frame_age_s
+            stale_tel = lvl in ("tracking", "terminal", "reacquire") and (
+                age is None or age > cfg.safety.telemetry_timeout_s)
+            stale_cmds += late_frame or stale_tel
             if first is None:
                 first = {"frame_late_s": late, "telemetry_age_s": age, "level": lvl,
                          "after_cont_s": (m.log_time_ns - cont_ns) * 1e-9,
