@@ -137,7 +137,7 @@ def _slow_fifo(bytes_per_s: float) -> Iterator[tuple[Path, dict[str, int]]]:
 
 
 def one_disk(kind: str, work: Path, duration_s: float, full_mb: int = 6,
-             slow_bytes_per_s: float = 200_000.0) -> dict[str, Any]:
+             slow_bytes_per_s: float = 200_000.0, max_pending_mb: int = 64) -> dict[str, Any]:
     """Run the loop against one disk ``kind``; loop figures plus the logger's counters."""
     fsync = kind.split("-", 1)[1] if kind.startswith("fsync-") else "interval"
     with contextlib.ExitStack() as es:
@@ -153,7 +153,8 @@ def one_disk(kind: str, work: Path, duration_s: float, full_mb: int = 6,
             path = work / f"{kind}.mcap"
             extra["device"] = "working disk"
         lg = McapLogger(path, chunk_size=1 << 20, flush_interval_s=1.0, queue_size=4096,
-                        compression="lz4", fsync=fsync)
+                        max_pending_image_bytes=max_pending_mb << 20, compression="lz4",
+                        fsync=fsync)
         lg.open()
         t0 = time.perf_counter()
         fig = loop_with_logger(lg, duration_s)
