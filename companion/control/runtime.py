@@ -21,6 +21,7 @@ import dataclasses
 import json
 import logging
 import math
+import resource
 import signal
 import time
 from collections.abc import Mapping
@@ -33,17 +34,26 @@ import numpy as np
 from companion import CompanionError
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
-from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.offboard import (
+    PX4_MAIN_MODE_OFFBOARD,
+    OffboardManager,
+    OffboardPhase,
+    VehicleStatus,
+)
 from companion.control.pipeline import ControlPipeline
+from companion.control.recording import FrameRecorder, LogClock
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
+from companion.control.timesync import TimeSync
 from companion.link import MavlinkLink, NoPeerError, Received
 from companion.log import schemas as sch
+from companion.log.live import start_live
 from companion.log.writer import McapLogger
 from companion.perception.pipeline import Perception
 
 log = logging.getLogger(__name__)
 
+FIRST_FRAME_TIMEOUT_S = 60.0
 TOPIC_FRAME = "/camera/image"
 TOPIC_STEP = "/control/step"
 TOPIC_SAFETY = "/control/safety"
@@ -52,7 +62,6 @@ TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 TOPIC_STATS = "/mavlink/stats"
-_FIRST_FRAME_GRACE_S = 60.0
 
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
@@ -61,6 +70,7 @@ _STAMP_FIELDS = {
     "LOCAL_POSITION_NED": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
 }
+STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
 
 
 class DelayFloor:
@@ -176,6 +186,11 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
     """The pipeline a flight (live or replayed) uses for this config."""
     return ControlPipeline(cfg, Perception(cfg.camera, cfg.target), timer=timer)
@@ -206,6 +221,7 @@ class CompanionApp:
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
+        progress_file: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.mavlink_url = mavlink_url or cfg.mavlink.url
@@ -217,8 +233,14 @@ class CompanionApp:
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
-        self.timebase = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
         self.stale_frames = 0  # frames refused as stale (no command built from them)
+        self.progress_file = progress_file
+        self._cpu0: tuple[float, int] | None = None  # (CPU s, steps) at the first frame
+        self.cpu_ms_per_step: float | None = None
+        self.timebase = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
+        self.clock = LogClock(cfg.logging.timestamps)
+        self.recorder = FrameRecorder(cfg.logging)
+        self.timesync = TimeSync()
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
@@ -229,6 +251,8 @@ class CompanionApp:
         self._logger: McapLogger | None = None
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
+        self._elapsed_s = 0.0  # since the first frame, on the frames' clock
+        self._config_logged = False
         self._streaming = True
 
     # -- wiring -----------------------------------------------------------------------------
@@ -236,7 +260,11 @@ class CompanionApp:
     async def run(self) -> int:
         cfg = self.cfg
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        # the live view (None when off) fails here on a taken port, before the flight
+        # (the layout's /camera/image is the JPEG preview whatever logging.image_encoding)
+        live = start_live(cfg.live, "jpeg")
         logger = McapLogger.from_config(cfg.logging, self.log_path)
+        logger.observer = live  # the live view sees what the log writes
         self._logger = logger
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -244,11 +272,11 @@ class CompanionApp:
                 loop.add_signal_handler(sig, self._stop.set)
         try:
             with logger:
-                logger.log_config(time.monotonic_ns(), self.config_text, dict(cfg.raw),
-                                  cfg.source)
+                self._log_config()
                 link = MavlinkLink.from_config(
                     dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
-                    on_rx=self._on_rx, on_tx=lambda s: logger.log_mavlink("out", s),
+                    on_rx=self._on_rx,
+                    on_tx=lambda s: logger.log_mavlink("out", s, self._tx_log_ns(s)),
                     on_reject=logger.log_rejected,
                 )
                 self._link = link
@@ -260,6 +288,8 @@ class CompanionApp:
                         aux = [tg.create_task(self._drain(link)),
                                tg.create_task(self._heartbeat(link)),
                                tg.create_task(self._stats(link))]
+                        if cfg.control.time_source == "timesync":
+                            aux.append(tg.create_task(self._timesync(link)))
                         if self.truth_port is not None:
                             ready = asyncio.Event()
                             aux.append(tg.create_task(self._truth(self.truth_port, ready)))
@@ -275,17 +305,47 @@ class CompanionApp:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
+            if live is not None:
+                live.close()
+        if self._cpu0 is not None and self.steps > self._cpu0[1]:
+            self.cpu_ms_per_step = 1e3 * (_cpu_s() - self._cpu0[0]) / (self.steps - self._cpu0[1])
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
-                 "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
-                 self.log_path, logger.stats.written, logger.stats.dropped)
+                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads, first "
+                 "frame to exit)", self.steps, self.sent, self.rx_count, self.log_path,
+                 logger.stats.written, logger.stats.dropped,
+                 "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
+        self._write_progress(final=True)
         return 0
+
+    def _write_progress(self, final: bool = False) -> None:
+        """``elapsed_s steps [cpu_ms_per_step]`` for an orchestrator (``companion demo``)."""
+        if self.progress_file is None:
+            return
+        elapsed = self._elapsed_s
+        cpu = f" {self.cpu_ms_per_step:.4f}" if final and self.cpu_ms_per_step else ""
+        with contextlib.suppress(OSError):
+            tmp = self.progress_file.with_suffix(".tmp")
+            tmp.write_text(f"{elapsed:.3f} {self.steps}{cpu}\n")
+            tmp.replace(self.progress_file)
+
+    def _log_config(self) -> None:
+        """``/config``, once: at start, or (source log times) at the first stamp seen."""
+        if self._config_logged or not self.clock.started or self._logger is None:
+            return
+        self._config_logged = True
+        self._logger.log_config(self.clock.now_ns(), self.config_text, dict(self.cfg.raw),
+                                self.cfg.source)
+
+    def _tx_log_ns(self, sent: Any) -> int:
+        return int(sent.t_tx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
 
     # -- receive ----------------------------------------------------------------------------
 
     def _on_rx(self, rx: Received) -> None:
         assert self._logger is not None
-        self._logger.log_mavlink("in", rx)
         fields = rx.msg.to_dict()
+        self._logger.log_mavlink("in", rx, self.clock.message_ns(rx.name, fields, rx.t_rx_ns))
+        self._log_config()
         t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
         self.store.ingest(rx.name, fields, t_s, rx.src_sysid)
         self.rx_count += 1
@@ -295,6 +355,12 @@ class CompanionApp:
                 before = self.offboard.phase
                 self.offboard.on_heartbeat(VehicleStatus(m.armed, m.main_mode, m.sub_mode, t_s))
                 self._log_offboard(before, t_s)
+        elif rx.name == "TIMESYNC" and is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
+            answer = self.timesync.on_timesync(int(fields["tc1"]), int(fields["ts1"]),
+                                               time.monotonic_ns())
+            if answer is not None and self._link is not None:
+                with contextlib.suppress(NoPeerError):
+                    self._link.send_timesync(*answer)
         elif rx.name == "COMMAND_ACK":
             log.info("COMMAND_ACK command %s result %s", fields.get("command"),
                      fields.get("result"))
@@ -322,16 +388,53 @@ class CompanionApp:
                   if (a := link.guard.pinned(s)) is not None}
         counters = dict(link.counters)
         counters.update({f"guard_{k}": v for k, v in link.guard.counters.items()})
-        self._logger.log(TOPIC_STATS, time.monotonic_ns(), {
+        t_ns = time.monotonic_ns() if self.clock.mode == "receipt" else self.clock.now_ns()
+        self._logger.log(TOPIC_STATS, t_ns, {
             "counters": counters, "pinned": pinned,
             "stale_dropped": self.stale_frames, "stale_inputs": self.timebase.stale_count,
             "log_dropped": self._logger.stats.dropped,
         }, schema=sch.MAVLINK_STATS)
 
+    async def _timesync(self, link: MavlinkLink) -> None:
+        """TIMESYNC requests at 10 Hz, like PX4's onboard link (the replies feed
+        :attr:`timesync` in :meth:`_on_rx`)."""
+        while True:
+            with contextlib.suppress(NoPeerError):
+                link.send_timesync(*self.timesync.request(time.monotonic_ns()))
+            await asyncio.sleep(0.1)
+
+    def _in_control(self) -> bool:
+        """Our setpoints fly the vehicle: armed, and OFFBOARD confirmed (HEARTBEAT) or just
+        requested (PX4 switches at once; the 1 Hz HEARTBEAT confirms up to 1 s later, a
+        rejection shows there too and ends it)."""
+        m = self.store.mode
+        if m is None or not m.armed:
+            return False
+        if self.offboard.phase is OffboardPhase.REQUESTING:
+            return True
+        return m.main_mode == PX4_MAIN_MODE_OFFBOARD and self.offboard.phase in (
+            OffboardPhase.ACTIVE, OffboardPhase.LOST, OffboardPhase.EXITING)
+
+    def now_s(self) -> float | None:
+        """"Now" on the frames' time base, for the latency compensation: ``None`` with
+        receipt stamps (a frame's age is unknown); else the newest attitude/position stamp,
+        or later by the TIMESYNC-mapped local clock (``control.time_source = "timesync"``).
+        In lockstep the autopilot's clock stands still while it waits for our setpoint, so
+        the wall-clock mapping runs ahead there: the demo uses ``"autopilot"``."""
+        if self.timebase.source == "receipt":
+            return None
+        now = self.store.newest_autopilot_s()
+        if self.timebase.source == "timesync":
+            mapped = self.timesync.autopilot_s(time.monotonic_ns())
+            if mapped is not None and math.isfinite(mapped):
+                now = max(now, mapped)
+        return now if math.isfinite(now) else None
+
     async def _truth(self, port: int, ready: asyncio.Event) -> None:
         """Ground truth from the emulator, logged for scoring only (never read by control)."""
         assert self._logger is not None
         logger = self._logger
+        clock = self.clock
         loop = asyncio.get_running_loop()
 
         class _Proto(asyncio.DatagramProtocol):
@@ -340,7 +443,7 @@ class CompanionApp:
                     rec = json.loads(data)
                 except ValueError:
                     return
-                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec, schema=sch.JSON)
+                logger.log(TOPIC_TRUTH, clock.now_ns(), rec, schema=sch.JSON)
 
         transport, _ = await loop.create_datagram_endpoint(
             _Proto, local_addr=("127.0.0.1", port))
@@ -364,9 +467,11 @@ class CompanionApp:
             ):
                 break
             try:
-                # before the first frame the camera (or the emulator) may still be starting
-                wait_s = (self.idle_timeout_s if self._first_frame_s is not None
-                          else max(self.idle_timeout_s, _FIRST_FRAME_GRACE_S))
+                # Before the first frame the camera (or a loaded machine's emulator) may
+                # still be starting: wait longer than between frames (not once stopping).
+                first = not self.steps and exit_deadline is None
+                wait_s = max(self.idle_timeout_s, FIRST_FRAME_TIMEOUT_S) if first \
+                    else self.idle_timeout_s
                 frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
                 log.info("companion: no camera frame for %.1f s, stopping", wait_s)
@@ -381,11 +486,13 @@ class CompanionApp:
         logger, link = self._logger, self._link
         t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
         frame_late_s = self.timebase.last_excess_s
+        t_log = self.clock.frame_ns(frame.t_us, frame.t_rx_ns)
+        self._log_config()
         if self.timebase.last_excess_s > self.cfg.safety.max_frame_age_s:
             # a frame from a backlog (the process or the link stalled): never control from it
             self.stale_frames += 1
             self.offboard.on_stream_gap()
-            logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
+            logger.log_text(TOPIC_SAFETY, t_log,
                             f"stale frame {frame.seq} dropped: {self.timebase.last_excess_s:.3f}"
                             f" s late (safety.max_frame_age_s "
                             f"{self.cfg.safety.max_frame_age_s} s)",
@@ -394,12 +501,14 @@ class CompanionApp:
         if self._first_frame_s is None:
             self._first_frame_s = t_s
         elapsed = t_s - self._first_frame_s
+        self._elapsed_s = elapsed
         if self.duration_s is not None and elapsed >= self.duration_s:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
         t_start_ns = time.monotonic_ns()
-        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
+        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store,
+                                 t_now_s=self.now_s(), in_control=self._in_control())
         sent_ns = None
         if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
             try:
@@ -413,14 +522,17 @@ class CompanionApp:
         else:
             self.offboard.on_stream_gap()
         # The frame is logged after the command left: a logging backlog never delays it.
-        if self.steps % self.cfg.logging.image_every_n == 0:
-            logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
-                             self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
+        logged_input = self.recorder.record(logger, t_log, np.asarray(frame.image), frame.t_us,
+                                            res.input_region)
         before = self.offboard.phase
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
         self._log_offboard(before, t_s)
         self.steps += 1
+        if self._cpu0 is None:
+            self._cpu0 = (_cpu_s(), self.steps)
+        elif self.progress_file is not None and self.steps % 20 == 0:
+            self._write_progress()
         rec = res.to_record()
         rec.update({
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
@@ -429,6 +541,7 @@ class CompanionApp:
             "frame_late_s": frame_late_s,
             "telemetry_age_s": _finite_or_none(self.store.telemetry_age_s(t_s)),
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
+            "input": logged_input,
         })
         if sent_ns is not None:
             # decode: receipt -> step start (decoding the frame, then waiting for the loop)
@@ -436,10 +549,10 @@ class CompanionApp:
                                  **rec["timings_ms"],
                                  "send": (sent_ns - t_start_ns) * 1e-6
                                  - sum(rec["timings_ms"].values())}
-        logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
-        self._log_poses(frame.t_rx_ns)
+        logger.log(TOPIC_STEP, t_log, rec, schema=sch.CONTROLLER_STEP)
+        self._log_poses(t_log)
         if res.safety.changed or self.steps == 1:  # the initial state, then each transition
-            logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
+            logger.log_text(TOPIC_SAFETY, t_log,
                             f"{res.safety.level.value}: {res.safety.reason}",
                             level="WARNING", name="safety")
 
@@ -472,7 +585,7 @@ class CompanionApp:
         if self.offboard.phase is not before and self._logger is not None:
             _, phase, reason = self.offboard.transitions[-1]
             log.info("offboard %s -> %s: %s", before.value, phase.value, reason)
-            self._logger.log_text(TOPIC_OFFBOARD, time.monotonic_ns(),
+            self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
                                   f"{before.value} -> {phase.value}: {reason}",
                                   level="INFO", name="offboard")
 

@@ -11,8 +11,11 @@ slacks of the soft (recovery) copy only. Constraint rows, stage by stage::
 
 with the gap rows written ``x_{n+1} - F(x_n, u_n)`` (explicit Euler) and the path rows of stage
 ``n`` depending on ``x_n, u_n, sl_n`` only. ``eta(0)`` is fixed by equal bounds on ``x_0``;
-input and state boxes are bounds on ``w``. Parameters ``p`` (5 N): per stage
-``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a]`` (m/s, m/s^2, rad/s, virtual frame).
+input and state boxes are bounds on ``w``. Parameters ``p`` (8 N): per stage
+``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a, d_x, d_y, d_z]`` (m/s, m/s^2, rad/s, m/s^2; virtual
+frame). ``d`` is the estimated disturbance acceleration (``companion.core.disturbance``): the
+input ``u`` is the vehicle's acceleration, so the attitude that realises it, and with it the
+visible area's centre ``M``, is the one of the specific force ``u - d``.
 
 Groups (RmpcParams switches):
 
@@ -42,7 +45,7 @@ from companion.core.terminal import TerminalDesign
 
 NX = 7
 NU = 4
-NP_STAGE = 5
+NP_STAGE = 8
 GROUPS = ("tube", "visibility", "terminal")
 
 
@@ -107,9 +110,14 @@ def image_point(eta: Any) -> tuple[Any, Any]:
     return eta[0] / s3, eta[1] / s3
 
 
-def centre(u: Any, rmpc: RmpcParams, camera: CameraParams) -> tuple[Any, Any]:
-    """``M(u)``: centre of the visible area in the virtual image at the attitude ``u`` asks."""
-    phi, theta, _ = attitude_from_accel(u[0], u[1], u[2], rmpc.g_m_s2)
+def centre(u: Any, rmpc: RmpcParams, camera: CameraParams, d: Any = None) -> tuple[Any, Any]:
+    """``M(u)``: centre of the visible area in the virtual image at the attitude ``u`` asks
+    (with a disturbance ``d`` (3, virtual frame): the attitude of ``u - d``)."""
+    if d is None:
+        phi, theta, _ = attitude_from_accel(u[0], u[1], u[2], rmpc.g_m_s2)
+    else:
+        phi, theta, _ = attitude_from_accel(u[0] - d[0], u[1] - d[1], u[2] - d[2],
+                                            rmpc.g_m_s2)
     half = camera.visible_half_m
     return visible_area_centre(phi, theta, half, half, camera.focal_length_m)
 
@@ -147,7 +155,8 @@ def build_nlp(
 
     vis_stage = {st: img for st, img, _ in visibility_pairs(rmpc)}
 
-    def path_rows(n: int, x: ca.SX, u: ca.SX | None, x_next: ca.SX | None = None) -> None:
+    def path_rows(n: int, x: ca.SX, u: ca.SX | None, x_next: ca.SX | None = None,
+                  d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
         items: list[tuple[str, str, ca.SX, float]] = []
@@ -158,7 +167,7 @@ def build_nlp(
                 assert u is not None and x_next is not None
                 img = vis_stage[n]
                 pu, pn = image_point(x if img == n else x_next)
-                mu, mn = centre(u, rmpc, camera)
+                mu, mn = centre(u, rmpc, camera, d)
                 val = (pu - mu) ** 2 + (pn - mn) ** 2
                 items.append(
                     ("visibility", "visibility", val, visibility_radius(rmpc, terminal, img) ** 2)
@@ -188,7 +197,7 @@ def build_nlp(
     for n in range(big_n):
         x, u = xs[n], us[n]
         pn_ = par[NP_STAGE * n : NP_STAGE * (n + 1)]
-        v_a, vdot_a, psidot_a = pn_[0:2], pn_[2:4], pn_[4]
+        v_a, vdot_a, psidot_a, d_n = pn_[0:2], pn_[2:4], pn_[4], pn_[5:8]
         x_index[n] = add_w(x)
         u_index[n] = add_w(u)
         ue = input_error(u, v_a, vdot_a, psidot_a)
@@ -201,7 +210,7 @@ def build_nlp(
         g.append(gap)
         equality.extend([True] * NX)
         n_g += NX
-        path_rows(n, x, u, x_next)
+        path_rows(n, x, u, x_next, d_n)
     x_index[big_n] = add_w(xs[big_n])
     cost = cost + ca.bilin(p_mat, xs[big_n], xs[big_n])
     path_rows(big_n, xs[big_n], None)

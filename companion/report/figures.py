@@ -51,8 +51,9 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     truth.sort(key=lambda r: r["t_us"])
     steps.sort(key=lambda r: r["t_s"])
     out: dict[str, Any] = {
-        # simulated time flown: the emulator's clock starts at 0 with the flight
-        "sim_time_s": truth[-1]["t_us"] * 1e-6 if truth else 0.0,
+        # simulated time flown: the emulator's clock starts at 0 with the flight ("t_us" is the
+        # autopilot's boot clock, which a realistic telemetry level starts at a boot offset)
+        "sim_time_s": _sim_t(truth[-1]) if truth else 0.0,
         "truth_records": len(truth),
         "steps": len(steps),
     }
@@ -67,6 +68,13 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     }
     out["safety"] = _safety(steps)
     return out
+
+
+def _sim_t(rec: Mapping[str, Any]) -> float:
+    """Simulated time (s since the flight started) of a truth record. Records from emulators
+    that predate ``sim_t_s`` carry only ``t_us``, which was simulated time then."""
+    t = rec.get("sim_t_s")
+    return float(t) if t is not None else float(rec["t_us"]) * 1e-6
 
 
 def _visibility(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
@@ -127,7 +135,7 @@ def _tracking(truth: list[Mapping[str, Any]], st: ReportSettings) -> dict[str, A
             continue
         p_q = np.asarray(r["uav"]["pos_ned_m"], dtype=float)
         p_a = np.asarray(r["agv"]["pos_ned_m"], dtype=float)
-        rows.append((r["t_us"] * 1e-6, se, (p_a[2] - p_q[2]) - st.desired_depth_m,
+        rows.append((_sim_t(r), se, (p_a[2] - p_q[2]) - st.desired_depth_m,
                      float(np.hypot(*(p_a[:2] - p_q[:2])))))
     if not rows:
         return {"rms_se": None, "final_se": None, "rms_height_error_m": None,

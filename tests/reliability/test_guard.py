@@ -224,7 +224,6 @@ def test_bad_allowed_sources_are_refused(text: str) -> None:
 
 @pytest.mark.parametrize("ov, key", [
     ('logging.fsync="sometimes"', "logging.fsync"),
-    ("logging.image_every_n=0", "logging.image_every_n"),
     ("safety.max_frame_age_s=0", "safety.max_frame_age_s"),
     ("mavlink.untrusted_parse_per_s=-1", "mavlink.untrusted_parse_per_s"),
     ("mavlink.max_datagrams_per_wakeup=0", "mavlink.max_datagrams_per_wakeup"),
