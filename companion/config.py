@@ -23,6 +23,7 @@ from typing import Any
 
 from companion import ConfigError
 from companion.core.errors import ParamError
+from companion.core.geometry import rectangle_corners_m
 from companion.core.params import (
     CameraParams,
     ControlParams,
@@ -68,6 +69,34 @@ class MavlinkConfig:
     target_system: int = field(metadata=checked(positive))
     target_component: int = field(metadata=checked(nonneg))
     signing_key_file: str = ""
+    # Receive guard (companion/link/guard.py, docs/reliability.md): pin the autopilot (and the
+    # AGV) to the address of its first valid frame and drop other senders claiming its sysid
+    # unparsed; addresses that may always speak for it ("host" or "host:port", routers).
+    pin_source: bool = True
+    allowed_sources: tuple[str, ...] = ()
+    repin_after_s: float = field(default=5.0, metadata=checked(positive))
+    # Work bounds: datagram size, datagrams read per event-loop wake-up, parses per second of
+    # datagrams from unknown addresses, rejected frames logged per second, socket buffer.
+    max_datagram_bytes: int = field(default=2048, metadata=checked(positive))
+    max_datagrams_per_wakeup: int = field(default=256, metadata=checked(positive))
+    untrusted_parse_per_s: float = field(default=500.0, metadata=checked(positive))
+    reject_log_per_s: float = field(default=200.0, metadata=checked(positive))
+    recv_buffer_bytes: int = field(default=4194304, metadata=checked(positive))
+    # Link counters on /mavlink/stats every this many seconds.
+    stats_interval_s: float = field(default=1.0, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        for i, src in enumerate(self.allowed_sources):
+            host, sep, port = src.rpartition(":")
+            if not sep:
+                host, port = src, ""
+            octets = host.split(".")
+            ok = len(octets) == 4 and all(o.isdigit() and int(o) <= 255 for o in octets)
+            if not ok or not (port == "" or (port.isdigit() and 1 <= int(port) <= 65535)):
+                raise ConfigError(
+                    f"mavlink.allowed_sources[{i}]: {src!r} is not an IPv4 address with an "
+                    "optional :PORT (1..65535)"
+                )
 
 
 @dataclass(frozen=True)
@@ -94,6 +123,10 @@ class SafetyConfig:
     silence_after_s: float = field(metadata=checked(positive))
     reacquire_climb_rate_m_s: float = field(metadata=checked(nonneg))
     reacquire_max_height_m: float = field(metadata=checked(positive))
+    # A camera frame or telemetry message whose delay exceeds its stream's smallest delay by
+    # more than this is stale (a stalled process, a backlog): no command is built from it.
+    # Receipt time base only (control.time_source = "receipt").
+    max_frame_age_s: float = field(default=0.25, metadata=checked(positive))
 
 
 @dataclass(frozen=True)
@@ -123,8 +156,16 @@ class LoggingConfig:
     # autopilot's clock carried by frames and telemetry: a lockstep simulation then plays at
     # its real speed)
     timestamps: str = "receipt"
+    # When the writer thread forces the file to the disk: "interval" (os.fsync every
+    # flush_interval_s and at each full chunk: power loss costs at most that much), "close"
+    # (only at the end: the OS writes back when it likes) or "never".
+    fsync: str = "interval"
 
     def __post_init__(self) -> None:
+        if self.fsync not in ("interval", "close", "never"):
+            raise ConfigError(
+                f"logging.fsync: {self.fsync!r} is not 'interval', 'close' or 'never'"
+            )
         if self.image_encoding not in ("png", "jpeg", "raw"):
             raise ConfigError(
                 f"logging.image_encoding: {self.image_encoding!r} is not 'png', 'jpeg' or 'raw'"
@@ -167,6 +208,33 @@ class LiveConfig:
             raise ConfigError(f"live.port: {self.port} is not a TCP port (0..65535)")
 
 
+CONTROLLER_KINDS = ("rmpc", "rmpc-centroid", "mpc-novis", "ibvs-pd")
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Which control law flies (docs/visibility.md, ``companion/control/factory.py``).
+
+    ``kind``: ``rmpc`` (the RMPC as configured in [rmpc]; paper.toml keeps every corner in
+    view), ``rmpc-centroid`` (the same with the paper's centroid rows), ``mpc-novis`` (the same
+    MPC without visibility rows), ``ibvs-pd`` (classical moment-based IBVS: a PD on the same
+    virtual-camera moments). ``ibvs_*``: the IBVS gains (1/s): image-error decay rate
+    ``lambda``, velocity-loop gain ``k_v`` (critically damped at ``k_v = 4 lambda``) and the
+    yaw gain.
+    """
+
+    kind: str = "rmpc"
+    ibvs_lambda_1_s: float = field(default=0.5, metadata=checked(positive))
+    ibvs_kv_1_s: float = field(default=2.0, metadata=checked(positive))
+    ibvs_yaw_gain_1_s: float = field(default=1.0, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        if self.kind not in CONTROLLER_KINDS:
+            raise ConfigError(
+                f"controller.kind: {self.kind!r} is not one of {', '.join(CONTROLLER_KINDS)}"
+            )
+
+
 @dataclass(frozen=True)
 class Config:
     """The whole companion configuration. ``source`` is the file it came from."""
@@ -179,6 +247,7 @@ class Config:
     offboard: OffboardConfig
     safety: SafetyConfig
     logging: LoggingConfig
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
     live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
@@ -209,11 +278,27 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
             continue
         if f.name not in data:
             if f.default_factory is not dataclasses.MISSING:  # an optional table
+                sections[f.name] = f.default_factory()
                 continue
             raise ConfigError(f"{f.name}: missing table [{f.name}]")
-        sections[f.name] = _build(_resolve(f.type), data[f.name], f.name)
+        table = data[f.name]
+        if f.name == "rmpc" and isinstance(table, Mapping):
+            table = _with_target_corners(table, sections["target"])
+        sections[f.name] = _build(_resolve(f.type), table, f.name)
     plain = {k: v for k, v in data.items() if k not in _FOREIGN_TABLES}
     return Config(**sections, source=source, raw=types.MappingProxyType(plain))
+
+
+def _with_target_corners(table: Mapping[str, Any], target: TargetConfig) -> dict[str, Any]:
+    """The [rmpc] table with ``target_corners_m`` filled from [target] (the corners the
+    detector returns: the rectangle's, or the marker's)."""
+    if "target_corners_m" in table:
+        raise ConfigError("rmpc.target_corners_m: not a config key (it comes from [target])")
+    if target.pattern == "aruco":
+        pts = rectangle_corners_m(target.aruco_size_m, target.aruco_size_m)
+    else:
+        pts = rectangle_corners_m(target.length_m, target.width_m)
+    return {**table, "target_corners_m": [[float(x), float(y)] for x, y in pts]}
 
 
 def read_document(path: str | Path) -> dict[str, Any]:

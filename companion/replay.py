@@ -213,7 +213,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     pipeline = new_pipeline(cfg, timer=timer)
     perception = Perception(cfg.camera, cfg.target)  # undistortion + metric of detections
     store = new_store(cfg)
-    tb = TimeBase(cfg.control.time_source)
+    tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
     parser = mavlink2.MAVLink(None)
     parser.robust_parsing = True
     total_steps = counts.get(TOPIC_STEP, 0)

@@ -656,6 +656,7 @@ class SimBridge:
             self._us(t), seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv,
             frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
             armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
+        rec["sim_t_s"] = t  # t_us is on the autopilot's clock (boot offset); this is sim time
         if not self._vehicle_ideal:
             rec["hover_thrust_true"] = self.model.true_hover_thrust(t)
         if not self.cfg.sim.camera_model.ideal:

@@ -29,7 +29,12 @@ from sim_bridge.physics.px4_control import (
     thrust_curve_inverse,
 )
 from sim_bridge.physics.rigid_body import AirframeParams, Px4VehicleModel
-from sim_bridge.physics.vehicle import AttitudeCommand, initial_state
+from sim_bridge.physics.vehicle import (
+    AttitudeCommand,
+    Disturbance,
+    DisturbanceParams,
+    initial_state,
+)
 from sim_bridge.vehicle_model import build_vehicle_model
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -267,3 +272,38 @@ def test_body_rate_setpoint_goes_to_the_rate_loop() -> None:
     cmd = AttitudeCommand(0.0, 0.0, 0.0, 0.5, body_rates_frd_rad_s=(0.5, 0.0, -0.3))
     s = model.step(s, cmd, 2.0)  # (the gyroscopic coupling p r is for the integrators)
     assert s.rates_frd_rad_s == pytest.approx([0.5, 0.0, -0.3], abs=0.01)
+
+
+def test_turbulence_is_seeded_stationary_and_independent_of_the_step() -> None:
+    params = DisturbanceParams(
+        turbulence_std_m_s2=0.2, turbulence_tau_s=1.0, random_hold_s=0.05, seed=5
+    )
+    a, b = Disturbance(params), Disturbance(params)
+    ts = np.arange(0.0, 1000.0, 0.05)
+    xs = np.array([a.accel_ned_m_s2(t) for t in ts])
+    # another evaluation pattern (fine steps, a jump back) gives the same function of time
+    for t in (0.0, 0.0125, 3.7, 1.2, 999.97):
+        assert np.array_equal(b.accel_ned_m_s2(t), xs[math.floor(t / 0.05)])
+    std = xs.std(axis=0)
+    assert std == pytest.approx([0.2, 0.2, 0.1], rel=0.15)
+    lag = round(1.0 / 0.05)  # one correlation time: autocorrelation e^-1
+    r = np.corrcoef(xs[:-lag, 0], xs[lag:, 0])[0, 1]
+    assert r == pytest.approx(math.exp(-1), abs=0.1)
+    other = Disturbance(dataclasses.replace(params, seed=6))
+    assert not np.array_equal(xs[:100], [other.accel_ned_m_s2(t) for t in ts[:100]])
+
+
+def test_first_order_model_flies_the_imperfect_vehicle() -> None:
+    data = read_toml(ROOT / "config" / "paper.toml")
+    data["sim"]["vehicle"]["level"] = "realistic"
+    data["sim"]["battery"] = {"level": "realistic"}
+    cfg = config_from_dict(data)
+    model = build_vehicle_model(cfg)
+    true0 = 0.5 * 1.1 * 1.05  # hover_thrust_error 0.1, mass_error 0.05
+    assert model.true_hover_thrust(0.0) == pytest.approx(true0)
+    assert model.true_hover_thrust(120.0) == pytest.approx(true0 / (1 - 0.03))  # 1.5 %/min
+    s = initial_state((0.0, 0.0, -3.0))
+    s = model.step(s, AttitudeCommand(0.0, 0.0, 0.0, true0), 1.0)
+    assert abs(s.pos_ned_m[2] + 3.0) < 1e-3  # (the sag over 1 s moves it < 1 mm)
+    s = model.step(initial_state((0.0, 0.0, -3.0)), AttitudeCommand(0.0, 0.0, 0.0, 0.5), 1.0)
+    assert s.pos_ned_m[2] + 3.0 > 0.3  # the configured MPC_THR_HOVER sinks
