@@ -380,12 +380,13 @@ def test_disturbance_moves_the_visible_area_centre_in_the_solved_problem(
 
 
 def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDesign) -> None:
-    """The NLP's visibility rows evaluated at a random point equal numpy's |p - M(u - d)|^2."""
+    """The NLP's visibility rows (centroid or corner) evaluated at a random point equal numpy's
+    |p - M(u - d)|^2, with the planned-yaw target motion of ``stage_motion``."""
     import casadi as ca
 
     from companion.core.dynamics import euler_step
     from companion.core.rmpc import _row_value
-    from companion.core.rmpc_problem import build_nlp
+    from companion.core.rmpc_problem import build_nlp, stage_motion
 
     nlp, lay = build_nlp(cfg.rmpc, cfg.camera, design, soft=False)
     g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
@@ -394,17 +395,21 @@ def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDe
     base = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, lay.horizon)
     d = rng.normal(0.0, 0.5, (lay.horizon, 3))
     tm = TargetMotion(base.v_a_m_s, base.vdot_a_m_s2, base.psidot_a_rad_s, d)
-    got = g(w, tm.packed()).full().ravel()
-    got0 = g(w, base.packed()).full().ravel()
     x = w[lay.x_index]
     u = w[lay.u_index]
-    rows = [r for r in lay.rows if r.kind == "visibility"]
+    s4_ref = float(x[0][3])
+    got = g(w, np.append(tm.packed(), s4_ref)).full().ravel()
+    got0 = g(w, np.append(base.packed(), s4_ref)).full().ravel()
+    rows = [r for r in lay.rows if r.kind in ("visibility", "corner")]
     assert rows
     for r in rows:
         n = r.stage
         # causal rows: the image after the step, p(F(x_n, u_n)) (rmpc_problem)
+        v_a, vdot_a, psidot_a = base.stage(n)
+        motion = stage_motion(cfg.rmpc, x[n], u[n], v_a, vdot_a, psidot_a, s4_ref)
         img = x[n] if cfg.rmpc.visibility_pairing == "spec" else euler_step(
-            x[n], u[n], *base.stage(n), cfg.rmpc.desired_depth_m, cfg.rmpc.dt_s)
-        want = _row_value("visibility", img, u[n], design.p, cfg.rmpc, cfg.camera, d[n])
+            x[n], u[n], *motion, cfg.rmpc.desired_depth_m, cfg.rmpc.dt_s)
+        want = _row_value(r.kind, img, u[n], design.p, cfg.rmpc, cfg.camera, d[n],
+                          corner=r.corner)
         assert got[r.g_index] == pytest.approx(want, rel=1e-9, abs=1e-12)
         assert abs(got[r.g_index] - got0[r.g_index]) > 1e-6
