@@ -186,7 +186,8 @@ def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
     assert loop[0].result.hard_status.startswith("infeasible: yaw error")
     hard, tm0 = fresh._hard, loop[0].result.target
     w0 = fresh._pack(hard.layout, *fresh._rollout(eta0, tm0))
-    ok, status, *_ = hard.solve(w0, tm0.packed(), *hard.bounds(eta0, tm0))
+    ok, status, *_ = hard.solve(w0, np.append(tm0.packed(), eta0[3]), *hard.bounds(eta0, tm0))
+    assert not status.startswith("exception"), status  # a real solve, not a bad call
     assert not ok, status
     for s in loop:
         if s.result.hard_status.startswith("infeasible"):
@@ -394,8 +395,9 @@ def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDe
     base = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, lay.horizon)
     d = rng.normal(0.0, 0.5, (lay.horizon, 3))
     tm = TargetMotion(base.v_a_m_s, base.vdot_a_m_s2, base.psidot_a_rad_s, d)
-    got = g(w, tm.packed()).full().ravel()
-    got0 = g(w, base.packed()).full().ravel()
+    s4_ref = w[lay.x_index[0]][3]  # the NLP's last parameter (nominal target motion: unused)
+    got = g(w, np.append(tm.packed(), s4_ref)).full().ravel()
+    got0 = g(w, np.append(base.packed(), s4_ref)).full().ravel()
     x = w[lay.x_index]
     u = w[lay.u_index]
     rows = [r for r in lay.rows if r.kind == "visibility"]
