@@ -186,7 +186,8 @@ def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
     assert loop[0].result.hard_status.startswith("infeasible: yaw error")
     hard, tm0 = fresh._hard, loop[0].result.target
     w0 = fresh._pack(hard.layout, *fresh._rollout(eta0, tm0))
-    ok, status, *_ = hard.solve(w0, tm0.packed(), *hard.bounds(eta0, tm0))
+    ok, status, *_ = hard.solve(w0, np.append(tm0.packed(), eta0[3]), *hard.bounds(eta0, tm0))
+    assert not status.startswith("exception"), status  # a real solve, not a bad call
     assert not ok, status
     for s in loop:
         if s.result.hard_status.startswith("infeasible"):
