@@ -23,6 +23,7 @@ from typing import Any
 
 from companion import ConfigError
 from companion.core.errors import ParamError
+from companion.core.geometry import rectangle_corners_m
 from companion.core.params import (
     CameraParams,
     ControlParams,
@@ -68,6 +69,34 @@ class MavlinkConfig:
     target_system: int = field(metadata=checked(positive))
     target_component: int = field(metadata=checked(nonneg))
     signing_key_file: str = ""
+    # Receive guard (companion/link/guard.py, docs/reliability.md): pin the autopilot (and the
+    # AGV) to the address of its first valid frame and drop other senders claiming its sysid
+    # unparsed; addresses that may always speak for it ("host" or "host:port", routers).
+    pin_source: bool = True
+    allowed_sources: tuple[str, ...] = ()
+    repin_after_s: float = field(default=5.0, metadata=checked(positive))
+    # Work bounds: datagram size, datagrams read per event-loop wake-up, parses per second of
+    # datagrams from unknown addresses, rejected frames logged per second, socket buffer.
+    max_datagram_bytes: int = field(default=2048, metadata=checked(positive))
+    max_datagrams_per_wakeup: int = field(default=256, metadata=checked(positive))
+    untrusted_parse_per_s: float = field(default=500.0, metadata=checked(positive))
+    reject_log_per_s: float = field(default=200.0, metadata=checked(positive))
+    recv_buffer_bytes: int = field(default=4194304, metadata=checked(positive))
+    # Link counters on /mavlink/stats every this many seconds.
+    stats_interval_s: float = field(default=1.0, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        for i, src in enumerate(self.allowed_sources):
+            host, sep, port = src.rpartition(":")
+            if not sep:
+                host, port = src, ""
+            octets = host.split(".")
+            ok = len(octets) == 4 and all(o.isdigit() and int(o) <= 255 for o in octets)
+            if not ok or not (port == "" or (port.isdigit() and 1 <= int(port) <= 65535)):
+                raise ConfigError(
+                    f"mavlink.allowed_sources[{i}]: {src!r} is not an IPv4 address with an "
+                    "optional :PORT (1..65535)"
+                )
 
 
 @dataclass(frozen=True)
@@ -94,6 +123,10 @@ class SafetyConfig:
     silence_after_s: float = field(metadata=checked(positive))
     reacquire_climb_rate_m_s: float = field(metadata=checked(nonneg))
     reacquire_max_height_m: float = field(metadata=checked(positive))
+    # A camera frame or telemetry message whose delay exceeds its stream's smallest delay by
+    # more than this is stale (a stalled process, a backlog): no command is built from it.
+    # Receipt time base only (control.time_source = "receipt").
+    max_frame_age_s: float = field(default=0.25, metadata=checked(positive))
 
 
 @dataclass(frozen=True)
@@ -110,8 +143,29 @@ class LoggingConfig:
     block_on_backlog: bool = False
     # MCAP chunk compression: "lz4" (fast), "zstd" (smaller, ~2x the CPU) or "none"
     compression: str = "lz4"
+    # What perception read, on /perception/input, encoded with ``image_encoding``: "crop"
+    # (the region the detector read: the whole frame when it searched), "full" (every frame
+    # whole) or "none" (replay then needs an old log's full frames, or --from-detections)
+    perception_input: str = "crop"
+    # The preview for people on /camera/image (JPEG): at most this many frames per second of
+    # camera time (0: none), scaled by ``preview_scale``, JPEG quality ``preview_jpeg_quality``
+    preview_rate_hz: float = field(default=5.0, metadata=checked(nonneg))
+    preview_scale: float = 0.5
+    preview_jpeg_quality: int = 75
+    # Log times: "receipt" (the companion's monotonic clock; a real vehicle) or "source" (the
+    # autopilot's clock carried by frames and telemetry: a lockstep simulation then plays at
+    # its real speed)
+    timestamps: str = "receipt"
+    # When the writer thread forces the file to the disk: "interval" (os.fsync every
+    # flush_interval_s and at each full chunk: power loss costs at most that much), "close"
+    # (only at the end: the OS writes back when it likes) or "never".
+    fsync: str = "interval"
 
     def __post_init__(self) -> None:
+        if self.fsync not in ("interval", "close", "never"):
+            raise ConfigError(
+                f"logging.fsync: {self.fsync!r} is not 'interval', 'close' or 'never'"
+            )
         if self.image_encoding not in ("png", "jpeg", "raw"):
             raise ConfigError(
                 f"logging.image_encoding: {self.image_encoding!r} is not 'png', 'jpeg' or 'raw'"
@@ -119,6 +173,65 @@ class LoggingConfig:
         if self.compression not in ("lz4", "zstd", "none"):
             raise ConfigError(
                 f"logging.compression: {self.compression!r} is not 'lz4', 'zstd' or 'none'"
+            )
+        if self.perception_input not in ("crop", "full", "none"):
+            raise ConfigError(f"logging.perception_input: {self.perception_input!r} is not "
+                              "'crop', 'full' or 'none'")
+        if not 0.0 < self.preview_scale <= 1.0:
+            raise ConfigError(f"logging.preview_scale: {self.preview_scale!r} is not in (0, 1]")
+        if not 1 <= self.preview_jpeg_quality <= 100:
+            raise ConfigError(f"logging.preview_jpeg_quality: {self.preview_jpeg_quality!r} "
+                              "is not in 1..100")
+        if self.timestamps not in ("receipt", "source"):
+            raise ConfigError(
+                f"logging.timestamps: {self.timestamps!r} is not 'receipt' or 'source'")
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """Live view: the log's channels served over the Foxglove WebSocket protocol
+    (:mod:`companion.log.live`). Off by default: on a vehicle it is one more open port."""
+
+    enabled: bool = False
+    # Interface to bind: loopback by default; "0.0.0.0" serves every interface (see docs)
+    host: str = "127.0.0.1"
+    port: int = field(default=8765, metadata=checked(nonneg))  # TCP; 0 picks a free port
+    # Messages waiting for the publisher thread, at most; beyond it the oldest are dropped (counted)
+    queue_size: int = field(default=512, metadata=checked(positive))
+    # Messages buffered per connected client by the SDK; a slow client loses the oldest
+    client_backlog: int = field(default=256, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        if not self.host or any(c.isspace() for c in self.host):
+            raise ConfigError(f"live.host: {self.host!r} is not a host name or address")
+        if self.port > 65535:
+            raise ConfigError(f"live.port: {self.port} is not a TCP port (0..65535)")
+
+
+CONTROLLER_KINDS = ("rmpc", "rmpc-centroid", "mpc-novis", "ibvs-pd")
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Which control law flies (docs/visibility.md, ``companion/control/factory.py``).
+
+    ``kind``: ``rmpc`` (the RMPC as configured in [rmpc]; paper.toml keeps every corner in
+    view), ``rmpc-centroid`` (the same with the paper's centroid rows), ``mpc-novis`` (the same
+    MPC without visibility rows), ``ibvs-pd`` (classical moment-based IBVS: a PD on the same
+    virtual-camera moments). ``ibvs_*``: the IBVS gains (1/s): image-error decay rate
+    ``lambda``, velocity-loop gain ``k_v`` (critically damped at ``k_v = 4 lambda``) and the
+    yaw gain.
+    """
+
+    kind: str = "rmpc"
+    ibvs_lambda_1_s: float = field(default=0.5, metadata=checked(positive))
+    ibvs_kv_1_s: float = field(default=2.0, metadata=checked(positive))
+    ibvs_yaw_gain_1_s: float = field(default=1.0, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        if self.kind not in CONTROLLER_KINDS:
+            raise ConfigError(
+                f"controller.kind: {self.kind!r} is not one of {', '.join(CONTROLLER_KINDS)}"
             )
 
 
@@ -134,6 +247,8 @@ class Config:
     offboard: OffboardConfig
     safety: SafetyConfig
     logging: LoggingConfig
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
@@ -162,10 +277,28 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
         if f.name in ("source", "raw"):
             continue
         if f.name not in data:
+            if f.default_factory is not dataclasses.MISSING:  # an optional table
+                sections[f.name] = f.default_factory()
+                continue
             raise ConfigError(f"{f.name}: missing table [{f.name}]")
-        sections[f.name] = _build(_resolve(f.type), data[f.name], f.name)
+        table = data[f.name]
+        if f.name == "rmpc" and isinstance(table, Mapping):
+            table = _with_target_corners(table, sections["target"])
+        sections[f.name] = _build(_resolve(f.type), table, f.name)
     plain = {k: v for k, v in data.items() if k not in _FOREIGN_TABLES}
     return Config(**sections, source=source, raw=types.MappingProxyType(plain))
+
+
+def _with_target_corners(table: Mapping[str, Any], target: TargetConfig) -> dict[str, Any]:
+    """The [rmpc] table with ``target_corners_m`` filled from [target] (the corners the
+    detector returns: the rectangle's, or the marker's)."""
+    if "target_corners_m" in table:
+        raise ConfigError("rmpc.target_corners_m: not a config key (it comes from [target])")
+    if target.pattern == "aruco":
+        pts = rectangle_corners_m(target.aruco_size_m, target.aruco_size_m)
+    else:
+        pts = rectangle_corners_m(target.length_m, target.width_m)
+    return {**table, "target_corners_m": [[float(x), float(y)] for x, y in pts]}
 
 
 def read_document(path: str | Path) -> dict[str, Any]:

@@ -39,13 +39,14 @@ from companion.core.geometry import (
     wrap_pi,
 )
 from companion.core.latency import Prediction, predict_error_state
-from companion.core.moments import DegenerateTargetError, a_star
+from companion.core.moments import DegenerateTargetError, a_star, fold_s4
 from companion.core.prediction import predict_target_motion
 from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
 from companion.core.state import ErrorState, MeasurementError, build_error_state
 from companion.core.terminal import TerminalDesign
+from companion.perception import PerceptionResult
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,8 @@ class StepResult:
     prediction: Prediction | None = None  # latency compensation (None: not applied)
     t_now_s: float | None = None  # "now" on the frame's time base when the step ran
     in_control: bool | None = None  # the runtime's view: our setpoints fly the vehicle
+    #: ``(x0, y0, x1, y1)`` pixels (end exclusive) of the image perception read, when known
+    input_region: tuple[int, int, int, int] | None = None
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -138,9 +141,9 @@ class ControlPipeline:
         self.perception = perception
         self.terminal = terminal or design_terminal(cfg.rmpc, cfg.camera)
         if rmpc is None:
-            from companion.core.rmpc import Rmpc
+            from companion.control.factory import build_controller
 
-            rmpc = Rmpc(cfg.rmpc, cfg.camera, self.terminal)
+            rmpc = build_controller(cfg, self.terminal)
         self.rmpc: Controller = rmpc
         self.safety = SafetySupervisor(cfg.safety)
         self.a_star = a_star(_target_points(cfg), cfg.rmpc.desired_depth_m,
@@ -165,11 +168,13 @@ class ControlPipeline:
     # ------------------------------------------------------------------------------------------
 
     def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore,
-             t_now_s: float | None = None, in_control: bool | None = None) -> StepResult:
+             t_now_s: float | None = None, in_control: bool | None = None,
+             perceived: PerceptionResult | None = None) -> StepResult:
         """One frame captured at ``t_s``; ``t_now_s``: the time the step runs (same time base;
         default ``t_s``, i.e. no latency known); ``in_control``: our setpoints fly the vehicle
         (the runtime knows OFFBOARD was requested before the 1 Hz HEARTBEAT confirms it;
-        default: the HEARTBEAT's mode)."""
+        default: the HEARTBEAT's mode). ``perceived``: the perception result of that frame
+        computed elsewhere (a replay from logged detections); ``image`` is then not looked at."""
         cfg = self.cfg
         t_now = t_s if t_now_s is None or not math.isfinite(t_now_s) else max(t_s, t_now_s)
         notes: list[str] = []
@@ -178,10 +183,14 @@ class ControlPipeline:
         # 1. perception
         corners = None
         points_m = None
-        if image is None:
+        region = None
+        if perceived is None and image is not None:
+            perceived = self.perception.process(image)
+            region = getattr(self.perception, "last_region", None)
+        if perceived is None:
             p_status, p_reason = "lost", "no image"
         else:
-            pr = self.perception.process(image)
+            pr = perceived
             p_status, p_reason = pr.status, pr.reason
             if pr.status == "ok":
                 corners, points_m = pr.corners_px, pr.points_m
@@ -208,7 +217,11 @@ class ControlPipeline:
                     v_q_ned_m_s=(kin_cap or kin).vel_ned_m_s,
                     v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
                     psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
-                    lam=cfg.camera.focal_length_m, s4_prev_rad=self._s4_prev,
+                    lam=cfg.camera.focal_length_m,
+                    # folded: a target turning faster than the yaw-rate bound must not wind
+                    # s4 up (its period: pi for the moments, 2 pi for ordered corners)
+                    s4_prev_rad=fold_s4(self._s4_prev, 2.0 * math.pi
+                                        if cfg.target.pattern == "aruco" else math.pi),
                     # a square marker's moments carry no orientation: use its corner order
                     heading_from_corners=cfg.target.pattern == "aruco",
                 )
@@ -317,7 +330,7 @@ class ControlPipeline:
             t_s=t_s, perception_status=p_status, perception_reason=p_reason,
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
             safety=decision, u=u, setpoint=sp, notes=tuple(notes), estimator=est,
-            prediction=pred, t_now_s=t_now, in_control=in_control,
+            prediction=pred, t_now_s=t_now, in_control=in_control, input_region=region,
         )
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,

@@ -21,6 +21,7 @@ import dataclasses
 import json
 import logging
 import math
+import resource
 import signal
 import time
 from collections.abc import Mapping
@@ -40,11 +41,13 @@ from companion.control.offboard import (
     VehicleStatus,
 )
 from companion.control.pipeline import ControlPipeline
+from companion.control.recording import FrameRecorder, LogClock
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.control.timesync import TimeSync
 from companion.link import MavlinkLink, NoPeerError, Received
 from companion.log import schemas as sch
+from companion.log.live import start_live
 from companion.log.writer import McapLogger
 from companion.perception.pipeline import Perception
 
@@ -58,6 +61,7 @@ TOPIC_OFFBOARD = "/control/offboard"
 TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
+TOPIC_STATS = "/mavlink/stats"
 
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
@@ -66,23 +70,82 @@ _STAMP_FIELDS = {
     "LOCAL_POSITION_NED": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
 }
+STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
+
+
+class DelayFloor:
+    """The smallest transport delay ``t_rx - t_src`` of one stream (seconds, in whatever
+    offset the two clocks have), rising by at most ``drift`` s/s (clock drift), so that
+    ``excess = delay - floor`` is how late one item is compared with the stream at its best.
+    After ``relearn_s`` of receipt time in which every item was late by more than
+    ``stale_s`` (the source clock jumped: a reboot), the floor is learnt again."""
+
+    def __init__(self, stale_s: float, drift: float = 1e-3, relearn_s: float = 3.0) -> None:
+        self.stale_s, self.drift, self.relearn_s = stale_s, drift, relearn_s
+        self.floor: float | None = None
+        self._t_last: float | None = None
+        self._late_since: float | None = None
+
+    def excess(self, t_rx_s: float, t_src_s: float) -> float:
+        d = t_rx_s - t_src_s
+        if self.floor is None or self._t_last is None:
+            self.floor, self._t_last = d, t_rx_s
+            return 0.0
+        self.floor += self.drift * max(t_rx_s - self._t_last, 0.0)
+        self._t_last = t_rx_s
+        if d <= self.floor:
+            self.floor, self._late_since = d, None
+            return 0.0
+        ex = d - self.floor
+        if ex <= self.stale_s:
+            self._late_since = None
+        elif self._late_since is None:
+            self._late_since = t_rx_s
+        elif t_rx_s - self._late_since >= self.relearn_s:
+            log.warning("time base: stream delays moved by %.3f s for %.1f s: relearnt", ex,
+                        self.relearn_s)
+            self.floor, self._late_since = d, None
+            return 0.0
+        return ex
 
 
 class TimeBase:
     """Assigns every input a time in seconds on one base (see ``control.time_source``).
 
-    ``receipt``: local monotonic receipt time (ns -> s). ``autopilot``: the source's own
-    stamps (frame ``t_us``, ``time_boot_ms``); messages without a stamp (HEARTBEAT,
-    COMMAND_ACK) get the newest source time seen so far.
+    ``receipt``: local monotonic time. A stamped input (frame ``t_us``, a message's
+    ``time_boot_ms``) gets its source stamp plus its stream's smallest delay
+    (:class:`DelayFloor`), i.e. when it would have arrived at best: a backlog received late
+    (after a process stall, a link hiccup) keeps its true age instead of looking fresh.
+    ``last_excess_s`` is how late the last input was; unstamped messages (HEARTBEAT,
+    COMMAND_ACK) get their receipt time. ``autopilot``: the source's own stamps; messages
+    without a stamp get the newest source time seen so far.
     """
 
-    def __init__(self, source: str) -> None:
+    def __init__(self, source: str, stale_s: float = 0.25) -> None:
         self.source = source
         self.latest_s = -math.inf
+        self.stale_s = stale_s
+        self.last_excess_s = 0.0
+        self.stale_count = 0  # stamped inputs later than stale_s (receipt mode)
+        self._floors: dict[str, DelayFloor] = {}
+
+    def _mapped(self, stream: str, t_rx_s: float, t_src_s: float) -> float:
+        fl = self._floors.get(stream)
+        if fl is None:
+            fl = self._floors[stream] = DelayFloor(self.stale_s)
+        ex = fl.excess(t_rx_s, t_src_s)
+        self.last_excess_s = ex
+        if ex > self.stale_s:
+            self.stale_count += 1
+        return t_rx_s - ex
 
     def message_s(self, name: str, fields: Mapping[str, Any], t_rx_ns: int) -> float:
         if self.source == "receipt":
-            return t_rx_ns * 1e-9
+            key = _STAMP_FIELDS.get(name)
+            if key is None or key not in fields:
+                self.last_excess_s = 0.0
+                return t_rx_ns * 1e-9
+            return self._mapped(name, t_rx_ns * 1e-9, float(fields[key]) * 1e-3)
         key = _STAMP_FIELDS.get(name)
         if key is not None and key in fields:
             t = float(fields[key]) * 1e-3
@@ -92,7 +155,7 @@ class TimeBase:
 
     def frame_s(self, t_us: int, t_rx_ns: int) -> float:
         if self.source == "receipt":
-            return t_rx_ns * 1e-9
+            return self._mapped("camera", t_rx_ns * 1e-9, t_us * 1e-6)
         t = t_us * 1e-6
         self.latest_s = max(self.latest_s, t)
         return t
@@ -117,6 +180,15 @@ class FaultWindow:
         if w.kind != "solver" or not w.t1_s > w.t0_s:
             raise CompanionError(f"--inject-fault {text!r}: kind 'solver' and T1 > T0 only")
         return w
+
+
+def _finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
@@ -149,6 +221,7 @@ class CompanionApp:
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
+        progress_file: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.mavlink_url = mavlink_url or cfg.mavlink.url
@@ -160,7 +233,13 @@ class CompanionApp:
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
-        self.timebase = TimeBase(cfg.control.time_source)
+        self.stale_frames = 0  # frames refused as stale (no command built from them)
+        self.progress_file = progress_file
+        self._cpu0: tuple[float, int] | None = None  # (CPU s, steps) at the first frame
+        self.cpu_ms_per_step: float | None = None
+        self.timebase = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
+        self.clock = LogClock(cfg.logging.timestamps)
+        self.recorder = FrameRecorder(cfg.logging)
         self.timesync = TimeSync()
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
@@ -172,6 +251,8 @@ class CompanionApp:
         self._logger: McapLogger | None = None
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
+        self._elapsed_s = 0.0  # since the first frame, on the frames' clock
+        self._config_logged = False
         self._streaming = True
 
     # -- wiring -----------------------------------------------------------------------------
@@ -179,7 +260,11 @@ class CompanionApp:
     async def run(self) -> int:
         cfg = self.cfg
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        # the live view (None when off) fails here on a taken port, before the flight
+        # (the layout's /camera/image is the JPEG preview whatever logging.image_encoding)
+        live = start_live(cfg.live, "jpeg")
         logger = McapLogger.from_config(cfg.logging, self.log_path)
+        logger.observer = live  # the live view sees what the log writes
         self._logger = logger
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -187,11 +272,11 @@ class CompanionApp:
                 loop.add_signal_handler(sig, self._stop.set)
         try:
             with logger:
-                logger.log_config(time.monotonic_ns(), self.config_text, dict(cfg.raw),
-                                  cfg.source)
+                self._log_config()
                 link = MavlinkLink.from_config(
                     dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
-                    on_rx=self._on_rx, on_tx=lambda s: logger.log_mavlink("out", s),
+                    on_rx=self._on_rx,
+                    on_tx=lambda s: logger.log_mavlink("out", s, self._tx_log_ns(s)),
                     on_reject=logger.log_rejected,
                 )
                 self._link = link
@@ -201,7 +286,8 @@ class CompanionApp:
                     async with asyncio.TaskGroup() as tg:
                         control = tg.create_task(self._control(camera))
                         aux = [tg.create_task(self._drain(link)),
-                               tg.create_task(self._heartbeat(link))]
+                               tg.create_task(self._heartbeat(link)),
+                               tg.create_task(self._stats(link))]
                         if cfg.control.time_source == "timesync":
                             aux.append(tg.create_task(self._timesync(link)))
                         if self.truth_port is not None:
@@ -213,21 +299,53 @@ class CompanionApp:
                         await control
                         for t in aux:
                             t.cancel()
+                    self.log_stats(link)
+                    log.info("companion: link counters %s", dict(link.counters))
         finally:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
+            if live is not None:
+                live.close()
+        if self._cpu0 is not None and self.steps > self._cpu0[1]:
+            self.cpu_ms_per_step = 1e3 * (_cpu_s() - self._cpu0[0]) / (self.steps - self._cpu0[1])
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
-                 "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
-                 self.log_path, logger.stats.written, logger.stats.dropped)
+                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads, first "
+                 "frame to exit)", self.steps, self.sent, self.rx_count, self.log_path,
+                 logger.stats.written, logger.stats.dropped,
+                 "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
+        self._write_progress(final=True)
         return 0
+
+    def _write_progress(self, final: bool = False) -> None:
+        """``elapsed_s steps [cpu_ms_per_step]`` for an orchestrator (``companion demo``)."""
+        if self.progress_file is None:
+            return
+        elapsed = self._elapsed_s
+        cpu = f" {self.cpu_ms_per_step:.4f}" if final and self.cpu_ms_per_step else ""
+        with contextlib.suppress(OSError):
+            tmp = self.progress_file.with_suffix(".tmp")
+            tmp.write_text(f"{elapsed:.3f} {self.steps}{cpu}\n")
+            tmp.replace(self.progress_file)
+
+    def _log_config(self) -> None:
+        """``/config``, once: at start, or (source log times) at the first stamp seen."""
+        if self._config_logged or not self.clock.started or self._logger is None:
+            return
+        self._config_logged = True
+        self._logger.log_config(self.clock.now_ns(), self.config_text, dict(self.cfg.raw),
+                                self.cfg.source)
+
+    def _tx_log_ns(self, sent: Any) -> int:
+        return int(sent.t_tx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
 
     # -- receive ----------------------------------------------------------------------------
 
     def _on_rx(self, rx: Received) -> None:
         assert self._logger is not None
-        self._logger.log_mavlink("in", rx)
         fields = rx.msg.to_dict()
+        self._logger.log_mavlink("in", rx, self.clock.message_ns(rx.name, fields, rx.t_rx_ns))
+        self._log_config()
         t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
         self.store.ingest(rx.name, fields, t_s, rx.src_sysid)
         self.rx_count += 1
@@ -256,6 +374,26 @@ class CompanionApp:
             with contextlib.suppress(NoPeerError):
                 link.send_heartbeat()
             await asyncio.sleep(1.0)
+
+    async def _stats(self, link: MavlinkLink) -> None:
+        """The link's counters on /mavlink/stats (a flood or a spoofer shows up here)."""
+        while True:
+            await asyncio.sleep(self.cfg.mavlink.stats_interval_s)
+            self.log_stats(link)
+
+    def log_stats(self, link: MavlinkLink) -> None:
+        assert self._logger is not None
+        pinned = {str(s): f"{a[0]}:{a[1]}" for s in (self.cfg.mavlink.target_system,
+                                                    self.cfg.target.mavlink_sysid)
+                  if (a := link.guard.pinned(s)) is not None}
+        counters = dict(link.counters)
+        counters.update({f"guard_{k}": v for k, v in link.guard.counters.items()})
+        t_ns = time.monotonic_ns() if self.clock.mode == "receipt" else self.clock.now_ns()
+        self._logger.log(TOPIC_STATS, t_ns, {
+            "counters": counters, "pinned": pinned,
+            "stale_dropped": self.stale_frames, "stale_inputs": self.timebase.stale_count,
+            "log_dropped": self._logger.stats.dropped,
+        }, schema=sch.MAVLINK_STATS)
 
     async def _timesync(self, link: MavlinkLink) -> None:
         """TIMESYNC requests at 10 Hz, like PX4's onboard link (the replies feed
@@ -296,6 +434,7 @@ class CompanionApp:
         """Ground truth from the emulator, logged for scoring only (never read by control)."""
         assert self._logger is not None
         logger = self._logger
+        clock = self.clock
         loop = asyncio.get_running_loop()
 
         class _Proto(asyncio.DatagramProtocol):
@@ -304,7 +443,7 @@ class CompanionApp:
                     rec = json.loads(data)
                 except ValueError:
                     return
-                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec, schema=sch.JSON)
+                logger.log(TOPIC_TRUTH, clock.now_ns(), rec, schema=sch.JSON)
 
         transport, _ = await loop.create_datagram_endpoint(
             _Proto, local_addr=("127.0.0.1", port))
@@ -329,9 +468,10 @@ class CompanionApp:
                 break
             try:
                 # Before the first frame the camera (or a loaded machine's emulator) may
-                # still be starting: wait longer than between frames.
-                wait_s = self.idle_timeout_s if self.steps else max(self.idle_timeout_s,
-                                                                    FIRST_FRAME_TIMEOUT_S)
+                # still be starting: wait longer than between frames (not once stopping).
+                first = not self.steps and exit_deadline is None
+                wait_s = max(self.idle_timeout_s, FIRST_FRAME_TIMEOUT_S) if first \
+                    else self.idle_timeout_s
                 frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
             except (TimeoutError, StopAsyncIteration):
                 log.info("companion: no camera frame for %.1f s, stopping", wait_s)
@@ -345,9 +485,23 @@ class CompanionApp:
         assert self._logger is not None and self._link is not None
         logger, link = self._logger, self._link
         t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
+        frame_late_s = self.timebase.last_excess_s
+        t_log = self.clock.frame_ns(frame.t_us, frame.t_rx_ns)
+        self._log_config()
+        if self.timebase.last_excess_s > self.cfg.safety.max_frame_age_s:
+            # a frame from a backlog (the process or the link stalled): never control from it
+            self.stale_frames += 1
+            self.offboard.on_stream_gap()
+            logger.log_text(TOPIC_SAFETY, t_log,
+                            f"stale frame {frame.seq} dropped: {self.timebase.last_excess_s:.3f}"
+                            f" s late (safety.max_frame_age_s "
+                            f"{self.cfg.safety.max_frame_age_s} s)",
+                            level="WARNING", name="safety")
+            return
         if self._first_frame_s is None:
             self._first_frame_s = t_s
         elapsed = t_s - self._first_frame_s
+        self._elapsed_s = elapsed
         if self.duration_s is not None and elapsed >= self.duration_s:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
@@ -368,19 +522,26 @@ class CompanionApp:
         else:
             self.offboard.on_stream_gap()
         # The frame is logged after the command left: a logging backlog never delays it.
-        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
-                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
+        logged_input = self.recorder.record(logger, t_log, np.asarray(frame.image), frame.t_us,
+                                            res.input_region)
         before = self.offboard.phase
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
         self._log_offboard(before, t_s)
         self.steps += 1
+        if self._cpu0 is None:
+            self._cpu0 = (_cpu_s(), self.steps)
+        elif self.progress_file is not None and self.steps % 20 == 0:
+            self._write_progress()
         rec = res.to_record()
         rec.update({
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
+            "frame_late_s": frame_late_s,
+            "telemetry_age_s": _finite_or_none(self.store.telemetry_age_s(t_s)),
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
+            "input": logged_input,
         })
         if sent_ns is not None:
             # decode: receipt -> step start (decoding the frame, then waiting for the loop)
@@ -388,10 +549,10 @@ class CompanionApp:
                                  **rec["timings_ms"],
                                  "send": (sent_ns - t_start_ns) * 1e-6
                                  - sum(rec["timings_ms"].values())}
-        logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
-        self._log_poses(frame.t_rx_ns)
+        logger.log(TOPIC_STEP, t_log, rec, schema=sch.CONTROLLER_STEP)
+        self._log_poses(t_log)
         if res.safety.changed or self.steps == 1:  # the initial state, then each transition
-            logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
+            logger.log_text(TOPIC_SAFETY, t_log,
                             f"{res.safety.level.value}: {res.safety.reason}",
                             level="WARNING", name="safety")
 
@@ -424,7 +585,7 @@ class CompanionApp:
         if self.offboard.phase is not before and self._logger is not None:
             _, phase, reason = self.offboard.transitions[-1]
             log.info("offboard %s -> %s: %s", before.value, phase.value, reason)
-            self._logger.log_text(TOPIC_OFFBOARD, time.monotonic_ns(),
+            self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
                                   f"{before.value} -> {phase.value}: {reason}",
                                   level="INFO", name="offboard")
 

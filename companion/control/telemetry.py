@@ -60,6 +60,10 @@ class VehicleMode:
 class TelemetryStore:
     """Latest samples per kind; attitude keeps a short history for interpolation."""
 
+    #: the only messages :meth:`ingest` takes (any other returns False and changes nothing)
+    MESSAGES = frozenset({"FOLLOW_TARGET", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED",
+                          "HEARTBEAT"})
+
     def __init__(
         self,
         target_sysid: int,

@@ -4,9 +4,12 @@
 JPEG/PNG encoding (cv2) and ``mcap.writer.Writer`` calls all happen in the writer thread. When
 the queue is full the item is dropped and counted (a warning at most once per second).
 
-Durability: the current chunk is closed, the file flushed and ``os.fsync``-ed every
-``flush_interval_s`` (and whenever a chunk reaches ``chunk_size`` bytes), so a process killed
-at any time leaves a file that :mod:`companion.log.reader` salvages up to the last flush.
+Durability: the current chunk is closed and the file flushed every ``flush_interval_s`` (a
+chunk also closes when it reaches ``chunk_size`` bytes), so a process killed at any time leaves
+a file that :mod:`companion.log.reader` salvages up to the last closed chunk. ``fsync`` policy:
+"interval" (default) also ``os.fsync``-s at every timed flush, so a power loss costs at most
+``flush_interval_s``; "close" only at the end; "never" leaves it to the OS. The fsyncs run in the
+writer thread (``fsync_count``, ``fsync_time_s``), never in the caller's.
 
 Times: ``log_time_ns`` comes from the caller's clock; the logger never reads a clock for data
 (only to pace flushes and warnings). Every channel is JSON with a JSON schema
@@ -26,7 +29,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
@@ -52,8 +55,25 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 _STOP = object()
+_FSYNC_POLICIES = ("interval", "close", "never")
 
 
+def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
+    import cv2
+
+    h, w = image.shape[:2]
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
+
+
+class LogObserver(Protocol):
+    """Sees exactly what the MCAP writer writes, in the writer thread, after each write
+    (:class:`companion.log.live.LiveServer`). Both calls must return at once (never block)."""
+
+    def add_channel(self, topic: str, schema_name: str, schema_encoding: str,
+                    schema_data: bytes, message_encoding: str) -> None: ...
+
+    def message(self, topic: str, log_time_ns: int, data: bytes) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -122,6 +142,7 @@ class McapLogger:
         *,
         block_on_backlog: bool = False,
         compression: str = "zstd",
+        fsync: str = "interval",
         jpeg_quality: int = 90,
         extra_schemas: Mapping[str, Mapping[str, Any]] | None = None,
     ) -> None:
@@ -133,6 +154,8 @@ class McapLogger:
             raise McapLogError("queue_size must be >= 1")
         if compression not in _COMPRESSION:
             raise McapLogError(f"compression {compression!r} not in {sorted(_COMPRESSION)}")
+        if fsync not in _FSYNC_POLICIES:
+            raise McapLogError(f"fsync policy {fsync!r} not in {_FSYNC_POLICIES}")
         if not 1 <= jpeg_quality <= 100:
             raise McapLogError("jpeg_quality must be in 1..100")
         self.path = Path(path)
@@ -145,6 +168,9 @@ class McapLogger:
         self._images_dropped = 0
         self._last_image_warn = 0.0
         self._compression = _COMPRESSION[compression]
+        self.fsync_policy = fsync
+        self.fsync_count = 0  # os.fsync calls made by the writer thread
+        self.fsync_time_s = 0.0  # wall time spent in them (writer thread, never the loop)
         self._jpeg_quality = jpeg_quality
         self._extra = {k: dict(v) for k, v in (extra_schemas or {}).items()}
         self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
@@ -159,6 +185,9 @@ class McapLogger:
         self._sink: _Sink | None = None
         self._open = False
         self._closed = False
+        #: Set before :meth:`open` to see every channel; a failing observer is dropped, never
+        #: the log.
+        self.observer: LogObserver | None = None
 
     @classmethod
     def from_config(cls, logging_cfg: Any, path: str | Path) -> McapLogger:
@@ -173,6 +202,7 @@ class McapLogger:
             max_pending_image_bytes=int(getattr(logging_cfg, "max_pending_image_mb", 64)) << 20,
             block_on_backlog=bool(getattr(logging_cfg, "block_on_backlog", False)),
             compression=str(getattr(logging_cfg, "compression", "lz4")),
+            fsync=str(getattr(logging_cfg, "fsync", "interval")),
         )
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -281,11 +311,21 @@ class McapLogger:
         encoding: str = "jpeg",
         frame_id: str = "camera",
         stamp_ns: int | None = None,
+        *,
+        scale: float = 1.0,
+        jpeg_quality: int | None = None,
     ) -> bool:
         """Log a uint8 mono (HxW) or BGR (HxWx3) image as foxglove.CompressedImage ("jpeg",
-        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw")."""
+        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw").
+        ``scale`` (0, 1]: downscale first (area interpolation, in the writer thread);
+        ``jpeg_quality``: this image's, instead of the logger's."""
         if encoding not in IMAGE_ENCODINGS:
             raise McapLogError(f"image encoding {encoding!r} not in {IMAGE_ENCODINGS}")
+        if not 0.0 < scale <= 1.0:
+            raise McapLogError(f"image scale {scale!r} not in (0, 1]")
+        quality = self._jpeg_quality if jpeg_quality is None else int(jpeg_quality)
+        if not 1 <= quality <= 100:
+            raise McapLogError("jpeg_quality must be in 1..100")
         self._ensure_topic(topic, sch.RAW_IMAGE if encoding == "raw" else sch.COMPRESSED_IMAGE)
         t = int(log_time_ns)
         item = (
@@ -293,7 +333,7 @@ class McapLogger:
             topic,
             t,
             None,
-            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns),
+            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns, scale, quality),
         )
         nbytes = int(image.nbytes)
         with self._space:
@@ -470,7 +510,8 @@ class McapLogger:
                     next_flush = time.monotonic() + self.flush_interval_s
             writer.finish()  # type: ignore[no-untyped-call]
             sink.flush()
-            sink.fsync()
+            if self.fsync_policy != "never":
+                self._fsync(sink)
             with self._lock:
                 self._flushed = self._written
         except BaseException as e:  # disk full, broken pipe...: stop logging, never the flight
@@ -501,9 +542,16 @@ class McapLogger:
     def _flush(self, writer: Writer, sink: _Sink) -> None:
         n = self._written
         writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk, flushes the stream
-        sink.fsync()
+        if self.fsync_policy == "interval":
+            self._fsync(sink)
         with self._lock:
             self._flushed = n
+
+    def _fsync(self, sink: _Sink) -> None:
+        t0 = time.perf_counter()
+        sink.fsync()
+        self.fsync_time_s += time.perf_counter() - t0
+        self.fsync_count += 1
 
     def _write(
         self,
@@ -519,10 +567,10 @@ class McapLogger:
             elif kind == "bytes":
                 schema_name, data = self._topics[topic], bytes(payload)
             elif kind == "image":
-                image, enc, frame_id, stamp_ns = payload
+                image, enc, frame_id, stamp_ns, scale, quality = payload
                 try:
-                    schema_name, data = encode_image(image, enc, stamp_ns, frame_id,
-                                                     self._jpeg_quality)
+                    small = _downscale(image, scale) if scale != 1.0 else image
+                    schema_name, data = encode_image(small, enc, stamp_ns, frame_id, quality)
                 finally:
                     with self._space:
                         self._pending_image_bytes -= int(image.nbytes)
@@ -549,8 +597,21 @@ class McapLogger:
                 schema_ids[schema_name] = sid
             cid = writer.register_channel(topic, sch.encodings(schema_name)[1], sid)
             channels[topic] = cid
+            enc_s, enc_m = sch.encodings(schema_name)
+            self._observe("add_channel", topic, schema_name, enc_s,
+                          self._schema_text(schema_name), enc_m)
         writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
         with self._lock:
             self._written += 1
+        self._observe("message", topic, t, data)
+
+    def _observe(self, what: str, *args: Any) -> None:
+        if self.observer is None:
+            return
+        try:
+            getattr(self.observer, what)(*args)
+        except Exception as e:  # the live view is optional: stop feeding it, keep logging
+            log.error("log observer failed, detached: %r", e)
+            self.observer = None
 
 
