@@ -61,6 +61,10 @@ _STAMP_FIELDS = {
 }
 
 
+class _StopRequested(Exception):
+    """A stop was requested (signal, duration) while waiting for a camera frame."""
+
+
 class TimeBase:
     """Assigns every input a time in seconds on one base (see ``control.time_source``).
 
@@ -276,9 +280,14 @@ class CompanionApp:
                 time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
             ):
                 break
+            wait_s = self.idle_timeout_s
+            if exit_deadline is not None:  # stopping: wait no longer than the exit allows
+                wait_s = max(0.0, min(wait_s, exit_deadline - time.monotonic()))
             try:
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(),
-                                                           self.idle_timeout_s)
+                frame: CameraFrame = await self._next_frame(it, wait_s,
+                                                            wake_on_stop=exit_deadline is None)
+            except _StopRequested:
+                continue  # SIGTERM/SIGINT while waiting: start the exit now
             except (TimeoutError, StopAsyncIteration):
                 log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
                 if exit_deadline is None:
@@ -286,6 +295,29 @@ class CompanionApp:
                     continue
                 break
             self._step(frame)
+
+    async def _next_frame(self, it: Any, wait_s: float, wake_on_stop: bool) -> CameraFrame:
+        """The camera's next frame within ``wait_s`` (``TimeoutError``); with
+        ``wake_on_stop``, raises :class:`_StopRequested` as soon as a stop is requested."""
+        if not wake_on_stop:
+            frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
+            return frame
+        nxt = asyncio.ensure_future(it.__anext__())
+        stop = asyncio.ensure_future(self._stop.wait())
+        try:
+            done, _ = await asyncio.wait({nxt, stop}, timeout=wait_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+        if nxt in done:
+            frame = nxt.result()
+            return frame
+        nxt.cancel()
+        with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
+            await nxt
+        if stop in done:
+            raise _StopRequested
+        raise TimeoutError
 
     def _step(self, frame: CameraFrame) -> None:
         assert self._logger is not None and self._link is not None
