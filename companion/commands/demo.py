@@ -169,10 +169,18 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                         comp.send_signal(signal.SIGTERM)
                     comp_rc = comp.wait(timeout=30.0)
                     break
-                if comp_rc is not None:  # the companion died: no point flying on
+                if comp_rc is not None:  # the companion stopped: at the end, or early?
+                    try:
+                        sim_rc = sim.wait(timeout=5.0)
+                        wall = time.monotonic() - t0
+                        break
+                    except subprocess.TimeoutExpired:
+                        pass
                     sim.terminate()
-                    sim_rc = sim.wait(timeout=10.0)
-                    break
+                    sim.wait(timeout=10.0)
+                    raise CompanionError(
+                        f"demo: the companion exited ({comp_rc}) before the flight's end "
+                        f"(see {out}/companion.log)")
                 if monitor is not None:
                     monitor(comp)
                 time.sleep(0.05)

@@ -143,6 +143,7 @@ class CompanionApp:
         truth_port: int | None = None,
         duration_s: float | None = None,
         idle_timeout_s: float = 5.0,
+        startup_timeout_s: float = 120.0,
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
@@ -154,6 +155,9 @@ class CompanionApp:
         self.truth_port = truth_port
         self.duration_s = duration_s
         self.idle_timeout_s = idle_timeout_s
+        # before the first frame nothing is under our control: wait longer for the camera
+        # (an emulator starting on a loaded machine takes seconds)
+        self.startup_timeout_s = startup_timeout_s
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
@@ -280,7 +284,8 @@ class CompanionApp:
                 time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
             ):
                 break
-            wait_s = self.idle_timeout_s
+            wait_s = self.idle_timeout_s if self._first_frame_s is not None else max(
+                self.idle_timeout_s, self.startup_timeout_s)
             if exit_deadline is not None:  # stopping: wait no longer than the exit allows
                 wait_s = max(0.0, min(wait_s, exit_deadline - time.monotonic()))
             try:
@@ -289,8 +294,8 @@ class CompanionApp:
             except _StopRequested:
                 continue  # SIGTERM/SIGINT while waiting: start the exit now
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", self.idle_timeout_s)
                 if exit_deadline is None:
+                    log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                     self._stop.set()
                     continue
                 break

@@ -1,0 +1,95 @@
+"""``companion campaign``: controllers x scenarios x seeds of lockstep flights, on Dask.
+
+Each run is a ``companion demo`` flight in ``OUT/runs/RUN_ID`` (own ports, own folder);
+finished runs are skipped, so the same command resumes a campaign. Writes ``OUT/results.csv``,
+``OUT/summary.md`` and ``OUT/plots/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+from companion.campaign.scenarios import DEFAULT_CAMPAIGN, load_campaign
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("campaign", help="fly controllers x scenarios x seeds on Dask")
+    p.add_argument("--campaign", type=Path, default=DEFAULT_CAMPAIGN,
+                   help="campaign file (default: config/campaigns/default.toml)")
+    p.add_argument("--out", type=Path, default=Path("out/campaign"), help="output folder")
+    p.add_argument("--seeds", type=int, default=None, help="seeds 0..N-1 (default: the file's)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="simulated seconds per flight (default: the file's duration_s)")
+    p.add_argument("--controllers", default=None, help="comma-separated subset")
+    p.add_argument("--scenarios", default=None, help="comma-separated subset")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local worker processes (default: every core)")
+    p.add_argument("--address", default=None,
+                   help="Dask scheduler of an existing cluster, e.g. tcp://10.0.0.5:8786")
+    p.add_argument("--keep-logs", action="store_true", help="keep each run's flight.mcap")
+    p.add_argument("--retry-errors", action="store_true", help="fly failed runs again")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--summary-only", action="store_true",
+                   help="rebuild table, summary and plots from the finished runs; fly nothing")
+    p.set_defaults(func=_run)
+
+
+def _csv(v: str | None) -> list[str] | None:
+    return None if v is None else [x.strip() for x in v.split(",") if x.strip()]
+
+
+def _run(args: argparse.Namespace) -> int:
+    from companion import CompanionError
+    from companion.campaign.runner import finished_result
+    from companion.campaign.summary import write_plots, write_summary, write_table
+
+    if args.seeds is not None and args.seeds < 1:
+        raise CompanionError("--seeds: must be >= 1")
+    if args.workers is not None and args.workers < 1:
+        raise CompanionError("--workers: must be >= 1")
+    if args.duration is not None and not args.duration > 0:
+        raise CompanionError("--duration: must be > 0")
+    camp = load_campaign(args.campaign)
+    out: Path = args.out
+    specs = camp.runs(out.resolve(), seeds=None if args.seeds is None else range(args.seeds),
+                      controllers=_csv(args.controllers), scenarios=_csv(args.scenarios),
+                      duration_s=args.duration, keep_logs=args.keep_logs)
+    out.mkdir(parents=True, exist_ok=True)
+    command = "companion " + " ".join(shlex.quote(a) for a in sys.argv[1:]) \
+        if Path(sys.argv[0]).name in ("companion", "__main__.py") else ""
+    if args.summary_only:
+        rows = [r for r in (finished_result(s) for s in specs) if r is not None]
+        stats = None
+    else:
+        from companion.campaign.engine import run_campaign
+
+        rows, stats = run_campaign(specs, workers=args.workers, address=args.address,
+                                   progress=not args.no_progress,
+                                   retry_errors=args.retry_errors)
+    notes = [f"Campaign file `{args.campaign}`, {len(specs)} runs in the matrix, "
+             f"{len(rows)} finished."]
+    if stats is not None and stats.flown:
+        fpm = stats.flights_per_minute
+        notes.append(f"This invocation: {stats.flown} flights in {stats.wall_s:.0f} s on "
+                     f"{stats.workers} worker(s): {fpm:.2f} flights/min "
+                     f"({stats.skipped} skipped as finished).")
+        meta = {"flown": stats.flown, "skipped": stats.skipped, "workers": stats.workers,
+                "wall_s": stats.wall_s, "flights_per_minute": fpm, "finished_utc":
+                time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        (out / "engine.json").write_text(json.dumps(meta, indent=2))
+    write_table(rows, out / "results.csv")
+    write_plots(rows, out / "plots")
+    write_summary(rows, out / "summary.md", title=f"Campaign: {out.name}", command=command,
+                  notes=notes)
+    ok = sum(1 for r in rows if r.get("status") == "ok")
+    print(f"campaign: {len(rows)} runs ({ok} ok, {len(rows) - ok} errors); "
+          f"{out / 'results.csv'}, {out / 'summary.md'}, {out / 'plots'}")
+    if stats is not None and stats.flown:
+        print(f"campaign: {stats.flown} flights in {stats.wall_s:.0f} s on {stats.workers} "
+              f"worker(s): {stats.flights_per_minute:.2f} flights/min")
+    return 0
