@@ -8,13 +8,14 @@ finished runs are skipped, so the same command resumes a campaign. Writes ``OUT/
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
 import time
 from pathlib import Path
 
-from companion.campaign.scenarios import DEFAULT_CAMPAIGN, load_campaign
+from companion.campaign.scenarios import DEFAULT_CAMPAIGN, Controller, load_campaign
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -26,6 +27,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds per flight (default: the file's duration_s)")
     p.add_argument("--controllers", default=None, help="comma-separated subset")
+    p.add_argument("--controller", action="append", default=[], metavar="NAME[:KEY=VALUE;...]",
+                   help="fly these controllers instead of the file's (repeatable), e.g. "
+                        "--controller paper --controller 'novis:rmpc.enable_visibility=false'")
     p.add_argument("--scenarios", default=None, help="comma-separated subset")
     p.add_argument("--workers", type=int, default=None,
                    help="local worker processes (default: every core)")
@@ -37,6 +41,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--summary-only", action="store_true",
                    help="rebuild table, summary and plots from the finished runs; fly nothing")
     p.set_defaults(func=_run)
+
+
+def parse_controller(text: str) -> Controller:
+    """``NAME[:KEY=VALUE;KEY=VALUE...]`` -> a controller (named override list)."""
+    from companion import CompanionError
+
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    if not name or not all(c.isalnum() or c in "-_." for c in name):
+        raise CompanionError(f"--controller {text!r}: NAME[:KEY=VALUE;...], the name of "
+                             "letters, digits, - _ .")
+    sets = tuple(x.strip() for x in rest.split(";") if x.strip())
+    if any("=" not in x for x in sets):
+        raise CompanionError(f"--controller {text!r}: overrides are KEY=VALUE")
+    return Controller(name, sets)
 
 
 def _csv(v: str | None) -> list[str] | None:
@@ -55,6 +74,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         raise CompanionError("--duration: must be > 0")
     camp = load_campaign(args.campaign)
+    if args.controller:
+        camp = dataclasses.replace(camp, controllers=tuple(
+            parse_controller(c) for c in args.controller))
     out: Path = args.out
     specs = camp.runs(out.resolve(), seeds=None if args.seeds is None else range(args.seeds),
                       controllers=_csv(args.controllers), scenarios=_csv(args.scenarios),
