@@ -25,6 +25,10 @@ from companion.campaign.scenarios import SCENARIO_NAME, RunSpec
 __all__ = ["RESULT_FILE", "finished_result", "metrics_row", "run_flight"]
 
 RESULT_FILE = "result.json"
+#: wall time a flight may take (s): generous, a shared machine can run lockstep at 1/20 of real
+#: time; a flight that hangs is still stopped
+BUDGET_BASE_S = 300.0
+BUDGET_PER_SIM_S = 30.0
 
 
 def finished_result(spec: RunSpec) -> dict[str, Any] | None:
@@ -139,7 +143,8 @@ def run_flight(spec: RunSpec) -> dict[str, Any]:
     ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     try:
         report = run_demo(Path(spec.config), SCENARIO_NAME, spec.duration_s, out,
-                          list(spec.overrides), [], plots=False)
+                          list(spec.overrides), [], plots=False,
+                          budget_s=BUDGET_BASE_S + BUDGET_PER_SIM_S * spec.duration_s)
         row.update(status="ok", error="", **metrics_row(report))
     except Exception as exc:  # a run that fails is a row, never the campaign's end
         msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
