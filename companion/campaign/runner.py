@@ -81,6 +81,7 @@ def metrics_row(report: Mapping[str, Any]) -> dict[str, Any]:
     centroid_after = eng.get("frames_centroid_outside_after_grace")
     lost_after = eng.get("frames_target_lost_after_grace")
     engaged = eng.get("offboard_t_s") is not None
+    engd = report.get("engaged") or {}
     rms = trk.get("rms_se") or [None] * 4
     corner_max = max((v for v in (_num(vis.get("max_abs_u_px")), _num(vis.get("max_abs_n_px")))
                       if v is not None), default=None)
@@ -92,7 +93,10 @@ def metrics_row(report: Mapping[str, Any]) -> dict[str, Any]:
         "offboard_t_s": _num(eng.get("offboard_t_s")),
         "first_solve_mode": first,
         "first_feasible": None if first is None else first == "optimal",
+        "controller_kind": report.get("controller"),
         "corner_max_px": corner_max,
+        "corner_max_after_grace_px": _num(engd.get("corner_max_px")),
+        "recovery_fraction_engaged": _num(engd.get("recovery_fraction")),
         "centroid_max_px": _num(vis.get("max_abs_centroid_px")),
         "frames_corner_outside": vis.get("frames_outside_bound"),
         "frames_centroid_outside": eng.get("frames_centroid_outside"),

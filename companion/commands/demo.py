@@ -223,6 +223,12 @@ def _run(args: argparse.Namespace) -> int:
           f"{rep['wall_time_s']:.1f} s ({rep['real_time_factor']:.1f}x real time)")
     print(f"visibility: max |u| {vis['max_abs_u_px']:.1f} px, max |n| {vis['max_abs_n_px']:.1f}"
           f" px (bound {vis['bound_px']:.0f}), frames target lost {vis['frames_target_lost']}")
+    eng = rep.get("engaged") or {}
+    if eng.get("t_engaged_s") is not None:
+        print(f"after OFFBOARD (+1 s, controller {rep.get('controller')}): worst corner "
+              f"{eng['corner_max_px']:.1f} px, {eng['frames_outside_bound']} frames out, "
+              f"recovery {100 * (eng['recovery_fraction'] or 0):.1f} %, "
+              f"{eng['fallbacks']} fallbacks")
     print(f"tracking: rms s_e {trk['rms_se']}, final s_e {trk['final_se']}")
     print(f"solver: {rep['solver']}")
     print(f"report: {out / 'report.json'}")

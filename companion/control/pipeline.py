@@ -27,7 +27,7 @@ from companion.control.telemetry import KinematicsSample, TelemetryStore
 from companion.core.design import design_terminal
 from companion.core.estimator import ImageVelocityEstimator
 from companion.core.geometry import euler_zyx_from_quat, rectangle_corners_m, wrap_pi
-from companion.core.moments import DegenerateTargetError, a_star
+from companion.core.moments import DegenerateTargetError, a_star, fold_s4
 from companion.core.prediction import predict_target_motion
 from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
@@ -112,9 +112,9 @@ class ControlPipeline:
         self.perception = perception
         self.terminal = terminal or design_terminal(cfg.rmpc, cfg.camera)
         if rmpc is None:
-            from companion.core.rmpc import Rmpc
+            from companion.control.factory import build_controller
 
-            rmpc = Rmpc(cfg.rmpc, cfg.camera, self.terminal)
+            rmpc = build_controller(cfg, self.terminal)
         self.rmpc: Controller = rmpc
         self.safety = SafetySupervisor(cfg.safety)
         self.a_star = a_star(_target_points(cfg), cfg.rmpc.desired_depth_m,
@@ -165,7 +165,11 @@ class ControlPipeline:
                     yaw_rate_rad_s=att.yaw_rate_rad_s, v_q_ned_m_s=kin.vel_ned_m_s,
                     v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
                     psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
-                    lam=cfg.camera.focal_length_m, s4_prev_rad=self._s4_prev,
+                    lam=cfg.camera.focal_length_m,
+                    # folded: a target turning faster than the yaw-rate bound must not wind
+                    # s4 up (its period: pi for the moments, 2 pi for ordered corners)
+                    s4_prev_rad=fold_s4(self._s4_prev, 2.0 * math.pi
+                                        if cfg.target.pattern == "aruco" else math.pi),
                     # a square marker's moments carry no orientation: use its corner order
                     heading_from_corners=cfg.target.pattern == "aruco",
                 )

@@ -66,14 +66,51 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
         "rate_hz": len(sat_times) / span_s if span_s and math.isfinite(span_s) else 0.0,
     }
     out["safety"] = _safety(steps)
+    out["engaged"] = _engaged(truth, steps, st)
     out["engagement"] = _engagement(truth, steps, st)
     out["agv"] = _agv(truth)
     return out
 
 
-#: Grace after OFFBOARD engages before visibility is judged (s): the acceptance criterion's
-#: "every frame after the first second of offboard".
 ENGAGE_GRACE_S = 1.0
+"""Figures after engagement start this long after the first step in OFFBOARD (issue 11's
+acceptance: every corner inside "after the first second of offboard")."""
+
+
+def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
+             st: ReportSettings) -> dict[str, Any]:
+    """Figures over the part of the flight the controller flew: from the first frame in
+    OFFBOARD (+ :data:`ENGAGE_GRACE_S` for the visibility figures).
+
+    ``corner_max_px``: the largest ``|u_px|, |n_px|`` of any true corner (paper pixels);
+    ``frames_outside_bound``: frames with a corner outside the visible area;
+    ``recovery_fraction``: recovery solves / solves over the active steps; ``fallbacks``."""
+    # the autopilot's own mode (ground truth) when recorded; else the companion's view, which
+    # lags by up to a HEARTBEAT period
+    t_eng = next((r["t_us"] * 1e-6 for r in truth if r.get("mode") == "OFFBOARD"), None)
+    if t_eng is None:
+        t_eng = next((float(s["t_s"]) for s in steps if s.get("offboard") == "active"), None)
+    if t_eng is None:
+        return {"t_engaged_s": None}
+    t0 = t_eng + ENGAGE_GRACE_S
+    vis = _visibility([r for r in truth if r["t_us"] * 1e-6 >= t0], [], st)
+    active = [s for s in steps if float(s["t_s"]) >= t_eng and s.get("rmpc")]
+    modes = [s["rmpc"]["mode"] for s in active]
+    n = len(modes)
+    return {
+        "t_engaged_s": t_eng,
+        "from_s": t0,
+        "corner_max_px": max(vis["max_abs_u_px"], vis["max_abs_n_px"]),
+        "centroid_max_px": vis["max_abs_centroid_px"],
+        "frames": vis["frames"],
+        "frames_outside_bound": vis["frames_outside_bound"],
+        "frames_target_lost": sum(
+            1 for s in steps if float(s["t_s"]) >= t0
+            and (s.get("perception") or {}).get("status") != "ok"),
+        "solves": n,
+        "recovery_fraction": modes.count("recovery") / n if n else None,
+        "fallbacks": modes.count("fallback"),
+    }
 
 
 def _outside(r: Mapping[str, Any], st: ReportSettings) -> tuple[bool, bool] | None:

@@ -39,6 +39,11 @@ def build_report(log_path: Path, cfg: Config, out: Path, plots: bool = True) -> 
     st = report_settings(cfg)
     report = compute_report(msgs, st)
     report["log"] = {"path": str(log_path), **recovery}
+    report["controller"] = cfg.controller.kind
+    if cfg.controller.kind != "ibvs-pd":
+        report["controller_rmpc"] = {"visibility": cfg.rmpc.visibility,
+                                     "heading": cfg.rmpc.heading,
+                                     "target_motion": cfg.rmpc.target_motion}
     if plots:
         from companion.report.plots import write_figures, write_html
 

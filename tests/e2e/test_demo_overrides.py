@@ -29,7 +29,8 @@ pytestmark = pytest.mark.slow
     ("sim.agv.speed_scale=-2", "sim.agv.speed_scale"),
     ("rmpc.bogus=1", "rmpc.bogus"),                # refused by the companion
     ("nosuch.key=1", "nosuch"),                    # a table neither program reads
-    ("controller.kind=rmpc-centroid", "controller"),  # until a controller table exists
+    ("controller.kind=pid", "controller.kind"),    # a value the companion refuses
+    ("controller.no_such_gain=1", "controller.no_such_gain"),
 ])
 def test_an_unknown_or_bad_key_is_refused_naming_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], override: str, named: str,
