@@ -145,15 +145,18 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     sim_cmd[sim_cmd.index("--config") + 1] = str(sim_path)
     t0 = time.monotonic()
     with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
+        startup_s = 300.0 if budget_s is None else max(300.0, budget_s)
         ready = out / ".companion-ready"
         ready.unlink(missing_ok=True)
         comp = subprocess.Popen(comp_cmd, stdout=comp_log, stderr=subprocess.STDOUT, env=env)
         # The vehicle starts talking only once the companion listens (first start compiles
         # the solver: allow for it).
         while not ready.exists():
-            if comp.poll() is not None or time.monotonic() - t0 > 300.0:
+            if comp.poll() is not None or time.monotonic() - t0 > startup_s:
                 comp.kill()
-                raise CompanionError(f"demo: the companion did not start (see {out}/companion.log)")
+                comp.wait()
+                raise CompanionError(f"demo: the companion did not start within "
+                                     f"{time.monotonic() - t0:.0f} s (see {out}/companion.log)")
             time.sleep(0.05)
         t0 = time.monotonic()
         sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
