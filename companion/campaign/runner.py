@@ -22,7 +22,7 @@ from typing import Any
 
 from companion.campaign.scenarios import SCENARIO_NAME, RunSpec
 
-__all__ = ["RESULT_FILE", "finished_result", "metrics_row", "run_flight"]
+__all__ = ["RESULT_FILE", "finished_result", "metrics_row", "rescore", "run_flight"]
 
 RESULT_FILE = "result.json"
 #: wall time a flight may take (s): generous, a shared machine can run lockstep at 1/20 of real
@@ -39,6 +39,22 @@ def finished_result(spec: RunSpec) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return row
+
+
+_MPC_MODES = ("optimal", "recovery", "fallback")
+
+
+def rescore(row: dict[str, Any], out_dir: str | Path) -> dict[str, Any]:
+    """``row`` with its metrics recomputed from the run's ``report.json`` (when it was flown
+    to the end and the report is there): metric definitions can change without flying again."""
+    p = Path(out_dir) / "report.json"
+    if row.get("status") != "ok" or not p.is_file():
+        return row
+    try:
+        report = json.loads(p.read_text())
+    except ValueError:
+        return row
+    return {**row, **metrics_row(report)}
 
 
 def _num(v: Any) -> float | None:
@@ -92,7 +108,8 @@ def metrics_row(report: Mapping[str, Any]) -> dict[str, Any]:
         "agv_max_yaw_rate_rad_s": _num(agv.get("max_yaw_rate_rad_s")),
         "offboard_t_s": _num(eng.get("offboard_t_s")),
         "first_solve_mode": first,
-        "first_feasible": None if first is None else first == "optimal",
+        # only an MPC has a first problem (the IBVS law logs mode "law")
+        "first_feasible": (first == "optimal") if first in _MPC_MODES else None,
         "controller_kind": report.get("controller"),
         "corner_max_px": corner_max,
         "corner_max_after_grace_px": _num(engd.get("corner_max_px")),

@@ -113,10 +113,11 @@ def write_summary(rows: Sequence[Mapping[str, Any]], path: Path, title: str,
               "every frame, `centroid` = its centre, `target` = detected by the companion on "
               "every step.", "", *notes, "", "## Per controller", "",
               "| controller | runs | errors | every corner in view | centroid in view | "
-              "target kept | first problem feasible | worst corner (median / max px) | "
+              "target kept | first problem feasible | every corner in view, first problem "
+              "feasible | worst corner (median / max px) | "
               "recovery steps (mean) | runs with a fallback | solve median / p95 (ms) | "
               "RMS horizontal / height error (m, median) |",
-              "| --- | " + "--- | " * 11]
+              "| --- | " + "--- | " * 12]
     for c in ctrls:
         rc = [r for r in rows if str(r.get("controller")) == c]
         ok_c = _ok(rc)
@@ -133,6 +134,7 @@ def write_summary(rows: Sequence[Mapping[str, Any]], path: Path, title: str,
         lines.append(
             f"| {c} | {len(rc)} | {len(rc) - n} | {rate('corners_in_view')} | "
             f"{rate('centroid_in_view')} | {rate('target_kept')} | {rate('first_feasible')} | "
+            f"{rate('corners_in_view', [r for r in ok_c if r.get('first_feasible') is True])} | "
             f"{_fmt(_median(cm))} / {_fmt(float(cm.max()) if cm.size else None)} | "
             f"{_fmt(100 * float(rf.mean()) if rf.size else None, 1)} % | {fb} | "
             f"{_fmt(_median(_vals(ok_c, 'solve_median_ms')), 2)} / "

@@ -39,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--retry-errors", action="store_true", help="fly failed runs again")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--summary-only", action="store_true",
-                   help="rebuild table, summary and plots from the finished runs; fly nothing")
+                   help="rebuild table, summary and plots from the finished runs (metrics "
+                        "recomputed from each run's report.json); fly nothing")
     p.set_defaults(func=_run)
 
 
@@ -64,7 +65,7 @@ def _csv(v: str | None) -> list[str] | None:
 
 def _run(args: argparse.Namespace) -> int:
     from companion import CompanionError
-    from companion.campaign.runner import finished_result
+    from companion.campaign.runner import finished_result, rescore
     from companion.campaign.summary import write_plots, write_summary, write_table
 
     if args.seeds is not None and args.seeds < 1:
@@ -85,7 +86,8 @@ def _run(args: argparse.Namespace) -> int:
     command = "companion " + " ".join(shlex.quote(a) for a in sys.argv[1:]) \
         if Path(sys.argv[0]).name in ("companion", "__main__.py") else ""
     if args.summary_only:
-        rows = [r for r in (finished_result(s) for s in specs) if r is not None]
+        rows = [rescore(r, s.out_dir) for s in specs
+                if (r := finished_result(s)) is not None]
         stats = None
     else:
         from companion.campaign.engine import run_campaign

@@ -88,3 +88,8 @@ def test_small_campaign_end_to_end_and_resume(tmp_path: Path,
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/result.json")} == before
     assert {r["run_id"]: r for r in read_table(out / "results.csv")} == rows
     assert json.loads((out / "engine.json").read_text()) == engine  # not rewritten
+
+    # the summary alone, metrics recomputed from each run's report.json: the same rows
+    (out / "results.csv").unlink()
+    assert cli.main([*args, "--summary-only"]) == 0
+    assert {r["run_id"]: r for r in read_table(out / "results.csv")} == rows
