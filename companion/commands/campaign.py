@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import shlex
 import sys
 import time
@@ -85,6 +86,7 @@ def _run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     command = "companion " + " ".join(shlex.quote(a) for a in sys.argv[1:]) \
         if Path(sys.argv[0]).name in ("companion", "__main__.py") else ""
+    load0 = os.getloadavg()
     if args.summary_only:
         rows = [rescore(r, s.out_dir) for s in specs
                 if (r := finished_result(s)) is not None]
@@ -99,12 +101,20 @@ def _run(args: argparse.Namespace) -> int:
              f"{len(rows)} finished."]
     if stats is not None and stats.flown:
         fpm = stats.flights_per_minute
-        notes.append(f"This invocation: {stats.flown} flights in {stats.wall_s:.0f} s on "
-                     f"{stats.workers} worker(s): {fpm:.2f} flights/min "
-                     f"({stats.skipped} skipped as finished).")
+        load1 = os.getloadavg()
+        flown_ids = {s.run_id for s in specs}
+        cpu = sum(float(r.get("cpu_s") or 0.0) for r in rows if r.get("run_id") in flown_ids)
+        notes.append(f"Last invocation: {stats.flown} flights in {stats.wall_s:.0f} s wall on "
+                     f"{stats.workers} worker(s): {fpm:.2f} flights/min ({stats.skipped} "
+                     f"skipped as finished); CPU of the runs' processes {cpu:.0f} s in all "
+                     f"(matrix); machine load average (1, 5, 15 min) "
+                     f"{', '.join(f'{x:.1f}' for x in load0)} at the start, "
+                     f"{', '.join(f'{x:.1f}' for x in load1)} at the end "
+                     f"({os.cpu_count()} cores).")
         meta = {"flown": stats.flown, "skipped": stats.skipped, "workers": stats.workers,
-                "wall_s": stats.wall_s, "flights_per_minute": fpm, "finished_utc":
-                time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+                "wall_s": stats.wall_s, "flights_per_minute": fpm, "cpu_s_runs": cpu,
+                "load_start": load0, "load_end": load1, "cores": os.cpu_count(),
+                "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         (out / "engine.json").write_text(json.dumps(meta, indent=2))
     write_table(rows, out / "results.csv")
     write_plots(rows, out / "plots")
