@@ -116,6 +116,17 @@ def _run(args: argparse.Namespace) -> int:
                 "load_start": load0, "load_end": load1, "cores": os.cpu_count(),
                 "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         (out / "engine.json").write_text(json.dumps(meta, indent=2))
+    elif (out / "engine.json").is_file():  # the last flying invocation's figures
+        try:
+            meta = json.loads((out / "engine.json").read_text())
+            notes.append(f"Last flying invocation: {meta['flown']} flights in "
+                         f"{meta['wall_s']:.0f} s wall on {meta['workers']} worker(s): "
+                         f"{meta['flights_per_minute']:.2f} flights/min"
+                         + (f"; machine load average {meta['load_start']} at the start, "
+                            f"{meta['load_end']} at the end" if "load_start" in meta else "")
+                         + ".")
+        except (ValueError, KeyError, TypeError):
+            pass
     write_table(rows, out / "results.csv")
     write_plots(rows, out / "plots")
     write_summary(rows, out / "summary.md", title=f"Campaign: {out.name}", command=command,
