@@ -13,6 +13,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import resource
 import time
 import traceback
@@ -48,6 +49,7 @@ def rescore(row: dict[str, Any], out_dir: str | Path) -> dict[str, Any]:
     """``row`` with its metrics recomputed from the run's ``report.json`` (when it was flown
     to the end and the report is there): metric definitions can change without flying again."""
     p = Path(out_dir) / "report.json"
+    row = {**row, "lockstep_timeouts": _lockstep_timeouts(Path(out_dir) / "sim.log")}
     if row.get("status") != "ok" or not p.is_file():
         return row
     try:
@@ -143,6 +145,15 @@ def metrics_row(report: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def _lockstep_timeouts(sim_log: Path) -> int | None:
+    """Steps the emulator took without the companion's setpoint (its end-of-run line)."""
+    try:
+        m = re.search(r"done: .* (\d+) lockstep timeouts", sim_log.read_text())
+    except OSError:
+        return None
+    return int(m.group(1)) if m else None
+
+
 def _write_atomic(path: Path, text: str) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(text)
@@ -175,6 +186,7 @@ def run_flight(spec: RunSpec) -> dict[str, Any]:
         if not spec.keep_log:
             (out / "flight.mcap").unlink(missing_ok=True)
         (out / ".companion-ready").unlink(missing_ok=True)
+    row["lockstep_timeouts"] = _lockstep_timeouts(out / "sim.log")
     ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     row["wall_s"] = round(time.monotonic() - t0, 3)
     row["cpu_s"] = round((ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime), 3)

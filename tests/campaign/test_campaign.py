@@ -20,7 +20,7 @@ CAMPAIGN = f"""
 config = "{DEFAULT_CONFIG}"
 duration_s = 3.0
 seeds = 1
-set = ['logging.image_encoding="jpeg"', "sim.lockstep_timeout_s=10.0"]
+set = ['logging.image_encoding="jpeg"', "sim.lockstep_timeout_s=1.0"]
 
 [start]
 height_m = [2.8, 3.2]
