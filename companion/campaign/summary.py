@@ -199,15 +199,19 @@ def write_plots(rows: Sequence[Mapping[str, Any]], out: Path) -> dict[str, Path]
     if edges.size < 2:
         edges = np.array([edges[0] - 0.05, edges[0] + 0.05])
     fig, ax = plt.subplots(figsize=(7, 4))
-    for c, rs in by_c.items():
+    width = float(edges[-1] - edges[0]) or 1.0
+    styles = ("o-", "s--", "^-.", "D:", "v-", "P--")
+    for i, (c, rs) in enumerate(by_c.items()):
+        # controllers side by side within a bin (equal rates would hide each other)
+        dx = (i - (len(by_c) - 1) / 2) * 0.012 * width
         xs, ys = [], []
         for lo, hi in itertools.pairwise(edges):
             sel = [r for r in rs if isinstance(r.get("agv_max_speed_m_s"), (int, float))
                    and lo <= r["agv_max_speed_m_s"] <= hi]
             if sel:
-                xs.append((lo + hi) / 2)
+                xs.append((lo + hi) / 2 + dx)
                 ys.append(100.0 * sum(r.get("corners_in_view") is True for r in sel) / len(sel))
-        ax.plot(xs, ys, "o-", label=c)
+        ax.plot(xs, ys, styles[i % len(styles)], label=c, alpha=0.85)
     ax.set_xlabel("AGV peak speed over the flight (m/s, bins of equal counts)")
     ax.set_ylabel("runs with every corner in view (%)")
     ax.set_ylim(-5, 105)

@@ -16,7 +16,12 @@ import sys
 import time
 from pathlib import Path
 
-from companion.campaign.scenarios import DEFAULT_CAMPAIGN, Controller, load_campaign
+from companion.campaign.scenarios import (
+    DEFAULT_CAMPAIGN,
+    REPO_ROOT,
+    Controller,
+    load_campaign,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -84,7 +89,9 @@ def _run(args: argparse.Namespace) -> int:
                       controllers=_csv(args.controllers), scenarios=_csv(args.scenarios),
                       duration_s=args.duration, keep_logs=args.keep_logs)
     out.mkdir(parents=True, exist_ok=True)
-    command = "companion " + " ".join(shlex.quote(a) for a in sys.argv[1:]) \
+    # the command that flies this matrix (a summary-only rebuild shows the flying command)
+    argv = [a for a in sys.argv[1:] if a not in ("--summary-only", "--retry-errors")]
+    command = "companion " + " ".join(shlex.quote(a) for a in argv) \
         if Path(sys.argv[0]).name in ("companion", "__main__.py") else ""
     load0 = os.getloadavg()
     if args.summary_only:
@@ -97,7 +104,11 @@ def _run(args: argparse.Namespace) -> int:
         rows, stats = run_campaign(specs, workers=args.workers, address=args.address,
                                    progress=not args.no_progress,
                                    retry_errors=args.retry_errors)
-    notes = [f"Campaign file `{args.campaign}`, {len(specs)} runs in the matrix, "
+    try:
+        shown = Path(args.campaign).resolve().relative_to(REPO_ROOT)
+    except ValueError:
+        shown = Path(args.campaign)
+    notes = [f"Campaign file `{shown}`, {len(specs)} runs in the matrix, "
              f"{len(rows)} finished."]
     if stats is not None and stats.flown:
         fpm = stats.flights_per_minute
