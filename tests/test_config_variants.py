@@ -26,7 +26,13 @@ def test_every_shipped_config_loads(path: Path) -> None:
     [("rmpc.horizon=0", "rmpc.horizon"), ("camera.visible_fraction=1.5", "camera.visible_fraction"),
      ("rmpc.solver=\"qpoases\"", "rmpc.solver"), ("control.time_source=\"gps\"", "time_source"),
      ("rmpc.u_max=[1,1,1]", "rmpc.u_max"), ("safety.nope=1", "safety.nope"),
-     ("logging.compression=\"gzip\"", "logging.compression")],
+     ("logging.compression=\"gzip\"", "logging.compression"),
+     ("rmpc.visibility=\"edges\"", "rmpc.visibility"), ("rmpc.heading=\"soft\"", "rmpc.heading"),
+     ("rmpc.target_motion=\"exact\"", "rmpc.target_motion"),
+     ("rmpc.min_depth_m=0", "rmpc.min_depth_m"),
+     ("rmpc.target_corners_m=[[1,1]]", "rmpc.target_corners_m"),
+     ("controller.kind=\"pid\"", "controller.kind"),
+     ("controller.ibvs_kv_1_s=-1", "controller.ibvs_kv_1_s")],
 )
 def test_a_bad_value_names_its_key(override: str, key: str) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

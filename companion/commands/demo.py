@@ -130,7 +130,7 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
              sim_config: Path | None = None, budget_s: float | None = None,
              ) -> dict[str, Any]:
     """Fly a scenario; ``overrides`` reach both processes (``OUT/config.toml``).
-    ``budget_s``: wall time allowed for the flight (default 60 s + twice the flight).
+    ``budget_s``: wall time allowed for the flight (default 120 s + 4 times the flight).
     ``monitor(companion_process)`` is called every 50 ms during the flight (benchmarks sample
     its memory); ``sim_config`` gives the emulator a different file (e.g. with fault
     injection) than the companion's ``config``, with the same overrides."""
@@ -160,7 +160,7 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
             time.sleep(0.05)
         t0 = time.monotonic()
         sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
-        budget = budget_s if budget_s is not None else 60.0 + 2.0 * duration_s
+        budget = budget_s if budget_s is not None else 120.0 + 4.0 * duration_s
         sim_rc = comp_rc = None
         wall = 0.0
         try:

@@ -52,6 +52,9 @@ TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 
+FIRST_FRAME_TIMEOUT_S = 60.0
+"""How long to wait for the first camera frame (then ``idle_timeout_s`` between frames)."""
+
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
     "ATTITUDE_QUATERNION": "time_boot_ms",
@@ -143,7 +146,7 @@ class CompanionApp:
         truth_port: int | None = None,
         duration_s: float | None = None,
         idle_timeout_s: float = 5.0,
-        startup_timeout_s: float = 120.0,
+        startup_timeout_s: float = FIRST_FRAME_TIMEOUT_S,
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
@@ -284,6 +287,8 @@ class CompanionApp:
                 time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
             ):
                 break
+            # before the first frame the camera may still be starting (a loaded machine takes
+            # seconds to start the emulator): wait longer than between frames
             wait_s = self.idle_timeout_s if self._first_frame_s is not None else max(
                 self.idle_timeout_s, self.startup_timeout_s)
             if exit_deadline is not None:  # stopping: wait no longer than the exit allows

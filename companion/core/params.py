@@ -120,6 +120,10 @@ class RmpcParams:
     # v_a and vdot_a fixed parameters) or "planned_yaw" (v_a and vdot_a rotated by the planned
     # yaw, vdot_a with the planned yaw rate: exact for the constant-turn target model).
     target_motion: str = "nominal"
+    # L1 weight of the tube and terminal rows' slacks in the soft (recovery) copy; the
+    # visibility rows keep recovery_penalty. Lower than recovery_penalty: while the problem is
+    # infeasible, recovery gives up tracking accuracy before it gives up the target's view.
+    recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
     # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
     # key: companion.config fills it from [target] (used by visibility = "corners").
     target_corners_m: tuple[tuple[float, float], ...] = ()

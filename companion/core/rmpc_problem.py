@@ -30,8 +30,9 @@ With ``rmpc.heading = "cost"`` the tube and terminal-set rows use ``P`` with ``s
 out (:func:`tube_matrix`): the yaw error is then only in the cost.
 
 The soft copy subtracts a slack ``>= 0`` from each of these rows and adds
-``recovery_penalty * slack`` to the cost (an exact L1 penalty); dynamics, input bounds and the
-state box stay hard.
+``recovery_penalty * slack`` (visibility rows) or ``recovery_tube_penalty * slack`` (tube and
+terminal rows) to the cost (an exact L1 penalty); dynamics, input bounds and the state box stay
+hard.
 """
 
 from __future__ import annotations
@@ -284,7 +285,9 @@ def build_nlp(
                 s = ca.SX.sym(f"sl_{kind}_{n}")
                 s_idx = int(add_w(s)[0])
                 slack_index.append(s_idx)
-                cost = cost + rmpc.recovery_penalty * s
+                weight = (rmpc.recovery_penalty if group == "visibility"
+                          else rmpc.recovery_tube_penalty)
+                cost = cost + weight * s
                 val = val - s
             g.append(val)
             equality.append(False)

@@ -42,9 +42,15 @@ RHO = 1e-4
 HARD = ("dynamics", "input", "state")
 
 
+# The paper's problem (spec 6): centroid rows, the yaw error in the tube, the nominal target
+# motion. The whole-target variants are tested in tests/core/test_visibility_corners.py.
+PAPER_RMPC = ('rmpc.visibility="centroid"', 'rmpc.heading="tube"',
+              'rmpc.target_motion="nominal"')
+
+
 @pytest.fixture(scope="module")
 def cfg() -> Config:
-    return load_config()
+    return load_config(overrides=PAPER_RMPC)
 
 
 @pytest.fixture(scope="module")
@@ -294,7 +300,7 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
     code = (
         "import json; from companion.config import load_config;"
         "from companion.core.design import design_terminal;"
-        "from companion.core.rmpc import Rmpc; c = load_config();"
+        f"from companion.core.rmpc import Rmpc; c = load_config(overrides={PAPER_RMPC!r});"
         "m = Rmpc(c.rmpc, c.camera, design_terminal(c.rmpc, c.camera));"
         "print(json.dumps([[str(x.library), x.compiled_now] for x in m.compiled]))"
     )
@@ -302,6 +308,12 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
                          text=True, timeout=120, check=True)
     libs = json.loads(out.stdout.strip().splitlines()[-1])
     assert libs == [[str(hard.library), False], [str(soft.library), False]]
+    # the whole-target rows are another problem: another cache entry (the key hashes the
+    # generated source), never the centroid library
+    corners = Rmpc(dataclasses.replace(mpc.cfg, visibility="corners"), mpc.camera, mpc.terminal)
+    k_hard, k_soft = corners.compiled
+    assert k_hard is not None and k_soft is not None
+    assert k_hard.key != hard.key and k_soft.key != soft.key
 
 
 @pytest.mark.parametrize(
