@@ -41,12 +41,12 @@ def test_overrides_set_existing_keys_and_create_missing_tables() -> None:
     doc = read_document(DEFAULT_CONFIG)
     out = merged_document(doc, ["sim.agv.speed_scale=3", 'target.pattern="aruco"',
                                 "sim.scenarios.s1.uav_pose=[0.5, 0, -3, 0, 0, 1]",
-                                "sim.camera_model.latency_ms=30", "controller.kind=rmpc"])
+                                "sim.camera_model.latency_ms=30", "newtable.kind=rmpc"])
     assert out["sim"]["agv"]["speed_scale"] == 3
     assert out["target"]["pattern"] == "aruco"
     assert out["sim"]["scenarios"]["s1"]["uav_pose"] == [0.5, 0, -3, 0, 0, 1]
     assert out["sim"]["camera_model"] == {"level": "ideal", "latency_ms": 30}
-    assert out["controller"] == {"kind": "rmpc"}  # a bare word is a string
+    assert out["newtable"] == {"kind": "rmpc"}  # a new table; a bare word is a string
     assert doc["sim"]["agv"]["speed_scale"] == 1.0  # the input is not touched
 
 
