@@ -133,8 +133,10 @@ def _run(args: argparse.Namespace) -> int:
             notes.append(f"Last flying invocation: {meta['flown']} flights in "
                          f"{meta['wall_s']:.0f} s wall on {meta['workers']} worker(s): "
                          f"{meta['flights_per_minute']:.2f} flights/min"
-                         + (f"; machine load average {meta['load_start']} at the start, "
-                            f"{meta['load_end']} at the end" if "load_start" in meta else "")
+                         + (f"; machine load average (1, 5, 15 min) "
+                            f"{', '.join(f'{x:.1f}' for x in meta['load_start'])} at the start, "
+                            f"{', '.join(f'{x:.1f}' for x in meta['load_end'])} at the end"
+                            if "load_start" in meta else "")
                          + ".")
         except (ValueError, KeyError, TypeError):
             pass
