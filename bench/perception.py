@@ -160,15 +160,32 @@ def main() -> int:
 
 def _flight(path: Path, n: int, as_json: bool) -> int:
     from companion.log.reader import LogReader
+    from companion.replay_inputs import _Canvas
 
     cfg = load_config()
     frames = []
     with LogReader(path, verify=False) as r:
-        for m in r.messages(topics=["/camera/image"]):
-            if m.image is not None:
-                frames.append(m.image)
-            if len(frames) >= n:
-                break
+        if any(c.topic == "/perception/input" for c in r.channels):
+            # crops of what perception read, pasted back where they were (docs/logging.md)
+            crops = {}
+            canvas = _Canvas()
+            for m in r.messages(topics=["/perception/input", "/control/step"]):
+                if m.topic == "/perception/input":
+                    crops[m.log_time_ns] = m.image
+                    continue
+                inp = (m.data or {}).get("input")
+                img = crops.pop(inp["log_time_ns"], None) if inp else None
+                if img is not None:
+                    frames.append(canvas.paste(img, inp["x0"], inp["y0"], inp["width"],
+                                               inp["height"]).copy())
+                if len(frames) >= n:
+                    break
+        else:  # logs written before crops: every frame whole
+            for m in r.messages(topics=["/camera/image"]):
+                if m.image is not None:
+                    frames.append(m.image)
+                if len(frames) >= n:
+                    break
     perception = Perception(cfg.camera, cfg.target)
     times = []
     ok = 0

@@ -3,10 +3,16 @@ integration of 50 ms at 2.5 ms steps) + render a frame + encode it for the wire.
 
     python bench/sim_step.py [--steps 1000] [--pattern rectangle|aruco] [--size 1000] [--json]
                              [--level ideal|mild|realistic|harsh] [--lens]
+                             [--vehicle stub|first-order|px4|realistic]
 
 ``--level`` adds the camera model of that level (``sim.camera_model``: motion blur over the
 exposure, sensor noise and brightness drift; latency and drops cost nothing per frame);
-``--lens`` renders through ``config/camera-distorted.yaml`` (1000 px only).
+``--lens`` renders through ``config/camera-distorted.yaml`` (1000 px only). ``--vehicle``: the
+physics stage is a point-mass stub (default, the historical figure) or the emulator's real
+vehicle model of ``config/paper.toml`` with ``sim.vehicle.attitude_model`` = first-order or px4
+(PX4's cascade, 20 sub-steps of 2.5 ms), or that of ``config/realistic.toml`` (px4 + vehicle
+imperfections + turbulence), tracking a pose setpoint that follows the AGV. CPU time per step
+(``getrusage``, whole loop) is printed beside the wall figures.
 
 Target (issue "sim_bridge"): median <= 2 ms per step at 1000 x 1000, i.e. >= 25x real time at
 the 20 Hz frame rate. Prints median/p95 per stage and for the whole step.
@@ -15,10 +21,12 @@ the 20 Hz frame rate. Prints median/p95 per stage and for the whole step.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
 import platform
+import resource
 import sys
 import time
 from pathlib import Path
@@ -30,9 +38,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from sim_bridge.camera import Camera, read_calibration
 from sim_bridge.camera_model import Sensor
-from sim_bridge.config import CAMERA_LEVELS, CameraModelConfig
+from sim_bridge.config import CAMERA_LEVELS, CameraModelConfig, load_config
 from sim_bridge.frames import encode_frame
 from sim_bridge.physics.agv import AgvTrajectory
+from sim_bridge.physics.vehicle import AttitudeCommand, initial_state
+from sim_bridge.vehicle_model import VehicleDynamics, build_vehicle_model
 
 STEP_S = 0.05
 PHYSICS_DT_S = 0.0025
@@ -60,8 +70,19 @@ def _physics_stub(pos: np.ndarray, vel: np.ndarray, target: np.ndarray) -> None:
         pos += vel * PHYSICS_DT_S
 
 
+def _vehicle(kind: str) -> VehicleDynamics | None:
+    if kind == "stub":
+        return None
+    root = Path(__file__).resolve().parent.parent / "config"
+    cfg = load_config(root / ("realistic.toml" if kind == "realistic" else "paper.toml"))
+    if kind in ("first-order", "px4"):
+        veh = dataclasses.replace(cfg.sim.vehicle, attitude_model=kind)
+        cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, vehicle=veh))
+    return build_vehicle_model(cfg)
+
+
 def run(steps: int, pattern: str, size: int, level: str = "ideal",
-        lens: bool = False) -> dict[str, Any]:
+        lens: bool = False, vehicle: str = "stub") -> dict[str, Any]:
     pixel = 5.04e-6 * 1000 / size  # same field of view at any resolution
     k = d = None
     if lens:
@@ -75,19 +96,39 @@ def run(steps: int, pattern: str, size: int, level: str = "ideal",
     agv_traj = AgvTrajectory("paper")
     pos = np.array([-0.2, 0.4, -2.0])
     vel = np.zeros(3)
+    model = _vehicle(vehicle)
+    state = initial_state(pos, yaw_rad=0.39)
+    hover = model.true_hover_thrust(0.0) if model is not None else 0.5
     stages: dict[str, list[float]] = {k: [] for k in ("agv", "physics", "render", "sensor",
                                                        "encode")}
     total: list[float] = []
+    physics_cpu_s = 0.0
+    cpu0 = 0.0
     in_image = 0
     n_bytes = 0
     for k in range(steps + 20):  # 20 warm-up steps
         t = k * STEP_S
         t0 = time.perf_counter()
         agv = agv_traj.state(t)
+        if k == 20:
+            cpu0 = resource.getrusage(resource.RUSAGE_SELF).ru_utime
         t1 = time.perf_counter()
-        _physics_stub(pos, vel, agv.pos_ned_m + np.array([0.0, 0.0, -2.0]))
-        q = _quat_from_euler(0.05 * math.sin(t), -0.05 * math.cos(0.7 * t), agv.yaw_rad)
-        rates = np.array([0.3 * math.cos(t), 0.3 * math.sin(0.7 * t), agv.yaw_rate_rad_s])
+        c1 = time.process_time()
+        if model is None:
+            _physics_stub(pos, vel, agv.pos_ned_m + np.array([0.0, 0.0, -2.0]))
+            q = _quat_from_euler(0.05 * math.sin(t), -0.05 * math.cos(0.7 * t), agv.yaw_rad)
+            rates = np.array([0.3 * math.cos(t), 0.3 * math.sin(0.7 * t), agv.yaw_rate_rad_s])
+        else:  # a PD pose tracker above the AGV -> tilt setpoint -> the real model
+            err = agv.pos_ned_m + np.array([0.0, 0.0, -2.0]) - state.pos_ned_m
+            acc = 1.0 * err - 1.8 * state.vel_ned_m_s
+            cy, sy = math.cos(agv.yaw_rad), math.sin(agv.yaw_rad)
+            cmd = AttitudeCommand(max(-0.3, min(0.3, (-sy * acc[0] + cy * acc[1]) / 9.81)),
+                                  max(-0.3, min(0.3, -(cy * acc[0] + sy * acc[1]) / 9.81)),
+                                  agv.yaw_rad, hover * (1 - acc[2] / 9.81))
+            state = model.step(state, cmd, STEP_S)
+            pos, vel, q, rates = (state.pos_ned_m, state.vel_ned_m_s, state.q_wxyz,
+                                  state.rates_frd_rad_s)
+        c2 = time.process_time()
         t2 = time.perf_counter()
         frame = cam.render(pos, q, agv, uav_vel_ned_m_s=vel.copy(), uav_rates_frd_rad_s=rates,
                            exposure_s=exposure_s)
@@ -98,6 +139,7 @@ def run(steps: int, pattern: str, size: int, level: str = "ideal",
         t4 = time.perf_counter()
         if k < 20:
             continue
+        physics_cpu_s += c2 - c1
         for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t35 - t3, t4 - t35),
                             strict=True):
             stages[name].append(dt)
@@ -108,8 +150,12 @@ def run(steps: int, pattern: str, size: int, level: str = "ideal",
     def ms(xs: list[float], p: float) -> float:
         return round(float(np.percentile(xs, p)) * 1e3, 4)
 
+    cpu_s = resource.getrusage(resource.RUSAGE_SELF).ru_utime - cpu0
     med = float(np.median(total))
     return {
+        "vehicle": vehicle,
+        "cpu_ms_per_step": round(cpu_s / steps * 1e3, 4),
+        "physics_cpu_ms_per_step": round(physics_cpu_s / steps * 1e3, 4),
         "steps": steps,
         "size_px": size,
         "pattern": pattern,
@@ -142,15 +188,18 @@ def main() -> int:
     ap.add_argument("--level", choices=tuple(CAMERA_LEVELS), default="ideal",
                     help="camera model level (sim.camera_model)")
     ap.add_argument("--lens", action="store_true", help="render through the distorted lens")
+    ap.add_argument("--vehicle", choices=("stub", "first-order", "px4", "realistic"),
+                    default="stub", help="physics stage: stub or the emulator's model")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
-    res = run(args.steps, args.pattern, args.size, args.level, args.lens)
+    res = run(args.steps, args.pattern, args.size, args.level, args.lens, args.vehicle)
     if args.json:
         print(json.dumps(res))
         return 0
     print(
         f"sim step (AGV + physics stub + render {res['size_px']}^2 {res['pattern']} + sensor + "
-        f"encode), level {res['level']}{', lens' if res['lens'] else ''}, "
+        f"encode), vehicle {res['vehicle']}, level {res['level']}"
+        f"{', lens' if res['lens'] else ''}, "
         f"{res['steps']} steps, load {res['host']['loadavg_1min']}"
     )
     print(
@@ -158,6 +207,8 @@ def main() -> int:
         f"(target <= {res['target_median_ms']} ms median: "
         f"{'met' if res['meets_target'] else 'NOT met'})"
     )
+    print(f"  CPU (getrusage) {res['cpu_ms_per_step']} ms per step, physics stage "
+          f"{res['physics_cpu_ms_per_step']} ms (process_time)")
     for name in res["stages_median_ms"]:
         print(
             f"  {name:8s} median {res['stages_median_ms'][name]:.4f} ms, "

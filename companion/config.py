@@ -111,6 +111,19 @@ class LoggingConfig:
     block_on_backlog: bool = False
     # MCAP chunk compression: "lz4" (fast), "zstd" (smaller, ~2x the CPU) or "none"
     compression: str = "lz4"
+    # What perception read, on /perception/input, encoded with ``image_encoding``: "crop"
+    # (the region the detector read: the whole frame when it searched), "full" (every frame
+    # whole) or "none" (replay then needs an old log's full frames, or --from-detections)
+    perception_input: str = "crop"
+    # The preview for people on /camera/image (JPEG): at most this many frames per second of
+    # camera time (0: none), scaled by ``preview_scale``, JPEG quality ``preview_jpeg_quality``
+    preview_rate_hz: float = field(default=5.0, metadata=checked(nonneg))
+    preview_scale: float = 0.5
+    preview_jpeg_quality: int = 75
+    # Log times: "receipt" (the companion's monotonic clock; a real vehicle) or "source" (the
+    # autopilot's clock carried by frames and telemetry: a lockstep simulation then plays at
+    # its real speed)
+    timestamps: str = "receipt"
 
     def __post_init__(self) -> None:
         if self.image_encoding not in ("png", "jpeg", "raw"):
@@ -121,6 +134,38 @@ class LoggingConfig:
             raise ConfigError(
                 f"logging.compression: {self.compression!r} is not 'lz4', 'zstd' or 'none'"
             )
+        if self.perception_input not in ("crop", "full", "none"):
+            raise ConfigError(f"logging.perception_input: {self.perception_input!r} is not "
+                              "'crop', 'full' or 'none'")
+        if not 0.0 < self.preview_scale <= 1.0:
+            raise ConfigError(f"logging.preview_scale: {self.preview_scale!r} is not in (0, 1]")
+        if not 1 <= self.preview_jpeg_quality <= 100:
+            raise ConfigError(f"logging.preview_jpeg_quality: {self.preview_jpeg_quality!r} "
+                              "is not in 1..100")
+        if self.timestamps not in ("receipt", "source"):
+            raise ConfigError(
+                f"logging.timestamps: {self.timestamps!r} is not 'receipt' or 'source'")
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """Live view: the log's channels served over the Foxglove WebSocket protocol
+    (:mod:`companion.log.live`). Off by default: on a vehicle it is one more open port."""
+
+    enabled: bool = False
+    # Interface to bind: loopback by default; "0.0.0.0" serves every interface (see docs)
+    host: str = "127.0.0.1"
+    port: int = field(default=8765, metadata=checked(nonneg))  # TCP; 0 picks a free port
+    # Messages waiting for the publisher thread, at most; beyond it the oldest are dropped (counted)
+    queue_size: int = field(default=512, metadata=checked(positive))
+    # Messages buffered per connected client by the SDK; a slow client loses the oldest
+    client_backlog: int = field(default=256, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        if not self.host or any(c.isspace() for c in self.host):
+            raise ConfigError(f"live.host: {self.host!r} is not a host name or address")
+        if self.port > 65535:
+            raise ConfigError(f"live.port: {self.port} is not a TCP port (0..65535)")
 
 
 CONTROLLER_KINDS = ("rmpc", "rmpc-centroid", "mpc-novis", "ibvs-pd")
@@ -163,6 +208,7 @@ class Config:
     safety: SafetyConfig
     logging: LoggingConfig
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
@@ -191,7 +237,7 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
         if f.name in ("source", "raw"):
             continue
         if f.name not in data:
-            if f.default_factory is not dataclasses.MISSING:  # optional table
+            if f.default_factory is not dataclasses.MISSING:  # an optional table
                 sections[f.name] = f.default_factory()
                 continue
             raise ConfigError(f"{f.name}: missing table [{f.name}]")

@@ -1,9 +1,14 @@
 """Offline replay: a recorded flight through the same perception and controller code.
 
-Frames (``/camera/image``) and accepted MAVLink messages (``/mavlink/in/*``, re-decoded from
-their raw bytes, so the store sees exactly what the live process saw) are fed in the order the
-live process consumed them: before step k, exactly the ``rx_count`` messages that had been
-ingested live. Every recomputed command is compared with the recorded one.
+Accepted MAVLink messages (``/mavlink/in/*``, re-decoded from their raw bytes, so the store sees
+exactly what the live process saw) are fed in the order the live process consumed them: before
+step k, exactly the ``rx_count`` messages that had been ingested live. Every recomputed command
+is compared with the recorded one.
+
+Perception runs as its own stage (:mod:`companion.replay_inputs`): from the logged perception
+inputs (crops, or an old log's full frames), in a child process by default so that it and the
+controller use two cores; or, with ``from_detections``, not at all: the controller is fed the
+corners each step recorded (tuning the controller: solver-bound).
 """
 
 from __future__ import annotations
@@ -12,10 +17,8 @@ import base64
 import json
 import logging
 import math
-import sys
 from collections import deque
-from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,7 +28,9 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
 from companion.config import Config, config_from_dict, load_config, with_overrides
+from companion.control.recording import TOPIC_INPUT
 from companion.control.runtime import (
+    STAMPED_MESSAGES,
     TOPIC_FRAME,
     TOPIC_STEP,
     TOPIC_TRUTH,
@@ -33,14 +38,23 @@ from companion.control.runtime import (
     new_pipeline,
     new_store,
 )
+from companion.control.telemetry import TelemetryStore
 from companion.log import schemas as sch
-from companion.log.reader import LogMessage, LogReader, image_from_raw
+from companion.log.reader import LogReader
 from companion.log.writer import McapLogger
+from companion.perception import Perception
+from companion.replay_inputs import (
+    Perceived,
+    PerceptionWorker,
+    ReplayInputError,
+    input_mode,
+    perceive_log,
+    perceived_from_record,
+)
 
 log = logging.getLogger(__name__)
 
 TOPIC_SAT = "/mavlink/out/SET_ATTITUDE_TARGET"
-REQUIRED = (TOPIC_FRAME, TOPIC_STEP)
 
 
 class ReplayError(CompanionError):
@@ -56,11 +70,20 @@ class ReplayResult:
     mode_mismatches: int = 0
     first_difference_t_s: float | None = None
     frames_missing: int = 0
+    outside_crop: int = 0
     recorded_wire_commands: int = 0
     recovery: dict[str, Any] = field(default_factory=dict)
     config_source: str = ""
+    perception: str = ""  # "crop", "frames" (old full-frame log) or "detections"
+    commands_changed: int = 0
+    modes: dict[str, int] = field(default_factory=dict)
+    solve_ms: list[float] = field(default_factory=list, repr=False)
+    costs: list[float] = field(default_factory=list, repr=False)
+    thrust: list[float] = field(default_factory=list, repr=False)
 
     def summary(self, tol: float = 1e-6) -> dict[str, Any]:
+        solve = np.asarray(self.solve_ms, dtype=float)
+        cost = np.asarray(self.costs, dtype=float)
         return {
             "steps": self.steps,
             "commands_compared": self.commands_compared,
@@ -69,10 +92,19 @@ class ReplayResult:
             "identical": self.commands_compared > 0 and self.max_quat_diff <= tol
             and self.max_thrust_diff <= tol and self.mode_mismatches == 0,
             "tolerance": tol,
+            "commands_changed": self.commands_changed,
             "mode_mismatches": self.mode_mismatches,
             "first_difference_t_s": self.first_difference_t_s,
             "frames_missing": self.frames_missing,
+            "perception": self.perception,
+            "perception_outside_crop": self.outside_crop,
             "recorded_wire_commands": self.recorded_wire_commands,
+            "solver_modes": dict(self.modes),
+            "solve_ms_median": float(np.median(solve)) if solve.size else None,
+            "solve_ms_p95": float(np.percentile(solve, 95)) if solve.size else None,
+            "mean_cost": float(np.mean(cost)) if cost.size else None,
+            "thrust_min": min(self.thrust) if self.thrust else None,
+            "thrust_max": max(self.thrust) if self.thrust else None,
             "config": self.config_source,
             "log": self.recovery,
         }
@@ -92,24 +124,68 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
 def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
            overrides: list[str] | None = None,
            progress: Callable[[int, int], None] | None = None,
-           timer: Callable[[], float] | None = None) -> ReplayResult:
+           timer: Callable[[], float] | None = None, *,
+           from_detections: bool = False, workers: int = 1,
+           perceived: list[Perceived] | None = None) -> ReplayResult:
     """Replay ``log_path``; ``timer`` (e.g. time.perf_counter) records stage timings in the
-    recomputed step records (measurement only: results are the same without it)."""
+    recomputed step records (measurement only: results are the same without it).
+
+    ``from_detections``: feed the controller the recorded detections instead of running
+    perception. ``workers``: 1 runs perception in a child process (two cores), 0 in this
+    one. ``perceived``: perception results of this log computed before (a sweep reuses them);
+    when it is an empty list, this replay's are appended to it."""
     with LogReader(log_path, verify=False) as reader:  # one pass: chunks are CRC-checked as read
-        return _replay(reader, log_path, out_path, config, overrides, progress, timer)
+        return _replay(reader, log_path, out_path, config, overrides, progress, timer,
+                       from_detections, workers, perceived)
+
+
+def _perception_stage(log_path: Path, cfg: Config, mode: str, workers: int,
+                      perceived: list[Perceived] | None) -> Iterator[Perceived] | None:
+    if mode == "detections":
+        return None
+    if perceived:
+        return iter(perceived)
+    if workers > 0:
+        worker = PerceptionWorker(log_path, cfg)
+
+        def gen() -> Iterator[Perceived]:
+            with worker:
+                yield from worker
+        it: Iterable[Perceived] = gen()
+    else:
+        it = perceive_log(log_path, cfg)
+    if perceived is None:
+        return iter(it)
+
+    def keep() -> Iterator[Perceived]:
+        for p in it:
+            perceived.append(p)
+            yield p
+    return keep()
 
 
 def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Path | None,
             overrides: list[str] | None,
             progress: Callable[[int, int], None] | None,
-            timer: Callable[[], float] | None) -> ReplayResult:
+            timer: Callable[[], float] | None, from_detections: bool, workers: int,
+            perceived: list[Perceived] | None) -> ReplayResult:
     counts = {c.topic: c.count for c in reader.channels}
-    missing = [t for t in REQUIRED if t not in counts]
-    if missing:
-        raise ReplayError(f"{log_path}: missing channel(s) {', '.join(missing)}: cannot replay "
+    if TOPIC_STEP not in counts:
+        raise ReplayError(f"{log_path}: missing channel {TOPIC_STEP}: cannot replay "
                           f"(present: {', '.join(sorted(counts)) or 'none'})")
     cfg = replay_config(reader, config, list(overrides or []))
-    res = ReplayResult(config_source=cfg.source)
+    if from_detections:
+        mode = "detections"
+    else:
+        first = next((_json(m.raw) for m in reader.messages(topics=[TOPIC_STEP], decode=False)),
+                     None)
+        mode = input_mode(counts, first)
+        if mode == "none":
+            want = TOPIC_FRAME if first is None or "input" not in first else TOPIC_INPUT
+            raise ReplayError(f"{log_path}: missing channel {want}: no perception input to "
+                              "replay; --from-detections replays the controller from the "
+                              "recorded detections")
+    res = ReplayResult(config_source=cfg.source, perception=mode)
     rec = reader.recovery
     res.recovery = {"truncated": rec.truncated, "messages_recovered": rec.messages,
                     "salvaged": rec.salvaged, "bytes_used": rec.bytes_used,
@@ -119,6 +195,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
                     log_path, rec.messages,
                     ((rec.last_log_time_ns or 0) - (rec.first_log_time_ns or 0)) * 1e-9)
     pipeline = new_pipeline(cfg, timer=timer)
+    perception = Perception(cfg.camera, cfg.target)  # undistortion + metric of detections
     store = new_store(cfg)
     tb = TimeBase(cfg.control.time_source)
     parser = mavlink2.MAVLink(None)
@@ -126,44 +203,62 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     total_steps = counts.get(TOPIC_STEP, 0)
 
     rx_seen = 0
-    frames: dict[int, Future[np.ndarray | None]] = {}
-    recorded_sat: list[dict[str, Any]] = []
-    pending_steps: list[dict[str, Any]] = []
-    mav_in: deque[LogMessage] = deque()
+    recorded_sat = 0
+    pending_steps: deque[dict[str, Any]] = deque()
+    mav_in: deque[tuple[str, int, bytes]] = deque()
+    used = TelemetryStore.MESSAGES | STAMPED_MESSAGES
+    # the perception worker is forked before this process starts any thread (the writer's)
+    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
     writer = None
     if out_path is not None:
         writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
         writer.open()
         writer.log_config(0, "", dict(cfg.raw), cfg.source)
 
-    def ingest(m: LogMessage) -> None:
+    def ingest(name: str, t_ns: int, raw_json: bytes) -> None:
         nonlocal rx_seen
-        raw = base64.b64decode((m.data or {}).get("raw_b64", ""))
-        msg = _decode(parser, raw)
-        if msg is None:
-            return
-        fields = msg.to_dict()
-        name = msg.get_type()
-        t_s = tb.message_s(name, fields, int((m.data or {}).get("t_rx_ns", m.log_time_ns)))
-        store.ingest(name, fields, t_s, msg.get_srcSystem())
         rx_seen += 1
+        if name not in used:  # neither the store nor the time base reads it: count it only
+            return
+        data = _json(raw_json) or {}
+        fields, sysid = data.get("fields"), data.get("sysid")
+        if (not isinstance(fields, dict) or not isinstance(sysid, int)
+                or any(v is None for v in fields.values())):
+            # the logged fields lost something (JSON has no NaN): decode the raw bytes
+            msg = _decode(parser, base64.b64decode(data.get("raw_b64", "")))
+            if msg is None:
+                return
+            fields, name, sysid = msg.to_dict(), msg.get_type(), msg.get_srcSystem()
+        # logged fields are the decoded values (floats round-trip JSON exactly)
+        t_s = tb.message_s(name, fields, int(data.get("t_rx_ns", t_ns)))
+        store.ingest(name, fields, t_s, sysid)
 
     def run_step(rec_step: dict[str, Any]) -> None:
         want = int(rec_step.get("rx_count", 0))
         while rx_seen < want and mav_in:
-            ingest(mav_in.popleft())
-        fut = frames.pop(int(rec_step["t_rx_ns"]), None)
-        img = fut.result() if fut is not None else None
-        if img is None:
-            res.frames_missing += 1
+            ingest(*mav_in.popleft())
+        if stage is None:
+            p = perceived_from_record(rec_step)
+        else:
+            nxt = next(stage, None)
+            if nxt is None:
+                raise ReplayError(f"{log_path}: perception ended before the step records")
+            p = nxt
+        res.frames_missing += p.missing
+        res.outside_crop += p.outside_crop
         t_s = tb.frame_s(int(rec_step["frame_t_us"]), int(rec_step["t_rx_ns"]))
         pipeline.force_solver_failure = bool(rec_step.get("fault_injected", False))
-        out = pipeline.step(img, t_s, store)
+        t_now = rec_step.get("t_now_s")  # the live step's "now" (latency compensation)
+        ic = rec_step.get("in_control")
+        out = pipeline.step(None, t_s, store,
+                            t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
+                            in_control=ic if isinstance(ic, bool) else None,
+                            perceived=p.result(perception))
         res.steps += 1
-        new = out.to_record()
-        new.update({k: rec_step.get(k) for k in ("frame_seq", "frame_t_us", "t_rx_ns",
-                                                 "rx_count", "offboard")})
         if writer is not None:
+            new = out.to_record()
+            new.update({k: rec_step.get(k) for k in ("frame_seq", "frame_t_us", "t_rx_ns",
+                                                     "rx_count", "offboard")})
             writer.log(TOPIC_STEP, int(rec_step["t_rx_ns"]), new, schema=sch.CONTROLLER_STEP)
         _compare(res, rec_step, out, t_s)
         if progress is not None:
@@ -172,43 +267,43 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     def ready(step: dict[str, Any]) -> bool:
         return rx_seen + len(mav_in) >= int(step.get("rx_count", 0))
 
-    # Frames are decoded (PNG: ~6.6 ms at 1000 x 1000; raw: a copy) in worker threads a few
-    # frames ahead of the step that uses them: cv2.imdecode releases the GIL, so decoding
-    # overlaps the pipeline. Same frames, same order, same results.
-    pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="replay-decode")
+    topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
+    if writer is not None:
+        topics.append(TOPIC_TRUTH)
     try:
-        # A step record is stamped with its frame's receipt time, but the messages it saw may
-        # have arrived after that frame: run a step once all of its ``rx_count`` messages have
+        # A step record is stamped with its frame's time, but the messages it saw may have
+        # arrived after that frame: run a step once all of its ``rx_count`` messages have
         # been read (log-time order preserves their order of arrival).
-        for m in reader.messages(topics=None, decode=False):
-            if m.topic == TOPIC_FRAME:
-                frames[m.log_time_ns] = pool.submit(image_from_raw, m.schema_name,
-                                                     m.message_encoding, m.raw)
+        for m in reader.messages(topics=topics, decode=False):
+            topic = m.topic
+            if topic == TOPIC_STEP:
+                data = _json(m.raw)
+                if data:
+                    pending_steps.append(data)
+            elif topic == TOPIC_SAT:
+                recorded_sat += 1
+            elif topic == TOPIC_TRUTH:
+                if writer is not None:
+                    writer.log(TOPIC_TRUTH, m.log_time_ns, m.raw, schema=sch.JSON)
                 continue
-            data = _json(m.raw)
-            if m.topic.startswith("/mavlink/in/"):
-                mav_in.append(LogMessage(m.topic, m.log_time_ns, m.publish_time_ns,
-                                         m.schema_name, data, None, m.raw))
-            elif m.topic == TOPIC_SAT and data:
-                recorded_sat.append(data.get("fields", {}))
-            elif m.topic == TOPIC_STEP and data:
-                pending_steps.append(data)
-            elif m.topic == TOPIC_TRUTH and writer is not None and data:
-                writer.log(TOPIC_TRUTH, m.log_time_ns, data, schema=sch.JSON)
-            while pending_steps and ready(pending_steps[0]) and len(frames) > LOOKAHEAD:
-                run_step(pending_steps.pop(0))
+            else:
+                mav_in.append((topic[len("/mavlink/in/"):], m.log_time_ns, m.raw))
+                if not pending_steps:
+                    continue
+            while pending_steps and ready(pending_steps[0]):
+                run_step(pending_steps.popleft())
         while pending_steps:  # end of the log (or a log cut short): run what is left
-            run_step(pending_steps.pop(0))
+            run_step(pending_steps.popleft())
+    except ReplayInputError as exc:
+        raise ReplayError(str(exc)) from exc
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if stage is not None and hasattr(stage, "close"):
+            stage.close()
         if writer is not None:
             writer.close()
     res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
-    res.recorded_wire_commands = len(recorded_sat)
+    res.recorded_wire_commands = recorded_sat
     return res
-
-
-LOOKAHEAD = 3  # frames decoded ahead of the step that uses them
 
 
 def _json(raw: bytes) -> dict[str, Any] | None:
@@ -235,42 +330,35 @@ def _decode(parser: Any, raw: bytes) -> Any:
 def _compare(res: ReplayResult, rec_step: dict[str, Any], out: Any, t_s: float) -> None:
     rec_sp = rec_step.get("setpoint")
     new_sp = out.setpoint
+    r = out.rmpc
+    if r is not None:
+        res.modes[r.mode] = res.modes.get(r.mode, 0) + 1
+        if math.isfinite(r.solve_time_s):
+            res.solve_ms.append(r.solve_time_s * 1e3)
+        if math.isfinite(r.cost):
+            res.costs.append(float(r.cost))
+    if new_sp is not None:
+        res.thrust.append(float(new_sp.thrust_norm))
     if rec_sp is None and new_sp is None:
         return
     res.commands_compared += 1
     if rec_sp is None or new_sp is None:
         res.max_quat_diff = math.inf
         res.max_thrust_diff = math.inf
+        res.commands_changed += 1
         res.first_difference_t_s = res.first_difference_t_s or t_s
         return
     q_rec = np.asarray(rec_sp["q_wxyz"], dtype=float)
     q_new = np.asarray(new_sp.q_wxyz, dtype=float)
     dq = float(min(np.max(np.abs(q_rec - q_new)), np.max(np.abs(q_rec + q_new))))
     dt = abs(float(rec_sp["thrust"]) - float(new_sp.thrust_norm))
-    if (dq > 1e-6 or dt > 1e-6) and res.first_difference_t_s is None:
-        res.first_difference_t_s = t_s
+    if dq > 1e-6 or dt > 1e-6:
+        res.commands_changed += 1
+        if res.first_difference_t_s is None:
+            res.first_difference_t_s = t_s
     res.max_quat_diff = max(res.max_quat_diff, dq)
     res.max_thrust_diff = max(res.max_thrust_diff, dt)
     rec_mode = (rec_step.get("rmpc") or {}).get("mode")
     new_mode = out.rmpc.mode if out.rmpc is not None else None
     if rec_mode != new_mode:
         res.mode_mismatches += 1
-
-
-def terminal_progress() -> Callable[[int, int], None] | None:
-    """A one-line progress bar on stderr when it is a terminal, else None (quiet)."""
-    if not sys.stderr.isatty():
-        return None
-
-    def show(done: int, total: int) -> None:
-        if done % 20 and done != total:
-            return
-        frac = done / total if total else 1.0
-        bar = "#" * int(30 * frac)
-        sys.stderr.write(f"\rreplay [{bar:<30}] {done}/{total}")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-    return show
-

@@ -38,14 +38,7 @@ from sim_bridge.gcs import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, GcsServices, Par
 from sim_bridge.impairment import LinkImpairment, msgid_of
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
-from sim_bridge.physics.vehicle import (
-    Disturbance,
-    DisturbanceParams,
-    VehicleModel,
-    VehicleParams,
-    VehicleState,
-    initial_state,
-)
+from sim_bridge.physics.vehicle import VehicleState, initial_state
 from sim_bridge.px4 import (
     ACCEPTED,
     DENIED,
@@ -56,6 +49,7 @@ from sim_bridge.px4 import (
 )
 from sim_bridge.signing import SigningState
 from sim_bridge.truth import TruthPublisher, truth_record
+from sim_bridge.vehicle_model import build_vehicle_model, vehicle_is_ideal
 
 log = logging.getLogger(__name__)
 
@@ -227,26 +221,7 @@ class SimBridge:
         self.bind_host = bind_host
         sim = cfg.sim
         self.lockstep = sim.time_mode == "lockstep"
-        self.model = VehicleModel(
-            VehicleParams(
-                hover_thrust=sim.vehicle.hover_thrust,
-                attitude_tau_s=sim.vehicle.attitude_tau_s,
-                max_tilt_rate_rad_s=sim.vehicle.max_tilt_rate_rad_s,
-                max_yaw_rate_rad_s=sim.vehicle.max_yaw_rate_rad_s,
-                drag_per_s=sim.vehicle.drag_per_s,
-                max_tilt_rad=sim.vehicle.max_tilt_rad,
-                ground_z_m=cfg.ground_z_m,
-            ),
-            Disturbance(DisturbanceParams(
-                wind_accel_ned_m_s2=sim.disturbance.wind_accel_ned_m_s2,
-                gust_amplitude_m_s2=sim.disturbance.gust_amplitude_m_s2,
-                gust_period_s=sim.disturbance.gust_period_s,
-                random_bound_m_s2=sim.disturbance.random_bound_m_s2,
-                random_hold_s=sim.step_dt_s,
-                seed=sim.seed,
-            )),
-            dt_s=sim.physics_dt_s,
-        )
+        self.model = build_vehicle_model(cfg)
         x, y, z, roll, pitch, yaw = cfg.scenario.uav_pose
         airborne = sim.start == "airborne"
         if not airborne:
@@ -300,6 +275,7 @@ class SimBridge:
         self._timesync_replies = 0
         self._timesync_offset_us: float | None = None
         self._timesync_rtt_us: float | None = None
+        self._vehicle_ideal = vehicle_is_ideal(cfg)
         self._frame_server: FrameServer | None = None
         self._truth: TruthPublisher | None = None
         self._frame_seq = 0
@@ -680,6 +656,9 @@ class SimBridge:
             self._us(t), seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv,
             frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
             armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
+        rec["sim_t_s"] = t  # t_us is on the autopilot's clock (boot offset); this is sim time
+        if not self._vehicle_ideal:
+            rec["hover_thrust_true"] = self.model.true_hover_thrust(t)
         if not self.cfg.sim.camera_model.ideal:
             rec["frame_t_us"] = stamp_us
             rec["frame_dropped"] = deliver_s is None
@@ -697,6 +676,8 @@ class SimBridge:
             return
         self.px4.update(self.state.t_s, self.state)
         self._note_changes(self.state.t_s)
+        # PX4's own modes fly with its converged hover-thrust estimate (MPC_USE_HTE)
+        self.px4.hover_thrust_estimate = self.model.true_hover_thrust(self.state.t_s)
         self.state = self.model.step(self.state, self.px4.attitude_command(), n * dt)
         self.px4.update(self.state.t_s, self.state)
         self._note_changes(self.state.t_s)

@@ -213,6 +213,10 @@ class Px4:
         self._target_z = float(state.pos_ned_m[2])
         self._state = state
         self._t_s = t_s
+        # PX4's hover-thrust estimate for its own modes (the runtime sets it to the vehicle's
+        # true hover thrust: MPC_USE_HTE's estimate after a while in the air); None: the
+        # parameter MPC_THR_HOVER
+        self.hover_thrust_estimate: float | None = None
 
     # ------------------------------------------------------------------ queries
     def signal_fresh(self, t_s: float) -> bool:
@@ -434,6 +438,11 @@ class Px4:
             self._rate_att = self._rate_att + np.asarray(self._sp.body_rates_rad_s) * dt
 
     # ------------------------------------------------------------------ control output
+    @property
+    def _hover(self) -> float:
+        h = self.hover_thrust_estimate
+        return self.p.hover_thrust if h is None or not 0 < h < 1 else h
+
     def attitude_command(self) -> AttitudeCommand:
         """What the attitude loop tracks now (from the offboard setpoint or the mode's own
         controller)."""
@@ -444,7 +453,7 @@ class Px4:
         if m is Mode.OFFBOARD:
             sp = self._sp
             if sp is None:  # in OFFBOARD with nothing applied yet: keep level, hover
-                return AttitudeCommand(0.0, 0.0, s.yaw_rad, self.p.hover_thrust)
+                return AttitudeCommand(0.0, 0.0, s.yaw_rad, self._hover)
             if sp.uses_attitude:
                 r, p, y = euler_from_quat(np.asarray(sp.q_wxyz))
                 ff = 0.0 if sp.type_mask & MASK_YAW_RATE_IGNORE else sp.body_rates_rad_s[2]
@@ -452,13 +461,13 @@ class Px4:
             att = self._rate_att if self._rate_att is not None else np.array(
                 [s.roll_rad, s.pitch_rad, s.yaw_rad])
             return AttitudeCommand(float(att[0]), float(att[1]), wrap_pi(float(att[2])),
-                                   sp.thrust_norm)
+                                   sp.thrust_norm, body_rates_frd_rad_s=sp.body_rates_rad_s)
         if self.landed and m in (Mode.AUTO_LAND, Mode.AUTO_RTL):
-            return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self.p.hover_thrust)
+            return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self._hover)
         if m in (Mode.STABILIZED, Mode.MANUAL, Mode.ACRO):
-            return AttitudeCommand(0.0, 0.0, self._hold_yaw, self.p.hover_thrust)
+            return AttitudeCommand(0.0, 0.0, self._hold_yaw, self._hover)
         if self.landed and m in (Mode.POSCTL, Mode.ALTCTL, Mode.AUTO_LOITER):
-            return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self.p.hover_thrust)
+            return AttitudeCommand(0.0, 0.0, s.yaw_rad, 0.1 * self._hover)
         pos_sp = self._hold_pos.copy()
         vel_ff = np.zeros(3)
         hold_xy = True
@@ -499,5 +508,5 @@ class Px4:
         by = -sy * b[0] + cy * b[1]
         roll = -math.asin(max(-1.0, min(1.0, by)))
         pitch = math.atan2(bx, b[2])
-        thrust = min(1.0, fn / g * self.p.hover_thrust)
+        thrust = min(1.0, fn / g * self._hover)
         return AttitudeCommand(roll, pitch, self._hold_yaw, thrust)

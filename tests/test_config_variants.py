@@ -32,7 +32,10 @@ def test_every_shipped_config_loads(path: Path) -> None:
      ("rmpc.min_depth_m=0", "rmpc.min_depth_m"),
      ("rmpc.target_corners_m=[[1,1]]", "rmpc.target_corners_m"),
      ("controller.kind=\"pid\"", "controller.kind"),
-     ("controller.ibvs_kv_1_s=-1", "controller.ibvs_kv_1_s")],
+     ("controller.ibvs_kv_1_s=-1", "controller.ibvs_kv_1_s"),
+     # the companion flies only the paper's mount: a tilted or offset camera is refused, not ignored
+     ("camera.mount_rpy_rad=[0.0,0.2,0.0]", "camera.mount_rpy_rad"),
+     ("camera.mount_offset_m=[0.1,0.0,0.0]", "camera.mount_offset_m")],
 )
 def test_a_bad_value_names_its_key(override: str, key: str) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

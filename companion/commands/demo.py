@@ -47,6 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1")
     p.add_argument("--out", type=Path, default=None, help="output dir (default out/SCENARIO)")
     p.add_argument("--no-plots", action="store_true", help="report.json only")
+    p.add_argument("--live", action="store_true",
+                   help="serve the flight live to Foxglove (ws://live.host:live.port)")
     p.set_defaults(func=_run)
 
 
@@ -57,7 +59,8 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
 
 
 def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
-                  overrides: Sequence[str], faults: Sequence[str]) -> tuple[list[str], list[str]]:
+                  overrides: Sequence[str], faults: Sequence[str],
+                  live: bool = False) -> tuple[list[str], list[str]]:
     """The two command lines (emulator, companion) of a lockstep flight on free ports, both
     reading ``config`` (the merged file); ``overrides`` go to the companion only (the demo's
     own lockstep settings)."""
@@ -75,11 +78,14 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         sys.executable, "-m", "companion", "run", "--config", str(config),
         "--set", 'control.time_source="autopilot"', "--set", "offboard.arm=true",
         "--set", "offboard.reengage=true", "--set", "logging.block_on_backlog=true",
+        "--set", 'logging.timestamps="source"',
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / ".companion-ready"),
+        "--progress-file", str(out / ".companion-progress"),
+        *(["--live"] if live else []),
     ]
     return sim, comp
 
@@ -128,12 +134,13 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
              overrides: Sequence[str], faults: Sequence[str], plots: bool = True,
              monitor: Callable[[subprocess.Popen[bytes]], None] | None = None,
              sim_config: Path | None = None, budget_s: float | None = None,
-             ) -> dict[str, Any]:
+             live: bool = False, show_progress: bool = False) -> dict[str, Any]:
     """Fly a scenario; ``overrides`` reach both processes (``OUT/config.toml``).
     ``budget_s``: wall time allowed for the flight (default 120 s + 4 times the flight).
     ``monitor(companion_process)`` is called every 50 ms during the flight (benchmarks sample
     its memory); ``sim_config`` gives the emulator a different file (e.g. with fault
-    injection) than the companion's ``config``, with the same overrides."""
+    injection) than the companion's ``config``, with the same overrides; with ``live`` the
+    companion serves its channels to Foxglove while it flies (``[live]`` config)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     out.mkdir(parents=True, exist_ok=True)
     # fail early, before anything starts, on a key either program refuses
@@ -141,7 +148,8 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                                                         sim_config)
     if duration_s is None:
         duration_s = float(sim_doc.get("sim", {}).get("duration_s", 251.0))
-    sim_cmd, comp_cmd = demo_commands(comp_path, scenario, duration_s, out, [], faults)
+    sim_cmd, comp_cmd = demo_commands(comp_path, scenario, duration_s, out, [], faults,
+                                      live=live)
     sim_cmd[sim_cmd.index("--config") + 1] = str(sim_path)
     t0 = time.monotonic()
     with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
@@ -159,6 +167,9 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                                      f"{time.monotonic() - t0:.0f} s (see {out}/companion.log)")
             time.sleep(0.05)
         t0 = time.monotonic()
+        progress_file = out / ".companion-progress"
+        progress_file.unlink(missing_ok=True)
+        bar = bar_for(duration_s, show_progress)
         sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
         budget = budget_s if budget_s is not None else 120.0 + 4.0 * duration_s
         sim_rc = comp_rc = None
@@ -188,6 +199,9 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                         f"(see {out}/companion.log)")
                 if monitor is not None:
                     monitor(comp)
+                if bar is not None:
+                    elapsed = read_progress(progress_file)[0]
+                    bar.update(max(round(elapsed, 1) - bar.n, 0.0))
                 time.sleep(0.05)
             else:
                 raise CompanionError(f"demo: flight did not finish within {budget:.0f} s "
@@ -196,6 +210,8 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
             raise CompanionError(f"demo: a process did not exit (see {out}/sim.log, "
                                  f"{out}/companion.log)") from None
         finally:
+            if bar is not None:
+                bar.close()
             for p in (sim, comp):
                 if p.poll() is None:
                     p.kill()
@@ -203,9 +219,19 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     if sim_rc != 0 or comp_rc != 0:
         raise CompanionError(f"demo: emulator exited {sim_rc}, companion exited {comp_rc} "
                              f"(see {out}/sim.log, {out}/companion.log)")
-    report = build_report(out / "flight.mcap", cfg, out, plots=plots)
+    rbar, cb = (None, None)
+    if show_progress:
+        from companion.progress import step_callback
+
+        rbar, cb = step_callback("report", unit="msg")
+    try:
+        report = build_report(out / "flight.mcap", cfg, out, plots=plots, progress=cb)
+    finally:
+        if rbar is not None:
+            rbar.close()
     report["wall_time_s"] = wall
     report["real_time_factor"] = report["sim_time_s"] / wall if wall > 0 else None
+    report["companion_cpu_ms_per_step"] = read_progress(progress_file)[2]
     report["scenario"] = scenario
     report["overrides"] = list(overrides)
     report["config_file"] = str(comp_path)
@@ -213,13 +239,38 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     return report
 
 
+def bar_for(duration_s: float, show: bool) -> Any:
+    if not show:
+        return None
+    from companion.progress import bar
+
+    return bar(round(duration_s, 1), "demo", unit="sim s",
+               bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} sim s [{elapsed}<{remaining}]")
+
+
+def read_progress(path: Path) -> tuple[float, int, float | None]:
+    """(simulated seconds since the first frame, steps, CPU ms per step at the end) from the
+    companion's ``--progress-file`` (zeros while it has none)."""
+    try:
+        parts = path.read_text().split()
+        return float(parts[0]), int(parts[1]), float(parts[2]) if len(parts) > 2 else None
+    except (OSError, ValueError, IndexError):
+        return 0.0, 0, None
+
+
 def _run(args: argparse.Namespace) -> int:
     overrides = list(args.set)
     if args.no_visibility:
         overrides.append("rmpc.enable_visibility=false")
     out = args.out or Path("out") / (args.scenario + ("-novis" if args.no_visibility else ""))
+    if args.live:
+        lc = config_from_dict(merged_document(read_document(args.config), overrides)).live
+        where = f"ws://{lc.host}:{lc.port}" if lc.port else f"a free port ({out}/companion.log)"
+        print(f"live view: {where} (Foxglove: Open connection, Foxglove WebSocket; layout "
+              "foxglove/layout.json)", flush=True)
     rep = run_demo(args.config, args.scenario, args.duration, out, overrides,
-                   args.inject_fault, plots=not args.no_plots)
+                   args.inject_fault, plots=not args.no_plots, live=args.live,
+                   show_progress=True)
     vis = rep["visibility"]
     trk = rep["tracking"]
     print(f"scenario {args.scenario}: {rep['sim_time_s']:.1f} s simulated in "
@@ -234,5 +285,8 @@ def _run(args: argparse.Namespace) -> int:
               f"{eng['fallbacks']} fallbacks")
     print(f"tracking: rms s_e {trk['rms_se']}, final s_e {trk['final_se']}")
     print(f"solver: {rep['solver']}")
+    cpu = rep.get("companion_cpu_ms_per_step")
+    print(f"companion CPU per step: {'-' if cpu is None else f'{cpu:.2f} ms'} (getrusage: "
+          f"all its threads, first frame to exit)")
     print(f"report: {out / 'report.json'}")
     return 0

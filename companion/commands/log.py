@@ -1,4 +1,5 @@
-"""``companion log info LOG.mcap``: channels, counts, rates, duration (like ``mcap info``)."""
+"""``companion log info LOG.mcap``: channels, counts, rates, duration (like ``mcap info``).
+``companion log export --tlog OUT.tlog LOG.mcap``: the MAVLink traffic as a telemetry log."""
 
 from __future__ import annotations
 
@@ -14,6 +15,28 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     info = lsub.add_parser("info", help="channels, counts, rates, time range")
     info.add_argument("log", type=Path)
     info.set_defaults(func=_info)
+    exp = lsub.add_parser("export", help="export the MAVLink traffic as a telemetry log (.tlog)")
+    exp.add_argument("--tlog", type=Path, required=True, metavar="OUT.tlog",
+                     help="tlog to write (MAVProxy / QGroundControl / MAVExplorer format)")
+    exp.add_argument("--time", choices=("auto", "log"), default="auto",
+                     help="auto: Unix time from the autopilot's SYSTEM_TIME when logged; "
+                          "log: the log's own clock")
+    exp.add_argument("log", type=Path)
+    exp.set_defaults(func=_export)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from companion.log.tlog import export_tlog
+
+    res = export_tlog(args.log, args.tlog, time_base=args.time)
+    span = (res.last_us - res.first_us) * 1e-6
+    print(f"wrote {res.frames} MAVLink frames ({len(res.types)} types, {span:.1f} s) to "
+          f"{res.path}; time base: {res.time_base}")
+    if res.skipped:
+        print(f"skipped {res.skipped} frames that did not decode")
+    for name, n in res.types.items():
+        print(f"  {name:<28} {n:>7}")
+    return 0
 
 
 def _info(args: argparse.Namespace) -> int:

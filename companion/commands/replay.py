@@ -1,15 +1,27 @@
-"""``companion replay LOG.mcap``: recompute a flight's commands offline and compare them."""
+"""``companion replay LOG.mcap``: recompute a flight's commands offline and compare them.
+
+``--from-detections`` feeds the controller the detections the flight recorded (no perception:
+for tuning the controller). ``--set KEY=VALUE`` changes the config; a key given several times
+is a sweep: one replay per value (every combination when several keys are swept), results side
+by side in ``DIR/sweep.json`` and a table on stdout.
+"""
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import resource
 import time
 from pathlib import Path
+from typing import Any
 
+from companion import ConfigError
 from companion.config import load_config
-from companion.log.reader import NotMcapError
-from companion.replay import replay, replay_config, terminal_progress
+from companion.log.reader import LogReader, NotMcapError
+from companion.progress import step_callback
+from companion.replay import ReplayError, replay, replay_config
+from companion.replay_inputs import Perceived
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -18,46 +30,142 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--config", type=Path, default=None,
                    help="config to replay with (default: the one recorded in the log)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config value (repeatable), e.g. --set rmpc.q_diag=[...]")
+                   help="override a config value (repeatable), e.g. --set rmpc.q_diag=[...]; "
+                        "the same KEY several times sweeps its values")
+    p.add_argument("--from-detections", action="store_true",
+                   help="controller only: use the recorded detections instead of perception")
+    p.add_argument("--in-process", action="store_true",
+                   help="run perception in this process (default: a second process)")
     p.add_argument("--out", type=Path, default=None, help="output dir (default out/replay)")
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=_run)
 
 
-def _run(args: argparse.Namespace) -> int:
-    out = args.out or Path("out") / "replay"
+def sweep_variants(sets: list[str]) -> list[list[str]]:
+    """The override lists of a sweep: a key given n times contributes n alternatives; keys
+    given once apply to every variant. One variant (the list itself) without a repeated key."""
+    by_key: dict[str, list[str]] = {}
+    for s in sets:
+        key = s.split("=", 1)[0].strip()
+        if "=" not in s or not key:
+            raise ConfigError(f"--set {s!r}: expected KEY=VALUE")
+        by_key.setdefault(key, []).append(s)
+    if all(len(v) == 1 for v in by_key.values()):
+        return [list(sets)]
+    return [list(combo) for combo in itertools.product(*by_key.values())]
+
+
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    c = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
+
+
+def _one(args: argparse.Namespace, overrides: list[str], out: Path, label: str,
+         perceived: list[Perceived] | None) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.monotonic()
+    t0, c0 = time.monotonic(), _cpu_s()
+    bar, cb = step_callback(label)
     try:
-        res = replay(args.log, out / "replay.mcap", args.config, args.set,
-                     progress=terminal_progress())
-    except NotMcapError as exc:
-        print(f"companion: error: {exc}")
-        return 2
-    wall = time.monotonic() - t0
+        res = replay(args.log, out / "replay.mcap", args.config, overrides, progress=cb,
+                     from_detections=args.from_detections,
+                     workers=0 if args.in_process else 1, perceived=perceived)
+    finally:
+        bar.close()
+    wall, cpu = time.monotonic() - t0, _cpu_s() - c0
     summary = res.summary()
     summary["wall_time_s"] = wall
+    summary["cpu_time_s"] = cpu  # this process and the perception worker
+    summary["overrides"] = overrides
     report: dict[str, object] = {"replay": summary}
-    from companion.log.reader import LogReader
     from companion.report.files import build_report
 
     if args.config:
-        cfg = load_config(args.config, args.set)
+        cfg = load_config(args.config, overrides)
     else:
         with LogReader(args.log, verify=False) as reader:  # only its /config is needed
-            cfg = replay_config(reader, None, args.set)
+            cfg = replay_config(reader, None, overrides)
+    with LogReader(args.log, verify=False) as reader:
+        steps = [c for c in reader.channels if c.topic == "/control/step"]
+    span = steps[0] if steps else None
+    flight_s = ((span.last_log_time_ns or 0) - (span.first_log_time_ns or 0)) * 1e-9 \
+        if span else 0.0
+    summary["flight_time_s"] = flight_s
+    summary["speed_vs_real_time"] = flight_s / wall if wall > 0 and flight_s else None
     flight = build_report(out / "replay.mcap", cfg, out, plots=not args.no_plots)
     report.update({k: v for k, v in flight.items() if k not in ("replay",)})
-    sim_s = flight.get("sim_time_s") or 0.0
-    summary["speed_vs_real_time"] = (sim_s / wall) if wall > 0 and sim_s else None
     (out / "report.json").write_text(json.dumps(report, indent=2))
-    same = "identical" if summary["identical"] else "DIFFERENT"
-    print(f"replayed {res.steps} steps in {wall:.1f} s: {res.commands_compared} commands "
-          f"compared, {same} (max |dq| {res.max_quat_diff:.3g}, max |dthrust| "
-          f"{res.max_thrust_diff:.3g}, tolerance 1e-6)")
-    if res.first_difference_t_s is not None:
-        print(f"first difference at t = {res.first_difference_t_s:.2f} s")
-    if res.recovery.get("truncated"):
-        print(f"log was cut short: {res.recovery['messages_recovered']} messages recovered")
-    print(f"report: {out / 'report.json'}")
+    return summary
+
+
+def _run(args: argparse.Namespace) -> int:
+    out = args.out or Path("out") / "replay"
+    try:
+        variants = sweep_variants(list(args.set))
+    except ConfigError as exc:
+        print(f"companion: error: {exc}")
+        return 2
+    try:
+        if len(variants) == 1:
+            s = _one(args, variants[0], out, "replay", None)
+            _print_single(s, out)
+            return 0
+        # perception is the same for every variant (run it once) unless a variant changes it
+        swept = {o.split("=", 1)[0].strip() for v in variants for o in v}
+        shared = not any(k.startswith(("camera.", "target.")) for k in swept)
+        perceived: list[Perceived] | None = [] if shared else None
+        rows = []
+        for i, ov in enumerate(variants):
+            label = f"variant {i + 1}/{len(variants)}"
+            rows.append(_one(args, ov, out / f"variant-{i + 1}", label, perceived))
+    except (NotMcapError, ReplayError) as exc:
+        print(f"companion: error: {exc}")
+        return 2
+    (out / "sweep.json").write_text(json.dumps({"variants": rows}, indent=2))
+    print(sweep_table(rows))
+    print(f"sweep: {out / 'sweep.json'}")
     return 0
+
+
+def _print_single(s: dict[str, Any], out: Path) -> None:
+    same = "identical" if s["identical"] else "DIFFERENT"
+    speed = s.get("speed_vs_real_time")
+    print(f"replayed {s['steps']} steps ({s['perception']}) in {s['wall_time_s']:.1f} s"
+          f"{f' ({speed:.1f}x real time)' if speed else ''}, CPU {s['cpu_time_s']:.1f} s: "
+          f"{s['commands_compared']} commands compared, {same} (max |dq| "
+          f"{s['max_quat_diff']:.3g}, max |dthrust| {s['max_thrust_diff']:.3g}, tolerance 1e-6)")
+    if s["first_difference_t_s"] is not None:
+        print(f"first difference at t = {s['first_difference_t_s']:.2f} s")
+    if s["perception_outside_crop"]:
+        print(f"perception read outside the logged crop in {s['perception_outside_crop']} "
+              "steps: not exact there")
+    if s["log"].get("truncated"):
+        print(f"log was cut short: {s['log']['messages_recovered']} messages recovered")
+    print(f"report: {out / 'report.json'}")
+
+
+def sweep_table(rows: list[dict[str, Any]]) -> str:
+    """The variants side by side, one column each."""
+    def f(v: Any, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    lines = [
+        ("overrides", [" ".join(r["overrides"]) or "(recorded)" for r in rows]),
+        ("commands changed", [f"{r['commands_changed']}/{r['commands_compared']}" for r in rows]),
+        ("max |dq|", [f(r["max_quat_diff"], ".3g") for r in rows]),
+        ("max |dthrust|", [f(r["max_thrust_diff"], ".3g") for r in rows]),
+        ("first difference s", [f(r["first_difference_t_s"], ".2f") for r in rows]),
+        ("solver modes", [" ".join(f"{k}:{v}" for k, v in sorted(r["solver_modes"].items()))
+                          for r in rows]),
+        ("solve ms median", [f(r["solve_ms_median"], ".2f") for r in rows]),
+        ("solve ms p95", [f(r["solve_ms_p95"], ".2f") for r in rows]),
+        ("mean cost", [f(r["mean_cost"], ".4g") for r in rows]),
+        ("thrust min..max", [f"{f(r['thrust_min'], '.3f')}..{f(r['thrust_max'], '.3f')}"
+                             for r in rows]),
+        ("wall s", [f(r["wall_time_s"], ".1f") for r in rows]),
+    ]
+    head = ["", *[f"variant {i + 1}" for i in range(len(rows))]]
+    table = [head] + [[name, *vals] for name, vals in lines]
+    widths = [max(len(r[i]) for r in table) for i in range(len(head))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True))
+                     for r in table)

@@ -33,7 +33,13 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         reader.close()
     args.out.mkdir(parents=True, exist_ok=True)
-    rep = build_report(args.log, cfg, args.out)
+    from companion.progress import step_callback
+
+    bar, cb = step_callback("report", unit="msg")
+    try:
+        rep = build_report(args.log, cfg, args.out, progress=cb)
+    finally:
+        bar.close()
     print(f"report: {args.out / 'report.json'}, {args.out / 'report.html'} "
           f"({len(rep.get('figures', {}))} figures)")
     return 0

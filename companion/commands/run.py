@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import time
 from pathlib import Path
 
@@ -28,19 +29,30 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="record the emulator's ground truth from this UDP port (scoring only)")
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1",
                    help="failure injection for tests: solver:T0:T1 (seconds after first frame)")
+    p.add_argument("--live", action="store_true",
+                   help="serve the log's channels live over the Foxglove WebSocket protocol "
+                        "(live.host:live.port, default 127.0.0.1:8765; see [live] config)")
     p.add_argument("--ready-file", type=Path, default=None,
                    help="write this file once every socket is open (for orchestration)")
+    p.add_argument("--progress-file", type=Path, default=None,
+                   help="keep 'ELAPSED_S STEPS' in this file (for orchestration)")
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set)
+    if args.live:
+        cfg = dataclasses.replace(cfg, live=dataclasses.replace(cfg.live, enabled=True))
     text = Path(cfg.source).read_text() if cfg.source else ""
     log_path = args.log or Path(cfg.logging.dir) / time.strftime("flight-%Y%m%d-%H%M%S.mcap")
     app = CompanionApp(
         cfg, mavlink_url=args.mavlink, camera_url=args.camera, log_path=log_path,
         truth_port=args.truth_port, duration_s=args.duration,
         faults=tuple(FaultWindow.parse(f) for f in args.inject_fault), config_text=text,
-        ready_file=args.ready_file,
+        ready_file=args.ready_file, progress_file=args.progress_file,
     )
-    return asyncio.run(app.run())
+    rc = asyncio.run(app.run())
+    if app.cpu_ms_per_step is not None:
+        print(f"companion: {app.steps} steps, CPU {app.cpu_ms_per_step:.2f} ms per step "
+              "(getrusage, all threads)")
+    return rc

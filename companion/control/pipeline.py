@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,8 +26,19 @@ from companion.control.safety import Health, SafetyDecision, SafetyLevel, Safety
 from companion.control.seams import Controller, Perceiver
 from companion.control.telemetry import KinematicsSample, TelemetryStore
 from companion.core.design import design_terminal
+from companion.core.disturbance import (
+    DisturbanceEstimate,
+    DisturbanceEstimator,
+    compensated_input,
+)
 from companion.core.estimator import ImageVelocityEstimator
-from companion.core.geometry import euler_zyx_from_quat, rectangle_corners_m, wrap_pi
+from companion.core.geometry import (
+    euler_zyx_from_quat,
+    rectangle_corners_m,
+    rotation_from_quat,
+    wrap_pi,
+)
+from companion.core.latency import Prediction, predict_error_state
 from companion.core.moments import DegenerateTargetError, a_star, fold_s4
 from companion.core.prediction import predict_target_motion
 from companion.core.reacquire import reacquire_input
@@ -34,10 +46,12 @@ from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
 from companion.core.state import ErrorState, MeasurementError, build_error_state
 from companion.core.terminal import TerminalDesign
+from companion.perception import PerceptionResult
 
 log = logging.getLogger(__name__)
 
 YAW_RESYNC_RAD = 0.2
+PX4_MAIN_OFFBOARD = 6  # PX4 custom main mode (companion/link/px4.py; core-side copy)
 
 
 @dataclass(frozen=True)
@@ -66,6 +80,12 @@ class StepResult:
     setpoint: AttitudeSetpoint | None
     notes: tuple[str, ...] = ()
     timings_ms: dict[str, float] = field(default_factory=dict)
+    estimator: DisturbanceEstimate | None = None  # what the command used (None: disabled)
+    prediction: Prediction | None = None  # latency compensation (None: not applied)
+    t_now_s: float | None = None  # "now" on the frame's time base when the step ran
+    in_control: bool | None = None  # the runtime's view: our setpoints fly the vehicle
+    #: ``(x0, y0, x1, y1)`` pixels (end exclusive) of the image perception read, when known
+    input_region: tuple[int, int, int, int] | None = None
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -99,6 +119,15 @@ class StepResult:
             },
             "notes": list(self.notes),
             "timings_ms": self.timings_ms,
+            "t_now_s": self.t_now_s,
+            "in_control": self.in_control,
+            "estimator": None if self.estimator is None else self.estimator.to_record(),
+            "latency": None if self.prediction is None else {
+                "frame_age_s": self.prediction.t_to_s - self.prediction.t_from_s,
+                "horizon_s": self.prediction.horizon_s,
+                "clipped": self.prediction.clipped,
+                "eta_pred": _lst(self.prediction.eta_e),
+            },
         }
 
 
@@ -124,6 +153,12 @@ class ControlPipeline:
         self._last_seen_s = -math.inf
         self._last_yaw = 0.0
         self._yaw_sp: float | None = None
+        est = cfg.control.estimator
+        self._dist: DisturbanceEstimator | None = (
+            DisturbanceEstimator(est, cfg.control.hover_thrust, cfg.rmpc.g_m_s2)
+            if est.enabled else None)
+        # (t_effect_s, u: the vehicle's acceleration/yaw rate asked for (4,), thrust sent)
+        self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)
         self.force_solver_failure = False
         # Optional stage timing (seconds clock, e.g. time.perf_counter): measurement only,
         # it never changes a result, so replay stays exact with or without it.
@@ -131,18 +166,30 @@ class ControlPipeline:
 
     # ------------------------------------------------------------------------------------------
 
-    def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore) -> StepResult:
+    def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore,
+             t_now_s: float | None = None, in_control: bool | None = None,
+             perceived: PerceptionResult | None = None) -> StepResult:
+        """One frame captured at ``t_s``; ``t_now_s``: the time the step runs (same time base;
+        default ``t_s``, i.e. no latency known); ``in_control``: our setpoints fly the vehicle
+        (the runtime knows OFFBOARD was requested before the 1 Hz HEARTBEAT confirms it;
+        default: the HEARTBEAT's mode). ``perceived``: the perception result of that frame
+        computed elsewhere (a replay from logged detections); ``image`` is then not looked at."""
         cfg = self.cfg
+        t_now = t_s if t_now_s is None or not math.isfinite(t_now_s) else max(t_s, t_now_s)
         notes: list[str] = []
         clock = self._timer
         marks: list[tuple[str, float]] = [("start", clock())] if clock else []
         # 1. perception
         corners = None
         points_m = None
-        if image is None:
+        region = None
+        if perceived is None and image is not None:
+            perceived = self.perception.process(image)
+            region = getattr(self.perception, "last_region", None)
+        if perceived is None:
             p_status, p_reason = "lost", "no image"
         else:
-            pr = self.perception.process(image)
+            pr = perceived
             p_status, p_reason = pr.status, pr.reason
             if pr.status == "ok":
                 corners, points_m = pr.corners_px, pr.points_m
@@ -151,6 +198,9 @@ class ControlPipeline:
         # 2. telemetry at the frame's time
         att = store.attitude_at(t_s)
         kin = store.kinematics
+        self._update_estimator(store, in_control)
+        lat = cfg.control.latency
+        kin_cap = store.kinematics_at(t_s) if lat.enabled else kin
         finite = True
         es: ErrorState | None = None
         vel: VelocityEstimate | None = None
@@ -162,7 +212,8 @@ class ControlPipeline:
             try:
                 es = build_error_state(
                     points_m, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
-                    yaw_rate_rad_s=att.yaw_rate_rad_s, v_q_ned_m_s=kin.vel_ned_m_s,
+                    yaw_rate_rad_s=att.yaw_rate_rad_s,
+                    v_q_ned_m_s=(kin_cap or kin).vel_ned_m_s,
                     v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
                     psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
                     lam=cfg.camera.focal_length_m,
@@ -192,14 +243,32 @@ class ControlPipeline:
         rmpc_res = None
         solver_ok = True
         motion: TargetMotion | None = None
+        pred: Prediction | None = None
+        eta0: np.ndarray | None = None
         if es is not None and vel is not None:
             motion = predict_target_motion(
                 vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
-                cfg.rmpc.horizon, cfg.rmpc.dt_s)
+                cfg.rmpc.horizon, cfg.rmpc.dt_s,
+                None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2))
+            eta0 = es.eta_e
+            if lat.enabled:
+                v_a, vdot_a, psidot_a = motion.stage(0)
+                pred = predict_error_state(
+                    es.eta_e, t_s, t_now + lat.actuation_delay_s,
+                    [(t, u) for t, u, _ in self._commands], v_a, vdot_a, psidot_a,
+                    cfg.rmpc.desired_depth_m, lat)
+                if np.all(np.isfinite(pred.eta_e)):
+                    eta0 = pred.eta_e
+                    if pred.clipped:
+                        notes.append(f"latency: frame {t_now - t_s:.3f} s old, predicted "
+                                     f"{pred.horizon_s:.3f} s only")
+                else:
+                    notes.append("latency: non-finite prediction, measured state used")
+                    pred = None
             if self.force_solver_failure:
-                rmpc_res = self._fallback(es.eta_e, motion, "injected failure")
+                rmpc_res = self._fallback(eta0, motion, "injected failure")
             else:
-                rmpc_res = self.rmpc.solve(es.eta_e, motion)
+                rmpc_res = self.rmpc.solve(eta0, motion)
             solver_ok = rmpc_res.mode != "fallback"
         if clock:
             marks.append(("solve", clock()))
@@ -220,25 +289,37 @@ class ControlPipeline:
         level = decision.level
         if level is SafetyLevel.TRACKING and rmpc_res is not None:
             u = np.asarray(rmpc_res.u0, dtype=float)
-        elif level is SafetyLevel.TERMINAL and es is not None and motion is not None:
-            u = self._fallback(es.eta_e, motion, "safety terminal").u0
+        elif level is SafetyLevel.TERMINAL and eta0 is not None and motion is not None:
+            u = self._fallback(eta0, motion, "safety terminal").u0
         elif level is SafetyLevel.REACQUIRE and att is not None and kin is not None:
             u = self._reacquire(store, kin, yaw)
+        est = self._dist.estimate() if self._dist is not None else None
         if u is not None:
             try:
-                sp = attitude_setpoint(
-                    u, self._yaw_reference(), cfg.rmpc.dt_s, g_m_s2=cfg.rmpc.g_m_s2,
-                    hover_thrust=cfg.control.hover_thrust, thrust_min=cfg.control.thrust_min,
-                    thrust_max=cfg.control.thrust_max)
+                sp = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est)
             except ValueError as exc:
                 notes.append(f"setpoint refused: {exc}")
                 sp = None
                 level = SafetyLevel.HOVER
         if sp is None and level is not SafetyLevel.SILENT:
-            sp = hover_setpoint(self._last_yaw, hover_thrust=cfg.control.hover_thrust,
-                                thrust_min=cfg.control.thrust_min,
-                                thrust_max=cfg.control.thrust_max)
             u = None
+            sp = None
+            if est is not None:  # hold still against the estimated disturbance
+                try:
+                    sp = self._setpoint(np.zeros(4), self._last_yaw, 0.0, est)
+                except ValueError as exc:
+                    notes.append(f"compensated hover refused: {exc}")
+            if sp is None:
+                sp = hover_setpoint(self._last_yaw, hover_thrust=cfg.control.hover_thrust,
+                                    thrust_min=cfg.control.thrust_min,
+                                    thrust_max=cfg.control.thrust_max)
+        if sp is not None:
+            t_eff = t_now + lat.actuation_delay_s
+            if self._commands and t_eff < self._commands[-1][0]:
+                t_eff = self._commands[-1][0]  # keep the history in time order
+            self._commands.append((t_eff,
+                                   np.zeros(4) if u is None else np.array(u, dtype=float),
+                                   sp.thrust_norm))
         self._yaw_sp = sp.yaw_rad if sp is not None else None
         if clock:
             marks.append(("command", clock()))
@@ -247,8 +328,60 @@ class ControlPipeline:
             timings_ms=timings,
             t_s=t_s, perception_status=p_status, perception_reason=p_reason,
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
-            safety=decision, u=u, setpoint=sp, notes=tuple(notes),
+            safety=decision, u=u, setpoint=sp, notes=tuple(notes), estimator=est,
+            prediction=pred, t_now_s=t_now, in_control=in_control, input_region=region,
         )
+
+    def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,
+                  est: DisturbanceEstimate | None) -> AttitudeSetpoint:
+        """Spec 5 for the acceleration ``u``; with the estimator, the specific force that gives
+        ``u`` despite the disturbance, at the estimated hover thrust."""
+        c = self.cfg.control
+        hover = c.hover_thrust
+        if est is not None:
+            u = compensated_input(u, est.d_ned_m_s2, self._last_yaw)
+            hover = est.hover_thrust
+        return attitude_setpoint(u, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
+                                 hover_thrust=hover, thrust_min=c.thrust_min,
+                                 thrust_max=c.thrust_max)
+
+    def _update_estimator(self, store: TelemetryStore, in_control: bool | None) -> None:
+        """Feed every velocity sample newer than the filter's with the thrust commanded over
+        the interval (time-weighted) and the body z axis measured at its middle. Only while
+        PX4 is in OFFBOARD and armed (otherwise our thrust is not what flies the vehicle)."""
+        f = self._dist
+        if f is None:
+            return
+        mode = store.mode
+        ours = mode is not None and mode.armed and mode.main_mode == PX4_MAIN_OFFBOARD
+        if in_control is not None:
+            ours = in_control
+        for k in store.kinematics_history:
+            if f.t_s is not None and k.t_s <= f.t_s:
+                continue
+            thrust = self._thrust_over(f.t_s, k.t_s) if ours and f.t_s is not None else None
+            body_z = None
+            if thrust is not None and f.t_s is not None:
+                a = store.attitude_at(0.5 * (f.t_s + k.t_s))
+                if a is not None:
+                    body_z = rotation_from_quat(np.array(a.q_wxyz))[:, 2]
+                else:
+                    thrust = None
+            f.update(k.t_s, k.vel_ned_m_s, thrust, body_z)
+
+    def _thrust_over(self, t0: float, t1: float) -> float | None:
+        """Time-weighted thrust commanded over ``[t0, t1]``; ``None`` if nothing was in force
+        at ``t0``."""
+        cmds = self._commands
+        if not cmds or cmds[0][0] > t0 + 1e-9 or t1 <= t0:
+            return None
+        total = 0.0
+        for i, (te, _, thr) in enumerate(cmds):
+            end = cmds[i + 1][0] if i + 1 < len(cmds) else math.inf
+            lo, hi = max(te, t0), min(end, t1)
+            if hi > lo:
+                total += thr * (hi - lo)
+        return total / (t1 - t0)
 
     # ------------------------------------------------------------------------------------------
 

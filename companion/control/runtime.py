@@ -21,6 +21,7 @@ import dataclasses
 import json
 import logging
 import math
+import resource
 import signal
 import time
 from collections.abc import Mapping
@@ -33,17 +34,26 @@ import numpy as np
 from companion import CompanionError
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
-from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.offboard import (
+    PX4_MAIN_MODE_OFFBOARD,
+    OffboardManager,
+    OffboardPhase,
+    VehicleStatus,
+)
 from companion.control.pipeline import ControlPipeline
+from companion.control.recording import FrameRecorder, LogClock
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
+from companion.control.timesync import TimeSync
 from companion.link import MavlinkLink, NoPeerError, Received
 from companion.log import schemas as sch
+from companion.log.live import start_live
 from companion.log.writer import McapLogger
 from companion.perception.pipeline import Perception
 
 log = logging.getLogger(__name__)
 
+FIRST_FRAME_TIMEOUT_S = 60.0
 TOPIC_FRAME = "/camera/image"
 TOPIC_STEP = "/control/step"
 TOPIC_SAFETY = "/control/safety"
@@ -52,9 +62,6 @@ TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 
-FIRST_FRAME_TIMEOUT_S = 60.0
-"""How long to wait for the first camera frame (then ``idle_timeout_s`` between frames)."""
-
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
     "ATTITUDE_QUATERNION": "time_boot_ms",
@@ -62,6 +69,7 @@ _STAMP_FIELDS = {
     "LOCAL_POSITION_NED": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
 }
+STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
 
 
 class _StopRequested(Exception):
@@ -119,6 +127,11 @@ class FaultWindow:
         return w
 
 
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
     """The pipeline a flight (live or replayed) uses for this config."""
     return ControlPipeline(cfg, Perception(cfg.camera, cfg.target), timer=timer)
@@ -150,6 +163,7 @@ class CompanionApp:
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
+        progress_file: Path | None = None,
     ) -> None:
         self.cfg = cfg
         self.mavlink_url = mavlink_url or cfg.mavlink.url
@@ -164,7 +178,13 @@ class CompanionApp:
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
+        self.progress_file = progress_file
+        self._cpu0: tuple[float, int] | None = None  # (CPU s, steps) at the first frame
+        self.cpu_ms_per_step: float | None = None
         self.timebase = TimeBase(cfg.control.time_source)
+        self.clock = LogClock(cfg.logging.timestamps)
+        self.recorder = FrameRecorder(cfg.logging)
+        self.timesync = TimeSync()
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
@@ -175,6 +195,8 @@ class CompanionApp:
         self._logger: McapLogger | None = None
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
+        self._elapsed_s = 0.0  # since the first frame, on the frames' clock
+        self._config_logged = False
         self._streaming = True
 
     # -- wiring -----------------------------------------------------------------------------
@@ -182,7 +204,11 @@ class CompanionApp:
     async def run(self) -> int:
         cfg = self.cfg
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        # the live view (None when off) fails here on a taken port, before the flight
+        # (the layout's /camera/image is the JPEG preview whatever logging.image_encoding)
+        live = start_live(cfg.live, "jpeg")
         logger = McapLogger.from_config(cfg.logging, self.log_path)
+        logger.observer = live  # the live view sees what the log writes
         self._logger = logger
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -190,11 +216,11 @@ class CompanionApp:
                 loop.add_signal_handler(sig, self._stop.set)
         try:
             with logger:
-                logger.log_config(time.monotonic_ns(), self.config_text, dict(cfg.raw),
-                                  cfg.source)
+                self._log_config()
                 link = MavlinkLink.from_config(
                     dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
-                    on_rx=self._on_rx, on_tx=lambda s: logger.log_mavlink("out", s),
+                    on_rx=self._on_rx,
+                    on_tx=lambda s: logger.log_mavlink("out", s, self._tx_log_ns(s)),
                     on_reject=logger.log_rejected,
                 )
                 self._link = link
@@ -205,6 +231,8 @@ class CompanionApp:
                         control = tg.create_task(self._control(camera))
                         aux = [tg.create_task(self._drain(link)),
                                tg.create_task(self._heartbeat(link))]
+                        if cfg.control.time_source == "timesync":
+                            aux.append(tg.create_task(self._timesync(link)))
                         if self.truth_port is not None:
                             ready = asyncio.Event()
                             aux.append(tg.create_task(self._truth(self.truth_port, ready)))
@@ -218,17 +246,47 @@ class CompanionApp:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
+            if live is not None:
+                live.close()
+        if self._cpu0 is not None and self.steps > self._cpu0[1]:
+            self.cpu_ms_per_step = 1e3 * (_cpu_s() - self._cpu0[0]) / (self.steps - self._cpu0[1])
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
-                 "(%d written, %d dropped)", self.steps, self.sent, self.rx_count,
-                 self.log_path, logger.stats.written, logger.stats.dropped)
+                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads, first "
+                 "frame to exit)", self.steps, self.sent, self.rx_count, self.log_path,
+                 logger.stats.written, logger.stats.dropped,
+                 "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
+        self._write_progress(final=True)
         return 0
+
+    def _write_progress(self, final: bool = False) -> None:
+        """``elapsed_s steps [cpu_ms_per_step]`` for an orchestrator (``companion demo``)."""
+        if self.progress_file is None:
+            return
+        elapsed = self._elapsed_s
+        cpu = f" {self.cpu_ms_per_step:.4f}" if final and self.cpu_ms_per_step else ""
+        with contextlib.suppress(OSError):
+            tmp = self.progress_file.with_suffix(".tmp")
+            tmp.write_text(f"{elapsed:.3f} {self.steps}{cpu}\n")
+            tmp.replace(self.progress_file)
+
+    def _log_config(self) -> None:
+        """``/config``, once: at start, or (source log times) at the first stamp seen."""
+        if self._config_logged or not self.clock.started or self._logger is None:
+            return
+        self._config_logged = True
+        self._logger.log_config(self.clock.now_ns(), self.config_text, dict(self.cfg.raw),
+                                self.cfg.source)
+
+    def _tx_log_ns(self, sent: Any) -> int:
+        return int(sent.t_tx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
 
     # -- receive ----------------------------------------------------------------------------
 
     def _on_rx(self, rx: Received) -> None:
         assert self._logger is not None
-        self._logger.log_mavlink("in", rx)
         fields = rx.msg.to_dict()
+        self._logger.log_mavlink("in", rx, self.clock.message_ns(rx.name, fields, rx.t_rx_ns))
+        self._log_config()
         t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
         self.store.ingest(rx.name, fields, t_s, rx.src_sysid)
         self.rx_count += 1
@@ -238,6 +296,12 @@ class CompanionApp:
                 before = self.offboard.phase
                 self.offboard.on_heartbeat(VehicleStatus(m.armed, m.main_mode, m.sub_mode, t_s))
                 self._log_offboard(before, t_s)
+        elif rx.name == "TIMESYNC" and is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
+            answer = self.timesync.on_timesync(int(fields["tc1"]), int(fields["ts1"]),
+                                               time.monotonic_ns())
+            if answer is not None and self._link is not None:
+                with contextlib.suppress(NoPeerError):
+                    self._link.send_timesync(*answer)
         elif rx.name == "COMMAND_ACK":
             log.info("COMMAND_ACK command %s result %s", fields.get("command"),
                      fields.get("result"))
@@ -252,10 +316,46 @@ class CompanionApp:
                 link.send_heartbeat()
             await asyncio.sleep(1.0)
 
+    async def _timesync(self, link: MavlinkLink) -> None:
+        """TIMESYNC requests at 10 Hz, like PX4's onboard link (the replies feed
+        :attr:`timesync` in :meth:`_on_rx`)."""
+        while True:
+            with contextlib.suppress(NoPeerError):
+                link.send_timesync(*self.timesync.request(time.monotonic_ns()))
+            await asyncio.sleep(0.1)
+
+    def _in_control(self) -> bool:
+        """Our setpoints fly the vehicle: armed, and OFFBOARD confirmed (HEARTBEAT) or just
+        requested (PX4 switches at once; the 1 Hz HEARTBEAT confirms up to 1 s later, a
+        rejection shows there too and ends it)."""
+        m = self.store.mode
+        if m is None or not m.armed:
+            return False
+        if self.offboard.phase is OffboardPhase.REQUESTING:
+            return True
+        return m.main_mode == PX4_MAIN_MODE_OFFBOARD and self.offboard.phase in (
+            OffboardPhase.ACTIVE, OffboardPhase.LOST, OffboardPhase.EXITING)
+
+    def now_s(self) -> float | None:
+        """"Now" on the frames' time base, for the latency compensation: ``None`` with
+        receipt stamps (a frame's age is unknown); else the newest attitude/position stamp,
+        or later by the TIMESYNC-mapped local clock (``control.time_source = "timesync"``).
+        In lockstep the autopilot's clock stands still while it waits for our setpoint, so
+        the wall-clock mapping runs ahead there: the demo uses ``"autopilot"``."""
+        if self.timebase.source == "receipt":
+            return None
+        now = self.store.newest_autopilot_s()
+        if self.timebase.source == "timesync":
+            mapped = self.timesync.autopilot_s(time.monotonic_ns())
+            if mapped is not None and math.isfinite(mapped):
+                now = max(now, mapped)
+        return now if math.isfinite(now) else None
+
     async def _truth(self, port: int, ready: asyncio.Event) -> None:
         """Ground truth from the emulator, logged for scoring only (never read by control)."""
         assert self._logger is not None
         logger = self._logger
+        clock = self.clock
         loop = asyncio.get_running_loop()
 
         class _Proto(asyncio.DatagramProtocol):
@@ -264,7 +364,7 @@ class CompanionApp:
                     rec = json.loads(data)
                 except ValueError:
                     return
-                logger.log(TOPIC_TRUTH, time.monotonic_ns(), rec, schema=sch.JSON)
+                logger.log(TOPIC_TRUTH, clock.now_ns(), rec, schema=sch.JSON)
 
         transport, _ = await loop.create_datagram_endpoint(
             _Proto, local_addr=("127.0.0.1", port))
@@ -333,15 +433,19 @@ class CompanionApp:
         assert self._logger is not None and self._link is not None
         logger, link = self._logger, self._link
         t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
+        t_log = self.clock.frame_ns(frame.t_us, frame.t_rx_ns)
+        self._log_config()
         if self._first_frame_s is None:
             self._first_frame_s = t_s
         elapsed = t_s - self._first_frame_s
+        self._elapsed_s = elapsed
         if self.duration_s is not None and elapsed >= self.duration_s:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
         t_start_ns = time.monotonic_ns()
-        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store)
+        res = self.pipeline.step(np.asarray(frame.image), t_s, self.store,
+                                 t_now_s=self.now_s(), in_control=self._in_control())
         sent_ns = None
         if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
             try:
@@ -355,19 +459,24 @@ class CompanionApp:
         else:
             self.offboard.on_stream_gap()
         # The frame is logged after the command left: a logging backlog never delays it.
-        logger.log_image(TOPIC_FRAME, frame.t_rx_ns, np.asarray(frame.image),
-                         self.cfg.logging.image_encoding, stamp_ns=frame.t_us * 1000)
+        logged_input = self.recorder.record(logger, t_log, np.asarray(frame.image), frame.t_us,
+                                            res.input_region)
         before = self.offboard.phase
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
         self._log_offboard(before, t_s)
         self.steps += 1
+        if self._cpu0 is None:
+            self._cpu0 = (_cpu_s(), self.steps)
+        elif self.progress_file is not None and self.steps % 20 == 0:
+            self._write_progress()
         rec = res.to_record()
         rec.update({
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
+            "input": logged_input,
         })
         if sent_ns is not None:
             # decode: receipt -> step start (decoding the frame, then waiting for the loop)
@@ -375,10 +484,10 @@ class CompanionApp:
                                  **rec["timings_ms"],
                                  "send": (sent_ns - t_start_ns) * 1e-6
                                  - sum(rec["timings_ms"].values())}
-        logger.log(TOPIC_STEP, frame.t_rx_ns, rec, schema=sch.CONTROLLER_STEP)
-        self._log_poses(frame.t_rx_ns)
+        logger.log(TOPIC_STEP, t_log, rec, schema=sch.CONTROLLER_STEP)
+        self._log_poses(t_log)
         if res.safety.changed or self.steps == 1:  # the initial state, then each transition
-            logger.log_text(TOPIC_SAFETY, frame.t_rx_ns,
+            logger.log_text(TOPIC_SAFETY, t_log,
                             f"{res.safety.level.value}: {res.safety.reason}",
                             level="WARNING", name="safety")
 
@@ -411,7 +520,7 @@ class CompanionApp:
         if self.offboard.phase is not before and self._logger is not None:
             _, phase, reason = self.offboard.transitions[-1]
             log.info("offboard %s -> %s: %s", before.value, phase.value, reason)
-            self._logger.log_text(TOPIC_OFFBOARD, time.monotonic_ns(),
+            self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
                                   f"{before.value} -> {phase.value}: {reason}",
                                   level="INFO", name="offboard")
 

@@ -60,6 +60,10 @@ class VehicleMode:
 class TelemetryStore:
     """Latest samples per kind; attitude keeps a short history for interpolation."""
 
+    #: the only messages :meth:`ingest` takes (any other returns False and changes nothing)
+    MESSAGES = frozenset({"FOLLOW_TARGET", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED",
+                          "HEARTBEAT"})
+
     def __init__(
         self,
         target_sysid: int,
@@ -72,6 +76,7 @@ class TelemetryStore:
         self._origin = (origin_lat_deg, origin_lon_deg, origin_alt_m)
         self.attitude: deque[AttitudeSample] = deque(maxlen=history)
         self.kinematics: KinematicsSample | None = None
+        self.kinematics_history: deque[KinematicsSample] = deque(maxlen=history)
         self.target: TargetSample | None = None
         self.mode: VehicleMode | None = None
         self.rejected: dict[str, int] = {}
@@ -96,7 +101,11 @@ class TelemetryStore:
                 vals = [float(fields[k]) for k in ("x", "y", "z", "vx", "vy", "vz")]
                 if not _finite(*vals):
                     return self._reject("LOCAL_POSITION_NED non-finite")
-                self.kinematics = KinematicsSample(t_s, tuple(vals[:3]), tuple(vals[3:]))  # type: ignore[arg-type]
+                k = KinematicsSample(t_s, tuple(vals[:3]), tuple(vals[3:]))  # type: ignore[arg-type]
+                if self.kinematics is not None and t_s < self.kinematics.t_s:
+                    return self._reject("LOCAL_POSITION_NED out of order")
+                self.kinematics = k
+                self.kinematics_history.append(k)
                 return True
             if name == "HEARTBEAT":
                 custom = int(fields["custom_mode"])
@@ -177,6 +186,34 @@ class TelemetryStore:
         q = _slerp(np.array(prev.q_wxyz), np.array(nxt.q_wxyz), w)
         rate = prev.yaw_rate_rad_s + w * (nxt.yaw_rate_rad_s - prev.yaw_rate_rad_s)
         return AttitudeSample(t_s, tuple(float(x) for x in q), rate)  # type: ignore[arg-type]
+
+    def kinematics_at(self, t_s: float) -> KinematicsSample | None:
+        """Position and velocity linearly interpolated to ``t_s``; the newest sample when
+        ``t_s`` is at or after it; the oldest kept when ``t_s`` is before it; ``None`` if none."""
+        hist = self.kinematics_history
+        if not hist:
+            return None
+        if t_s >= hist[-1].t_s:
+            return hist[-1]
+        nxt = hist[-1]
+        for s in reversed(hist):
+            if s.t_s <= t_s:
+                span = nxt.t_s - s.t_s
+                w = 0.0 if span <= 0 else (t_s - s.t_s) / span
+                pos = np.array(s.pos_ned_m) + w * (np.array(nxt.pos_ned_m) - np.array(s.pos_ned_m))
+                vel = np.array(s.vel_ned_m_s) + w * (np.array(nxt.vel_ned_m_s)
+                                                     - np.array(s.vel_ned_m_s))
+                return KinematicsSample(t_s, tuple(float(x) for x in pos),  # type: ignore[arg-type]
+                                        tuple(float(x) for x in vel))  # type: ignore[arg-type]
+            nxt = s
+        return hist[0]
+
+    def newest_autopilot_s(self) -> float:
+        """The newest attitude or position stamp (``-inf`` if none)."""
+        ts = [self.attitude[-1].t_s] if self.attitude else []
+        if self.kinematics is not None:
+            ts.append(self.kinematics.t_s)
+        return max(ts, default=-math.inf)
 
     def telemetry_age_s(self, t_s: float) -> float:
         """Age of the older of the newest attitude and kinematics samples (``inf`` if none)."""

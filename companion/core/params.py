@@ -10,7 +10,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from companion.core.disturbance import EstimatorParams
 from companion.core.errors import ParamError
+from companion.core.latency import LatencyParams
 
 
 def positive(x: float) -> str | None:
@@ -42,6 +44,19 @@ class CameraParams:
     mount_offset_m: tuple[float, float, float]
     mount_rpy_rad: tuple[float, float, float]
     calibration_file: str = ""
+
+    def __post_init__(self) -> None:
+        # The control pipeline builds the virtual image from the camera's own roll/pitch, which
+        # equal the body's only for the paper's mount (camera axes = body axes, at the body
+        # origin). A tilted or offset camera would be flown with the wrong geometry, so refuse it
+        # here instead of failing in the air (docs/limits.md).
+        for name in ("mount_offset_m", "mount_rpy_rad"):
+            value = getattr(self, name)
+            if any(float(v) != 0.0 for v in value):
+                raise ParamError(
+                    f"camera.{name}: {list(value)} is not supported by the companion yet "
+                    "(only the paper's mount: camera axes = body axes at the body origin)"
+                )
 
     @property
     def visible_half_m(self) -> float:
@@ -121,8 +136,7 @@ class RmpcParams:
     # yaw, vdot_a with the planned yaw rate: exact for the constant-turn target model).
     target_motion: str = "nominal"
     # L1 weight of the tube and terminal rows' slacks in the soft (recovery) copy; the
-    # visibility rows keep recovery_penalty. Lower than recovery_penalty: while the problem is
-    # infeasible, recovery gives up tracking accuracy before it gives up the target's view.
+    # visibility rows keep recovery_penalty (docs/visibility.md: keep the two equal).
     recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
     # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
     # key: companion.config fills it from [target] (used by visibility = "corners").
@@ -175,13 +189,26 @@ class ControlParams:
     thrust_max: float = field(metadata=checked(unit))
     # Whose clock stamps frames and telemetry: "receipt" (local monotonic clock on arrival:
     # a real vehicle) or "autopilot" (source stamps: frames and telemetry share the
-    # autopilot's boot clock, as the emulator's do; needed in lockstep).
+    # autopilot's boot clock, as the emulator's do; needed in lockstep) or "timesync" (source
+    # stamps as "autopilot", and "now" on the autopilot's clock from MAVLink TIMESYNC: what the
+    # latency compensation measures the frame's age with; docs/offset-free.md).
     time_source: str = "receipt"
+    # Offset-free estimator (hover thrust, disturbance) and latency compensation
+    # (companion/core/disturbance.py, latency.py; docs/offset-free.md).
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)
+    latency: LatencyParams = field(default_factory=LatencyParams)
 
     def __post_init__(self) -> None:
         if not self.thrust_min < self.hover_thrust < self.thrust_max:
             raise ParamError("control: need thrust_min < hover_thrust < thrust_max")
-        if self.time_source not in ("receipt", "autopilot"):
+        if self.time_source not in ("receipt", "autopilot", "timesync"):
+            raise ParamError(f"control.time_source: {self.time_source!r} is not 'receipt', "
+                             "'autopilot' or 'timesync'")
+        est = self.estimator
+        if est.enabled and not est.hover_min <= self.hover_thrust <= est.hover_max:
             raise ParamError(
-                f"control.time_source: {self.time_source!r} is not 'receipt' or 'autopilot'"
-            )
+                f"control.hover_thrust: {self.hover_thrust} is outside control.estimator's "
+                f"[hover_min, hover_max] = [{est.hover_min}, {est.hover_max}]")
+        if est.hover_max >= self.thrust_max or est.hover_min <= self.thrust_min:
+            raise ParamError("control.estimator: need thrust_min < hover_min and "
+                             "hover_max < thrust_max")

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.core.geometry import rot_z
 from companion.core.rmpc import TargetMotion
 
 
@@ -22,13 +21,15 @@ def predict_target_motion(
     yaw_q_rad: float,
     horizon: int,
     dt_s: float,
+    d_ned_m_s2: np.ndarray | None = None,
 ) -> TargetMotion:
     """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
 
     ``v_a_ned_m_s``, ``a_a_ned_m_s2`` (3,): the target's velocity/acceleration now (NED);
     ``psidot_a_rad_s``: its yaw rate; ``yaw_q_rad``: the vehicle's (= virtual frame's) yaw now.
     The along-track acceleration (projection of ``a`` on ``v``) is kept constant; the
-    cross-track part is carried by the turn rate.
+    cross-track part is carried by the turn rate. ``d_ned_m_s2`` (3,): the estimated
+    disturbance acceleration (NED, held constant), expressed in each stage's virtual frame.
     """
     v0 = np.asarray(v_a_ned_m_s, dtype=float)[:2]
     a0 = np.asarray(a_a_ned_m_s2, dtype=float)[:2]
@@ -37,19 +38,30 @@ def predict_target_motion(
     tangent = np.array([np.cos(heading), np.sin(heading)])
     a_along = float(a0 @ tangent) if speed > 1e-6 else 0.0
     w = float(psidot_a_rad_s)
-    v_out = np.empty((horizon, 2))
-    vdot_out = np.empty((horizon, 2))
-    for n in range(horizon):
-        t = n * dt_s
-        sp = max(0.0, speed + a_along * t)
+    # all stages at once (the loop's formulas, row n = stage n): ~4x less CPU per step
+    t = np.arange(horizon) * dt_s
+    if speed > 1e-6:
+        sp = np.maximum(0.0, speed + a_along * t)
         hd = heading + w * t
-        t_hat = np.array([np.cos(hd), np.sin(hd)])
-        v_ned = sp * t_hat if speed > 1e-6 else v0 + a0 * t
-        a_ned = a_along * t_hat + sp * w * np.array([-t_hat[1], t_hat[0]]) if speed > 1e-6 else a0
-        psi_q = yaw_q_rad + w * t
-        rzt = rot_z(psi_q).T[:2, :2]
-        v_v = rzt @ v_ned
-        # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
-        vdot_out[n] = rzt @ a_ned + w * np.array([v_v[1], -v_v[0]])
-        v_out[n] = v_v
-    return TargetMotion(v_out, vdot_out, np.full(horizon, w))
+        ch, sh = np.cos(hd), np.sin(hd)
+        v_ned = np.column_stack([sp * ch, sp * sh])
+        a_ned = np.column_stack([a_along * ch - sp * w * sh, a_along * sh + sp * w * ch])
+    else:
+        v_ned = v0[None, :] + a0[None, :] * t[:, None]
+        a_ned = np.tile(a0, (horizon, 1))
+    psi_q = yaw_q_rad + w * t
+    c, s = np.cos(psi_q), np.sin(psi_q)
+
+    def to_virtual(x: np.ndarray) -> np.ndarray:
+        """Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y], row by row."""
+        return np.column_stack([c * x[:, 0] + s * x[:, 1], -s * x[:, 0] + c * x[:, 1]])
+
+    v_v = to_virtual(v_ned)
+    # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
+    vdot = to_virtual(a_ned) + w * np.column_stack([v_v[:, 1], -v_v[:, 0]])
+    d_out = np.zeros((horizon, 3))
+    if d_ned_m_s2 is not None:
+        d_ned = np.asarray(d_ned_m_s2, dtype=float).reshape(3)
+        d_out[:, :2] = to_virtual(np.tile(d_ned[:2], (horizon, 1)))
+        d_out[:, 2] = d_ned[2]
+    return TargetMotion(v_v, vdot, np.full(horizon, w), d_out)

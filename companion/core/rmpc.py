@@ -101,6 +101,9 @@ class TargetMotion:
     v_a_m_s: np.ndarray
     vdot_a_m_s2: np.ndarray
     psidot_a_rad_s: np.ndarray
+    disturbance_v_m_s2: np.ndarray | None = None
+    """(N, 3): the estimated disturbance acceleration in each stage's virtual frame (default
+    zeros): the attitude realising ``u`` is the one of ``u - d`` (``rmpc_problem.centre``)."""
 
     def __post_init__(self) -> None:
         v = np.asarray(self.v_a_m_s, dtype=float)
@@ -111,12 +114,18 @@ class TargetMotion:
                 "TargetMotion: need v_a_m_s (N,2), vdot_a_m_s2 (N,2), psidot_a_rad_s (N,); got "
                 f"{v.shape}, {vd.shape}, {pd.shape}"
             )
-        for name, a in (("v_a_m_s", v), ("vdot_a_m_s2", vd), ("psidot_a_rad_s", pd)):
+        dd = (np.zeros((v.shape[0], 3)) if self.disturbance_v_m_s2 is None
+              else np.asarray(self.disturbance_v_m_s2, dtype=float))
+        if dd.shape != (v.shape[0], 3):
+            raise RmpcParameterError(f"TargetMotion.disturbance_v_m_s2: need (N,3), got {dd.shape}")
+        for name, a in (("v_a_m_s", v), ("vdot_a_m_s2", vd), ("psidot_a_rad_s", pd),
+                        ("disturbance_v_m_s2", dd)):
             if not np.all(np.isfinite(a)):
                 raise RmpcParameterError(f"TargetMotion.{name}: not finite ({a.tolist()})")
         object.__setattr__(self, "v_a_m_s", _ro(v))
         object.__setattr__(self, "vdot_a_m_s2", _ro(vd))
         object.__setattr__(self, "psidot_a_rad_s", _ro(pd))
+        object.__setattr__(self, "disturbance_v_m_s2", _ro(dd))
 
     @property
     def horizon(self) -> int:
@@ -137,9 +146,18 @@ class TargetMotion:
         """``(v_a, vdot_a, psidot_a)`` of stage ``n``."""
         return self.v_a_m_s[n], self.vdot_a_m_s2[n], float(self.psidot_a_rad_s[n])
 
+    def disturbance(self, n: int) -> np.ndarray:
+        """``d`` (3,) of stage ``n`` (virtual frame, m/s^2)."""
+        assert self.disturbance_v_m_s2 is not None  # set in __post_init__
+        out: np.ndarray = self.disturbance_v_m_s2[n]
+        return out
+
     def packed(self) -> np.ndarray:
-        """The NLP parameter vector: per stage ``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a]``."""
-        return np.column_stack([self.v_a_m_s, self.vdot_a_m_s2, self.psidot_a_rad_s]).ravel()
+        """The NLP parameter vector: per stage ``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a,
+        d_x, d_y, d_z]``."""
+        assert self.disturbance_v_m_s2 is not None
+        return np.column_stack([self.v_a_m_s, self.vdot_a_m_s2, self.psidot_a_rad_s,
+                                self.disturbance_v_m_s2]).ravel()
 
 
 @dataclass(frozen=True)
@@ -266,6 +284,8 @@ class _Solver:
         for row in layout.rows:
             self.lbg[row.g_index] = -np.inf
             self.ubg[row.g_index] = row.upper
+        self._lbg_dm = ca.DM(self.lbg)
+        self._ubg_dm = ca.DM(self.ubg)
         self.eta_max = np.asarray(rmpc.eta_max, dtype=float)
         self.state_lo = state_lower(rmpc)
         self.eq_rows = layout.gap_index.ravel()
@@ -291,15 +311,18 @@ class _Solver:
     ) -> tuple[bool, str, dict[str, Any], np.ndarray, float, int, float]:
         """Solve; return (accepted, status, stats, w, cost, iterations, t_wall_s)."""
         try:
-            sol = self.solver(x0=w0, p=par, lbx=lbx, ubx=ubx, lbg=self.lbg, ubg=self.ubg)
+            # positional call with the constant bounds converted once: no keyword dict in, no
+            # output dict out (CasADi's Python-side overhead per call)
+            x, f, gdm = self.solver.call([ca.DM(w0), ca.DM(par), ca.DM(lbx), ca.DM(ubx),
+                                          self._lbg_dm, self._ubg_dm, _EMPTY, _EMPTY])[:3]
         except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
             log.warning("RMPC %s solve raised: %s", self.kind, exc)
             return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
         st = self.solver.stats()
         status = _status_string(st)
-        w = sol["x"].full().ravel()
-        g = sol["g"].full().ravel()
-        cost = float(sol["f"])
+        w = x.full().ravel()
+        g = gdm.full().ravel()
+        cost = float(f)
         it = int(st.get("iter_count", 0))
         t = float(st.get("t_wall_total", float("nan")))
         ok = bool(st.get("success", False))
@@ -315,6 +338,9 @@ class _Solver:
             if resid > ACCEPT_TOL:
                 ok, status = False, f"{status} (residual {resid:.3g} > {ACCEPT_TOL:g})"
         return ok, status, st, w, cost, it, t
+
+
+_EMPTY = ca.DM()  # an input left at its default (the multipliers' initial guesses: 0)
 
 
 def _status_string(st: dict[str, Any]) -> str:
@@ -407,7 +433,7 @@ class Rmpc:
             slay = self._soft.layout
             slbx, subx = self._soft.bounds(e0, target)
             sw0 = self._pack(slay, eta_g, u_g)
-            sw0[slay.slack_index] = self._slack_guess(slay, eta_g, u_g)
+            sw0[slay.slack_index] = self._slack_guess(slay, eta_g, u_g, target)
             sok, sstatus, _, sw, scost, sit, st_wall = self._soft.solve(sw0, par, slbx, subx)
             iters += sit
             t_wall += st_wall
@@ -523,7 +549,8 @@ class Rmpc:
     def _unpack(lay: Layout, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return w[lay.x_index].copy(), w[lay.u_index].copy()
 
-    def _slack_guess(self, lay: Layout, eta: np.ndarray, u: np.ndarray) -> np.ndarray:
+    def _slack_guess(self, lay: Layout, eta: np.ndarray, u: np.ndarray,
+                     target: TargetMotion) -> np.ndarray:
         """Slacks that make the guess feasible for the soft rows (plus a small interior gap)."""
         out = np.zeros(len(lay.slack_index))
         pairs = {st: img for st, img, _ in visibility_pairs(self.cfg)}
@@ -531,14 +558,16 @@ class Rmpc:
             u_n = u[row.stage] if row.stage < len(u) else None
             img = pairs.get(row.stage, row.stage) if row.kind in ("visibility", "corner") \
                 else row.stage
+            d_n = target.disturbance(row.stage) if row.stage < len(u) else None
             val = _row_value(row.kind, eta[img], u_n, self._p_tube, self.cfg,
-                             self.camera, row.corner)
+                             self.camera, d_n, row.corner)
             out[i] = max(val - row.upper, 0.0) + 1e-3
         return out
 
 
 def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarray,
-               rmpc: RmpcParams, camera: CameraParams, corner: int = -1) -> float:
+               rmpc: RmpcParams, camera: CameraParams, d: np.ndarray | None = None,
+               corner: int = -1) -> float:
     """The squared-form value of one path row (as in the NLP), evaluated with numpy
     (``eta``: the state the row's image is taken from)."""
     if kind in ("tube", "terminal_set"):
@@ -547,7 +576,7 @@ def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarr
     if kind == "terminal_visibility":
         return float(pu**2 + pn**2)
     assert u is not None
-    mu, mn = centre(u, rmpc, camera)
+    mu, mn = centre(u, rmpc, camera, d)
     return float((pu - mu) ** 2 + (pn - mn) ** 2)
 
 
@@ -599,7 +628,7 @@ def check_solution(
             add("tube", n, float(norm_p[n] - tube_bound(rmpc, n)))
     if "visibility" in groups:
         for n, img, inp in visibility_pairs(rmpc):
-            mu, mn = centre(u[inp], rmpc, camera)
+            mu, mn = centre(u[inp], rmpc, camera, tgt.disturbance(inp))
             for pu, pn, radius in _visibility_points(eta[img], rmpc, camera, terminal, img):
                 add("visibility", n, float(np.hypot(pu - mu, pn - mn)) - radius)
     if "terminal" in groups or "tube" in groups:  # X(N) = eps
@@ -620,7 +649,7 @@ def visibility_margin(
     pairs = visibility_pairs(rmpc)
     out = np.zeros(len(pairs))
     for i, (_, img, inp) in enumerate(pairs):
-        mu, mn = centre(result.u_pred[inp], rmpc, camera)
+        mu, mn = centre(result.u_pred[inp], rmpc, camera, result.target.disturbance(inp))
         out[i] = min(radius - float(np.hypot(pu - mu, pn - mn)) for pu, pn, radius
                      in _visibility_points(result.eta_pred[img], rmpc, camera, terminal, img))
     return out

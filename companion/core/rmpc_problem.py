@@ -11,10 +11,13 @@ slacks of the soft (recovery) copy only. Constraint rows, stage by stage::
 
 with the gap rows written ``x_{n+1} - F(x_n, u_n)`` (explicit Euler) and the path rows of stage
 ``n`` depending on ``x_n, u_n, sl_n`` only. ``eta(0)`` is fixed by equal bounds on ``x_0``;
-input and state boxes are bounds on ``w``. Parameters ``p`` (5 N + 1): per stage
-``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a]`` (m/s, m/s^2, rad/s, virtual frame), then
-``s4_ref`` (rad, the measured ``s4 = eta0[3]``: the yaw the nominal motion was predicted for,
-used by ``target_motion = "planned_yaw"``, :func:`stage_motion`).
+input and state boxes are bounds on ``w``. Parameters ``p`` (8 N + 1): per stage
+``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a, d_x, d_y, d_z]`` (m/s, m/s^2, rad/s, m/s^2; virtual
+frame), then ``s4_ref`` (rad, the measured ``s4 = eta0[3]``: the yaw the nominal motion was
+predicted for, used by ``target_motion = "planned_yaw"``, :func:`stage_motion`). ``d`` is the
+estimated disturbance acceleration (``companion.core.disturbance``): the input ``u`` is the
+vehicle's acceleration, so the attitude that realises it, and with it the visible area's
+centre ``M``, is the one of the specific force ``u - d``.
 
 Groups (RmpcParams switches):
 
@@ -51,7 +54,7 @@ from companion.core.terminal import TerminalDesign, tilt_limits
 
 NX = 7
 NU = 4
-NP_STAGE = 5
+NP_STAGE = 8
 GROUPS = ("tube", "visibility", "terminal")
 
 
@@ -203,9 +206,14 @@ def image_point(eta: Any) -> tuple[Any, Any]:
     return eta[0] / s3, eta[1] / s3
 
 
-def centre(u: Any, rmpc: RmpcParams, camera: CameraParams) -> tuple[Any, Any]:
-    """``M(u)``: centre of the visible area in the virtual image at the attitude ``u`` asks."""
-    phi, theta, _ = attitude_from_accel(u[0], u[1], u[2], rmpc.g_m_s2)
+def centre(u: Any, rmpc: RmpcParams, camera: CameraParams, d: Any = None) -> tuple[Any, Any]:
+    """``M(u)``: centre of the visible area in the virtual image at the attitude ``u`` asks
+    (with a disturbance ``d`` (3, virtual frame): the attitude of ``u - d``)."""
+    if d is None:
+        phi, theta, _ = attitude_from_accel(u[0], u[1], u[2], rmpc.g_m_s2)
+    else:
+        phi, theta, _ = attitude_from_accel(u[0] - d[0], u[1] - d[1], u[2] - d[2],
+                                            rmpc.g_m_s2)
     half = camera.visible_half_m
     return visible_area_centre(phi, theta, half, half, camera.focal_length_m)
 
@@ -247,7 +255,8 @@ def build_nlp(
 
     vis_stage = {st: img for st, img, _ in visibility_pairs(rmpc)}
 
-    def path_rows(n: int, x: ca.SX, u: ca.SX | None, x_next: ca.SX | None = None) -> None:
+    def path_rows(n: int, x: ca.SX, u: ca.SX | None, x_next: ca.SX | None = None,
+                  d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
         items: list[tuple[str, str, ca.SX, float, int]] = []
@@ -259,7 +268,7 @@ def build_nlp(
                 assert u is not None and x_next is not None
                 img = vis_stage[n]
                 x_img = x if img == n else x_next
-                mu, mn = centre(u, rmpc, camera)
+                mu, mn = centre(u, rmpc, camera, d)
                 if corners:
                     rad2 = visibility_radius(rmpc, terminal, img, k_c) ** 2
                     for i, (pu, pn) in enumerate(corner_points(x_img, rmpc)):
@@ -298,6 +307,7 @@ def build_nlp(
         x, u = xs[n], us[n]
         pn_ = par[NP_STAGE * n : NP_STAGE * (n + 1)]
         v_a, vdot_a, psidot_a = stage_motion(rmpc, x, u, pn_[0:2], pn_[2:4], pn_[4], s4_ref)
+        d_n = pn_[5:8]
         x_index[n] = add_w(x)
         u_index[n] = add_w(u)
         ue = input_error(u, v_a, vdot_a, psidot_a)
@@ -310,7 +320,7 @@ def build_nlp(
         g.append(gap)
         equality.extend([True] * NX)
         n_g += NX
-        path_rows(n, x, u, x_next)
+        path_rows(n, x, u, x_next, d_n)
     x_index[big_n] = add_w(xs[big_n])
     cost = cost + ca.bilin(p_mat, xs[big_n], xs[big_n])
     path_rows(big_n, xs[big_n], None)

@@ -584,6 +584,11 @@ class MavlinkLink:
             confirmation,
         )
 
+    def send_timesync(self, tc1: int, ts1: int) -> bytes:
+        """TIMESYNC (#111): a request is ``tc1 = 0, ts1 = local ns``; a reply to the
+        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/wire.md)."""
+        return self.send(self._enc.timesync_encode(int(tc1), int(ts1)))
+
     def send_heartbeat(self) -> bytes:
         """HEARTBEAT as an onboard controller (type 18, autopilot INVALID 8, state ACTIVE)."""
         return self.send(

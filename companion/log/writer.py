@@ -26,7 +26,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 from mcap.writer import CompressionType, Writer
@@ -54,6 +54,22 @@ _COMPRESSION = {
 _STOP = object()
 
 
+def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
+    import cv2
+
+    h, w = image.shape[:2]
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
+
+
+class LogObserver(Protocol):
+    """Sees exactly what the MCAP writer writes, in the writer thread, after each write
+    (:class:`companion.log.live.LiveServer`). Both calls must return at once (never block)."""
+
+    def add_channel(self, topic: str, schema_name: str, schema_encoding: str,
+                    schema_data: bytes, message_encoding: str) -> None: ...
+
+    def message(self, topic: str, log_time_ns: int, data: bytes) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -159,6 +175,9 @@ class McapLogger:
         self._sink: _Sink | None = None
         self._open = False
         self._closed = False
+        #: Set before :meth:`open` to see every channel; a failing observer is dropped, never
+        #: the log.
+        self.observer: LogObserver | None = None
 
     @classmethod
     def from_config(cls, logging_cfg: Any, path: str | Path) -> McapLogger:
@@ -281,11 +300,21 @@ class McapLogger:
         encoding: str = "jpeg",
         frame_id: str = "camera",
         stamp_ns: int | None = None,
+        *,
+        scale: float = 1.0,
+        jpeg_quality: int | None = None,
     ) -> bool:
         """Log a uint8 mono (HxW) or BGR (HxWx3) image as foxglove.CompressedImage ("jpeg",
-        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw")."""
+        "png": encoded with cv2 in the writer thread) or foxglove.RawImage ("raw").
+        ``scale`` (0, 1]: downscale first (area interpolation, in the writer thread);
+        ``jpeg_quality``: this image's, instead of the logger's."""
         if encoding not in IMAGE_ENCODINGS:
             raise McapLogError(f"image encoding {encoding!r} not in {IMAGE_ENCODINGS}")
+        if not 0.0 < scale <= 1.0:
+            raise McapLogError(f"image scale {scale!r} not in (0, 1]")
+        quality = self._jpeg_quality if jpeg_quality is None else int(jpeg_quality)
+        if not 1 <= quality <= 100:
+            raise McapLogError("jpeg_quality must be in 1..100")
         self._ensure_topic(topic, sch.RAW_IMAGE if encoding == "raw" else sch.COMPRESSED_IMAGE)
         t = int(log_time_ns)
         item = (
@@ -293,7 +322,7 @@ class McapLogger:
             topic,
             t,
             None,
-            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns),
+            (image, encoding, frame_id, t if stamp_ns is None else stamp_ns, scale, quality),
         )
         nbytes = int(image.nbytes)
         with self._space:
@@ -519,10 +548,10 @@ class McapLogger:
             elif kind == "bytes":
                 schema_name, data = self._topics[topic], bytes(payload)
             elif kind == "image":
-                image, enc, frame_id, stamp_ns = payload
+                image, enc, frame_id, stamp_ns, scale, quality = payload
                 try:
-                    schema_name, data = encode_image(image, enc, stamp_ns, frame_id,
-                                                     self._jpeg_quality)
+                    small = _downscale(image, scale) if scale != 1.0 else image
+                    schema_name, data = encode_image(small, enc, stamp_ns, frame_id, quality)
                 finally:
                     with self._space:
                         self._pending_image_bytes -= int(image.nbytes)
@@ -549,8 +578,21 @@ class McapLogger:
                 schema_ids[schema_name] = sid
             cid = writer.register_channel(topic, sch.encodings(schema_name)[1], sid)
             channels[topic] = cid
+            enc_s, enc_m = sch.encodings(schema_name)
+            self._observe("add_channel", topic, schema_name, enc_s,
+                          self._schema_text(schema_name), enc_m)
         writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
         with self._lock:
             self._written += 1
+        self._observe("message", topic, t, data)
+
+    def _observe(self, what: str, *args: Any) -> None:
+        if self.observer is None:
+            return
+        try:
+            getattr(self.observer, what)(*args)
+        except Exception as e:  # the live view is optional: stop feeding it, keep logging
+            log.error("log observer failed, detached: %r", e)
+            self.observer = None
 
 

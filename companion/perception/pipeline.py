@@ -153,6 +153,10 @@ class Perception:
         self._last_corners: FloatArray | None = None
         self.roi_hits = 0
         self.full_searches = 0
+        #: ``(x0, y0, x1, y1)`` (pixels, end exclusive) of the last image: every pixel the
+        #: detector read lies inside it (the region of interest, or the whole image when it
+        #: searched everywhere). Logging this crop is enough to replay perception exactly.
+        self.last_region: tuple[int, int, int, int] | None = None
 
     @property
     def target_points_m(self) -> FloatArray:
@@ -164,8 +168,8 @@ class Perception:
         little between frames); the whole image when there is none or the region finds
         nothing acceptable. A candidate cut by the region's edge fails the border check and so
         sends the search to the whole image. Depends only on earlier results: replay-exact."""
+        h, w = image.shape[:2]
         if self._use_roi and self._last_corners is not None:
-            h, w = image.shape[:2]
             x0, y0, x1, y1 = roi_box(self._last_corners, w, h)
             if (x1 - x0) * (y1 - y0) < 0.5 * w * h:
                 off = np.array([x0, y0], dtype=np.float64)
@@ -173,10 +177,12 @@ class Perception:
                                             None if hint is None else hint - off)
                 if sub.detection is not None:
                     self.roi_hits += 1
+                    self.last_region = (x0, y0, x1, y1)
                     d = sub.detection
                     moved = dataclasses.replace(d, corners_px=d.corners_px + off)
                     return dataclasses.replace(sub, detection=moved)
         self.full_searches += 1
+        self.last_region = (0, 0, w, h)
         return self.detector.analyse(image, hint)
 
     def process(self, image: npt.NDArray[np.uint8], *, t_us: int | None = None) -> PerceptionResult:
@@ -184,6 +190,7 @@ class Perception:
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
             raise PerceptionError("image: expected an (H, W) or (H, W, 3) numpy array")
         if image.shape[:2] != (self.camera.height_px, self.camera.width_px):
+            self.last_region = (0, 0, image.shape[1], image.shape[0])
             return PerceptionResult(
                 "rejected",
                 f"image is {image.shape[1]}x{image.shape[0]} px, camera is "
@@ -198,16 +205,24 @@ class Perception:
             status: Status = "rejected" if report.rejections else "lost"
             return PerceptionResult(status, report.reason, t_us=t_us, report=report)
         self._last_corners = det.corners_px
+        return self.measured(det.corners_px, det.quality, t_us, det, report)
+
+    def measured(self, corners_px: FloatArray, quality: float = 0.0, t_us: int | None = None,
+                 detection: Detection | None = None, report: DetectionReport | None = None
+                 ) -> PerceptionResult:
+        """The ``"ok"`` result of detected raw pixel corners (4, 2) ``(col, row)``:
+        undistorted and converted to metric image points. :meth:`process` ends here; a replay
+        from logged detections starts here (same arithmetic, same result)."""
         undist = (
-            self.calibration.undistort_px(det.corners_px)
+            self.calibration.undistort_px(corners_px)
             if self.calibration is not None
-            else det.corners_px.copy()
+            else corners_px.copy()
         )
         points = pixels_to_metric(undist, self.model)
         for a in (undist, points):
             a.setflags(write=False)
         return PerceptionResult(
-            "ok", "", det.corners_px, undist, points, det.quality, t_us, det, report
+            "ok", "", corners_px, undist, points, quality, t_us, detection, report
         )
 
 

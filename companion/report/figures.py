@@ -51,8 +51,9 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     truth.sort(key=lambda r: r["t_us"])
     steps.sort(key=lambda r: r["t_s"])
     out: dict[str, Any] = {
-        # simulated time flown: the emulator's clock starts at 0 with the flight
-        "sim_time_s": truth[-1]["t_us"] * 1e-6 if truth else 0.0,
+        # simulated time flown: the emulator's clock starts at 0 with the flight ("t_us" is the
+        # autopilot's boot clock, which a realistic telemetry level starts at a boot offset)
+        "sim_time_s": _sim_t(truth[-1]) if truth else 0.0,
         "truth_records": len(truth),
         "steps": len(steps),
     }
@@ -72,6 +73,13 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     return out
 
 
+def _sim_t(rec: Mapping[str, Any]) -> float:
+    """Simulated time (s since the flight started) of a truth record. Records from emulators
+    that predate ``sim_t_s`` carry only ``t_us``, which was simulated time then."""
+    t = rec.get("sim_t_s")
+    return float(t) if t is not None else float(rec["t_us"]) * 1e-6
+
+
 ENGAGE_GRACE_S = 1.0
 """Figures after engagement start this long after the first step in OFFBOARD (issue 11's
 acceptance: every corner inside "after the first second of offboard")."""
@@ -87,14 +95,27 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
     ``recovery_fraction``: recovery solves / solves over the active steps; ``fallbacks``."""
     # the autopilot's own mode (ground truth) when recorded; else the companion's view, which
     # lags by up to a HEARTBEAT period
-    t_eng = next((r["t_us"] * 1e-6 for r in truth if r.get("mode") == "OFFBOARD"), None)
-    if t_eng is None:
+    # Truth records are in simulated time, steps in the companion's (autopilot) time: the
+    # steps are matched to the truth through the frame they were computed from when both
+    # carry ``frame_seq``, else by time.
+    eng = next((r for r in truth if r.get("mode") == "OFFBOARD"), None)
+    t_eng: float | None
+    if eng is not None:
+        t_eng = _sim_t(eng)
+    else:
         t_eng = next((float(s["t_s"]) for s in steps if s.get("offboard") == "active"), None)
     if t_eng is None:
         return {"t_engaged_s": None}
     t0 = t_eng + ENGAGE_GRACE_S
-    vis = _visibility([r for r in truth if r["t_us"] * 1e-6 >= t0], [], st)
-    active = [s for s in steps if float(s["t_s"]) >= t_eng and s.get("rmpc")]
+    late = [r for r in truth if _sim_t(r) >= t0]
+    vis = _visibility(late, [], st)
+    seq_t = {r["frame_seq"]: _sim_t(r) for r in truth if r.get("frame_seq") is not None}
+
+    def step_t(s: Mapping[str, Any]) -> float:
+        t = seq_t.get(s.get("frame_seq"))
+        return float(s["t_s"]) if t is None else t
+
+    active = [s for s in steps if step_t(s) >= t_eng and s.get("rmpc")]
     modes = [s["rmpc"]["mode"] for s in active]
     n = len(modes)
     return {
@@ -105,7 +126,7 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
         "frames": vis["frames"],
         "frames_outside_bound": vis["frames_outside_bound"],
         "frames_target_lost": sum(
-            1 for s in steps if float(s["t_s"]) >= t0
+            1 for s in steps if step_t(s) >= t0
             and (s.get("perception") or {}).get("status") != "ok"),
         "solves": n,
         "recovery_fraction": modes.count("recovery") / n if n else None,
@@ -228,7 +249,7 @@ def _tracking(truth: list[Mapping[str, Any]], st: ReportSettings) -> dict[str, A
             continue
         p_q = np.asarray(r["uav"]["pos_ned_m"], dtype=float)
         p_a = np.asarray(r["agv"]["pos_ned_m"], dtype=float)
-        rows.append((r["t_us"] * 1e-6, se, (p_a[2] - p_q[2]) - st.desired_depth_m,
+        rows.append((_sim_t(r), se, (p_a[2] - p_q[2]) - st.desired_depth_m,
                      float(np.hypot(*(p_a[:2] - p_q[:2])))))
     if not rows:
         return {"rms_se": None, "final_se": None, "rms_height_error_m": None,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,18 +25,28 @@ def report_settings(cfg: Config) -> ReportSettings:
     )
 
 
-def load_scored_messages(log_path: Path) -> tuple[list[tuple[str, int, Any]], dict[str, Any]]:
-    """The messages the report uses, decoded, and what the reader recovered."""
+def load_scored_messages(
+    log_path: Path, progress: Callable[[int, int], None] | None = None
+) -> tuple[list[tuple[str, int, Any]], dict[str, Any]]:
+    """The messages the report uses, decoded, and what the reader recovered;
+    ``progress(done, total)`` is told every 500 messages."""
     with LogReader(log_path, verify=False) as reader:  # one pass; chunks CRC-checked as read
-        msgs = [(m.topic, m.log_time_ns, m.data or {})
-                for m in reader.messages(topics=SCORED_TOPICS)]
+        total = sum(c.count for c in reader.channels if c.topic in SCORED_TOPICS)
+        msgs: list[tuple[str, int, Any]] = []
+        for m in reader.messages(topics=SCORED_TOPICS):
+            msgs.append((m.topic, m.log_time_ns, m.data or {}))
+            if progress is not None and len(msgs) % 500 == 0:
+                progress(len(msgs), total)
+        if progress is not None:
+            progress(len(msgs), max(total, len(msgs)))
         rec = reader.recovery
     return msgs, {"truncated": rec.truncated, "messages": rec.messages,
                   "salvaged": rec.salvaged, "corrupt_chunks": rec.corrupt_chunks}
 
 
-def build_report(log_path: Path, cfg: Config, out: Path, plots: bool = True) -> dict[str, Any]:
-    msgs, recovery = load_scored_messages(log_path)
+def build_report(log_path: Path, cfg: Config, out: Path, plots: bool = True,
+                 progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    msgs, recovery = load_scored_messages(log_path, progress)
     st = report_settings(cfg)
     report = compute_report(msgs, st)
     report["log"] = {"path": str(log_path), **recovery}

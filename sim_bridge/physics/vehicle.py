@@ -21,9 +21,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from sim_bridge.physics.rigid_body import CascadeState
 
 Vec = NDArray[np.float64]
 
@@ -104,8 +108,13 @@ class VehicleParams:
     max_tilt_rad: float = 0.6
     ground_z_m: float = 0.0
     g_m_s2: float = G_M_S2
+    # battery sag: the hover thrust at t is hover_thrust / (1 - min(max_loss, loss_per_s t))
+    battery_loss_per_s: float = 0.0
+    battery_max_loss: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (self.battery_loss_per_s >= 0 and 0 <= self.battery_max_loss < 0.9):
+            raise ValueError("invalid battery parameters")
         if not 0 < self.hover_thrust < 1:
             raise ValueError("hover_thrust must be in (0, 1)")
         if not (self.attitude_tau_s > 0 and self.max_tilt_rate_rad_s > 0
@@ -122,6 +131,11 @@ class DisturbanceParams:
     ``w_k`` is uniform in the ball of radius ``random_bound_m_s2``, drawn from ``seed`` and the
     index ``k = floor(t / random_hold_s)`` alone, so it does not depend on the step size or
     on how often it is evaluated.
+
+    Turbulence (added to ``d``): ``x_{k+1} = a x_k + sqrt(1 - a^2) sigma n_k`` with ``a =
+    exp(-h / turbulence_tau_s)``, ``h = random_hold_s``, ``n_k`` standard normal from ``seed``
+    and ``k`` (so it is the same at any step size), sigma = ``turbulence_std_m_s2`` north and
+    east, half of it down; ``x_0`` is drawn from the stationary distribution.
     """
 
     wind_accel_ned_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -130,6 +144,8 @@ class DisturbanceParams:
     random_bound_m_s2: float = 0.0
     random_hold_s: float = 0.05
     seed: int = 0
+    turbulence_std_m_s2: float = 0.0
+    turbulence_tau_s: float = 2.0
 
 
 class Disturbance:
@@ -144,6 +160,28 @@ class Disturbance:
         self._wind = wind
         self._cache_k = -1
         self._cache_w = np.zeros(3)
+        self._turb_k = -1
+        self._turb = np.zeros(3)
+        self._held_k: int | None = None
+        self._held = np.zeros(3)
+        self._turb_sigma = params.turbulence_std_m_s2 * np.array([1.0, 1.0, 0.5])
+        self._turb_a = math.exp(-params.random_hold_s / params.turbulence_tau_s)
+
+    def _noise(self, k: int) -> Vec:
+        rng = np.random.default_rng([self.params.seed & 0xFFFFFFFF, 7, k])
+        out: Vec = rng.normal(size=3)
+        return out
+
+    def _turbulence(self, k: int) -> Vec:
+        if k < self._turb_k or self._turb_k < 0:  # (re)start from the stationary state
+            self._turb_k = 0
+            self._turb = self._noise(0) * self._turb_sigma
+        a = self._turb_a
+        b = math.sqrt(1.0 - a * a)
+        while self._turb_k < k:
+            self._turb_k += 1
+            self._turb = a * self._turb + b * self._turb_sigma * self._noise(self._turb_k)
+        return self._turb
 
     def _random(self, k: int) -> Vec:
         if k != self._cache_k:
@@ -156,13 +194,22 @@ class Disturbance:
         return self._cache_w
 
     def accel_ned_m_s2(self, t_s: float) -> Vec:
+        """``d(t)`` (m/s^2, NED). Read-only: without a gust the value is constant over each
+        ``random_hold_s`` and the same array is returned for the whole interval."""
         p = self.params
+        k = math.floor(t_s / p.random_hold_s)
+        if p.gust_amplitude_m_s2 <= 0 and k == self._held_k:
+            return self._held
         d = self._wind.copy()
         if p.gust_amplitude_m_s2 > 0:
             d += p.gust_amplitude_m_s2 * math.sin(2 * math.pi * t_s / p.gust_period_s) \
                 * self._gust_dir
         if p.random_bound_m_s2 > 0:
-            d += self._random(math.floor(t_s / p.random_hold_s))
+            d += self._random(k)
+        if p.turbulence_std_m_s2 > 0:
+            d += self._turbulence(max(0, k))
+        d.flags.writeable = False
+        self._held_k, self._held = k, d
         return d
 
 
@@ -173,6 +220,8 @@ class AttitudeCommand:
     ``roll/pitch/yaw_rad``: setpoint (ZYX, rad). ``thrust_norm``: 0..1 along body -z.
     ``yaw_rate_ff_rad_s``: Earth-frame yaw-rate feed-forward added to the yaw loop.
     ``motors_on``: False when disarmed or terminated (no thrust, attitude uncontrolled).
+    ``body_rates_frd_rad_s``: an offboard body-rate setpoint; the px4 model feeds it to its
+    rate controller (as PX4 does), the first-order model tracks the attitude integrated from it.
     """
 
     roll_rad: float
@@ -181,6 +230,7 @@ class AttitudeCommand:
     thrust_norm: float
     yaw_rate_ff_rad_s: float = 0.0
     motors_on: bool = True
+    body_rates_frd_rad_s: tuple[float, float, float] | None = None
 
     @staticmethod
     def from_quat(q_wxyz: Vec, thrust_norm: float, yaw_rate_ff_rad_s: float = 0.0
@@ -207,6 +257,10 @@ class VehicleState:
     thrust_norm: float = 0.0
     on_ground: bool = False
     disturbance_ned_m_s2: Vec = field(default_factory=lambda: np.zeros(3))
+    # PX4 model only: the cascade's memory (``sim_bridge.physics.rigid_body``)
+    cascade: CascadeState | None = None
+    # the collective thrust that hovers the vehicle now (battery, payload), NaN if unknown
+    hover_thrust_true: float = math.nan
 
     @property
     def q_wxyz(self) -> Vec:
@@ -251,12 +305,19 @@ class VehicleModel:
         self.disturbance = disturbance or Disturbance(DisturbanceParams())
         self.dt_s = dt_s
 
+    def true_hover_thrust(self, t_s: float) -> float:
+        """The thrust that hovers the vehicle at ``t_s`` (``hover_thrust`` over the battery's
+        thrust factor)."""
+        p = self.params
+        return p.hover_thrust / (1.0 - min(p.battery_max_loss,
+                                           p.battery_loss_per_s * max(0.0, t_s)))
+
     def specific_thrust_ned(self, roll: float, pitch: float, yaw: float,
-                            thrust_norm: float) -> Vec:
-        """``R(q) [0, 0, -g T / T_hover]`` (m/s^2, NED)."""
+                            thrust_norm: float, t_s: float = 0.0) -> Vec:
+        """``R(q) [0, 0, -g T / T_hover(t)]`` (m/s^2, NED)."""
         p = self.params
         out: Vec = rot_from_euler(roll, pitch, yaw) @ np.array(
-            [0.0, 0.0, -p.g_m_s2 * thrust_norm / p.hover_thrust])
+            [0.0, 0.0, -p.g_m_s2 * thrust_norm / self.true_hover_thrust(t_s)])
         return out
 
     def step(self, s: VehicleState, cmd: AttitudeCommand, duration_s: float) -> VehicleState:
@@ -279,7 +340,8 @@ class VehicleModel:
             d_yaw = _clamp(alpha * wrap_pi(cmd.yaw_rad - yaw) + cmd.yaw_rate_ff_rad_s * dt, ylim)
         else:
             d_roll = d_pitch = d_yaw = 0.0
-        if s.on_ground and (thrust <= p.hover_thrust or not cmd.motors_on):
+        hover = self.true_hover_thrust(s.t_s)
+        if s.on_ground and (thrust <= hover or not cmd.motors_on):
             # resting on the ground: no tipping over below lift-off thrust
             d_roll, d_pitch = -roll * alpha, -pitch * alpha
         roll, pitch, yaw = roll + d_roll, pitch + d_pitch, wrap_pi(yaw + d_yaw)
@@ -287,7 +349,7 @@ class VehicleModel:
 
         t_next = s.t_s + dt
         dist = self.disturbance.accel_ned_m_s2(s.t_s)
-        acc = (self.specific_thrust_ned(roll, pitch, yaw, thrust)
+        acc = (self.specific_thrust_ned(roll, pitch, yaw, thrust, s.t_s)
                + np.array([0.0, 0.0, p.g_m_s2]) - p.drag_per_s * s.vel_ned_m_s + dist)
         vel = s.vel_ned_m_s + acc * dt
         pos = s.pos_ned_m + vel * dt  # semi-implicit Euler
@@ -305,4 +367,4 @@ class VehicleModel:
         return VehicleState(t_s=t_next, pos_ned_m=pos, vel_ned_m_s=vel, roll_rad=roll,
                             pitch_rad=pitch, yaw_rad=yaw, euler_rates_rad_s=euler_rates,
                             acc_ned_m_s2=acc, thrust_norm=thrust, on_ground=on_ground,
-                            disturbance_ned_m_s2=dist)
+                            disturbance_ned_m_s2=dist, hover_thrust_true=hover)

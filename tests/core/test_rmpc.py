@@ -186,7 +186,8 @@ def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
     assert loop[0].result.hard_status.startswith("infeasible: yaw error")
     hard, tm0 = fresh._hard, loop[0].result.target
     w0 = fresh._pack(hard.layout, *fresh._rollout(eta0, tm0))
-    ok, status, *_ = hard.solve(w0, tm0.packed(), *hard.bounds(eta0, tm0))
+    ok, status, *_ = hard.solve(w0, np.append(tm0.packed(), eta0[3]), *hard.bounds(eta0, tm0))
+    assert not status.startswith("exception"), status  # a real solve, not a bad call
     assert not ok, status
     for s in loop:
         if s.result.hard_status.startswith("infeasible"):
@@ -352,3 +353,60 @@ def test_constraint_groups_switch_exactly_their_rows(
                                                                  lay.x_index[:-1, 0] + 7)
         assert all(lay.equality[i] for i in lay.gap_index.ravel())
         assert sum(lay.equality) == 7 * big_n
+
+
+def test_disturbance_moves_the_visible_area_centre_in_the_solved_problem(
+    fresh: Rmpc, cfg: Config, design: TerminalDesign
+) -> None:
+    """With a disturbance estimate d the attitude realising the acceleration u is that of
+    u - d (docs/offset-free.md): the solver's visibility rows are those of M(u - d), so the
+    solution is checked clean against d, and the same trajectory checked with M(u) differs."""
+    from companion.core.rmpc_problem import centre
+
+    base = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, fresh.horizon)
+    d = np.tile([0.4, -0.3, 0.1], (fresh.horizon, 1))
+    tm = TargetMotion(base.v_a_m_s, base.vdot_a_m_s2, base.psidot_a_rad_s, d)
+    res = fresh.solve(ETA0_PAPER, tm)
+    assert res.mode == "optimal"
+    assert check_solution(res, cfg.rmpc, cfg.camera, design) == []
+    u = res.u_pred[0]
+    assert np.allclose(centre(u, cfg.rmpc, cfg.camera, d[0]),
+                       centre(u - np.r_[d[0], 0.0], cfg.rmpc, cfg.camera), atol=1e-12)
+    without = dataclasses.replace(res, target=base)
+    m_with = visibility_margin(res, cfg.rmpc, cfg.camera, design)
+    m_without = visibility_margin(without, cfg.rmpc, cfg.camera, design)
+    assert np.max(np.abs(m_with - m_without)) > 1e-3
+    with pytest.raises(RmpcParameterError):
+        TargetMotion(base.v_a_m_s, base.vdot_a_m_s2, base.psidot_a_rad_s, d * np.nan)
+
+
+def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDesign) -> None:
+    """The NLP's visibility rows evaluated at a random point equal numpy's |p - M(u - d)|^2."""
+    import casadi as ca
+
+    from companion.core.dynamics import euler_step
+    from companion.core.rmpc import _row_value
+    from companion.core.rmpc_problem import build_nlp
+
+    nlp, lay = build_nlp(cfg.rmpc, cfg.camera, design, soft=False)
+    g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
+    rng = np.random.default_rng(3)
+    w = rng.normal(0.0, 0.1, lay.n_w)
+    base = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, lay.horizon)
+    d = rng.normal(0.0, 0.5, (lay.horizon, 3))
+    tm = TargetMotion(base.v_a_m_s, base.vdot_a_m_s2, base.psidot_a_rad_s, d)
+    s4_ref = w[lay.x_index[0]][3]  # the NLP's last parameter (nominal target motion: unused)
+    got = g(w, np.append(tm.packed(), s4_ref)).full().ravel()
+    got0 = g(w, np.append(base.packed(), s4_ref)).full().ravel()
+    x = w[lay.x_index]
+    u = w[lay.u_index]
+    rows = [r for r in lay.rows if r.kind == "visibility"]
+    assert rows
+    for r in rows:
+        n = r.stage
+        # causal rows: the image after the step, p(F(x_n, u_n)) (rmpc_problem)
+        img = x[n] if cfg.rmpc.visibility_pairing == "spec" else euler_step(
+            x[n], u[n], *base.stage(n), cfg.rmpc.desired_depth_m, cfg.rmpc.dt_s)
+        want = _row_value("visibility", img, u[n], design.p, cfg.rmpc, cfg.camera, d[n])
+        assert got[r.g_index] == pytest.approx(want, rel=1e-9, abs=1e-12)
+        assert abs(got[r.g_index] - got0[r.g_index]) > 1e-6

@@ -74,20 +74,23 @@ def test_mcap_file_reads_back_with_the_mcap_reader(flight: tuple[Path, dict]) ->
         for schema, channel, message in reader.iter_messages():
             counts[channel.topic] += 1
             schemas[channel.topic] = schema.name if schema else ""
-            if channel.topic == "/camera/image" and first_image is None:
+            if channel.topic == "/perception/input" and first_image is None:
                 first_image = (schema, channel.message_encoding, message.data)
     steps = rep["steps"]
-    assert counts["/camera/image"] == steps == counts["/control/step"]
+    assert counts["/perception/input"] == steps == counts["/control/step"]
     assert counts["/mavlink/out/SET_ATTITUDE_TARGET"] == steps
-    assert schemas["/camera/image"] == "foxglove.CompressedImage"
+    assert schemas["/perception/input"] == "foxglove.CompressedImage"
+    assert schemas["/camera/image"] == "foxglove.CompressedImage"  # the JPEG preview
+    assert 0 < counts["/camera/image"] < steps
     # telemetry at PX4's rates in simulated time: attitude ~50 Hz, position ~30 Hz, 1 Hz beat
     assert counts["/mavlink/in/ATTITUDE_QUATERNION"] >= 0.8 * 20 * DURATION_S
     assert counts["/mavlink/in/LOCAL_POSITION_NED"] >= 0.8 * 20 * DURATION_S
     assert DURATION_S - 2 <= counts["/mavlink/in/HEARTBEAT"] <= DURATION_S + 2
     assert counts["/mavlink/in/FOLLOW_TARGET"] >= 0.8 * 10 * DURATION_S
     assert counts["/truth"] >= steps and counts["/config"] == 1
-    # a frame decodes to the configured image: a protobuf message described by the file's own
-    # schema record (a FileDescriptorSet, what Foxglove reads), holding a PNG
+    # the first frame (searched whole) decodes to the configured image: a protobuf message
+    # described by the file's own schema record (a FileDescriptorSet, what Foxglove reads),
+    # holding a PNG
     import cv2
     from google.protobuf import descriptor_pool, message_factory
     from google.protobuf.descriptor_pb2 import FileDescriptorSet
@@ -217,9 +220,14 @@ def test_mcap_camera_source_yields_the_recorded_frames(flight: tuple[Path, dict]
 
     frames = asyncio.run(read())
     with LogReader(out / "flight.mcap") as r:
+        previews = [m for m in r.messages(topics=["/camera/image"])]
         steps = [m.data for m in r.messages(topics=["/control/step"])]
-    assert [(s["frame_t_us"], s["t_rx_ns"]) for s in steps] == [f[:2] for f in frames]
-    assert {f[2] for f in frames} == {(1000, 1000)}
+    # /camera/image holds the preview (every 4th frame at half size): the source yields it,
+    # with each frame's capture time and its log time
+    assert [(p.log_time_ns, p.image.shape) for p in previews] == [(f[1], f[2]) for f in frames]
+    stamps = {s["frame_t_us"] for s in steps}
+    assert frames and all(f[0] in stamps for f in frames)
+    assert {f[2] for f in frames} == {(500, 500)}
 
 
 def test_replay_names_a_missing_channel(flight: tuple[Path, dict], tmp_path: Path) -> None:
@@ -234,7 +242,7 @@ def test_replay_names_a_missing_channel(flight: tuple[Path, dict], tmp_path: Pat
         w.start()
         ids: dict[int, int] = {}
         for schema, channel, msg in make_reader(src).iter_messages():
-            if channel.topic == "/camera/image":
+            if channel.topic == "/perception/input":
                 continue
             if channel.id not in ids:
                 sid = w.register_schema(schema.name, schema.encoding, schema.data)
@@ -242,7 +250,7 @@ def test_replay_names_a_missing_channel(flight: tuple[Path, dict], tmp_path: Pat
                                                      sid)
             w.add_message(ids[channel.id], msg.log_time, msg.data, msg.publish_time)
         w.finish()
-    with pytest.raises(ReplayError, match="/camera/image"):
+    with pytest.raises(ReplayError, match="/perception/input"):
         replay(stripped, tmp_path / "r.mcap")
 
 

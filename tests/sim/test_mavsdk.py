@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import socket
 import time
@@ -97,9 +98,13 @@ async def _fly(port: int) -> dict[str, Any]:
 
 
 @pytest.mark.slow
-def test_mavsdk_flies_the_emulator() -> None:
+@pytest.mark.parametrize("attitude_model", ["first-order", "px4"])
+def test_mavsdk_flies_the_emulator(attitude_model: str) -> None:
     port = _free_udp_port()
-    cfg = with_link(make_config(start="ground"), offboard_remote=f"127.0.0.1:{port}")
+    cfg = make_config(start="ground")
+    veh = dataclasses.replace(cfg.sim.vehicle, attitude_model=attitude_model)
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, vehicle=veh))
+    cfg = with_link(cfg, offboard_remote=f"127.0.0.1:{port}")
     with run_sim(cfg) as rs:
         seen = asyncio.run(_fly(port))
         stats = rs.call(rs.sim.stats)

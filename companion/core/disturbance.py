@@ -1,0 +1,277 @@
+"""Offset-free tracking: a Kalman filter for the hover thrust and a slowly varying disturbance.
+
+The vehicle's translational model (NED, z down), as PX4 maps normalised thrust ``T`` to
+specific force with its hover thrust ``h`` (``T = h`` gives 1 g)::
+
+    v' = g e_z - g T theta R(q) e_z + d,        theta = 1 / h
+
+``R(q) e_z`` is the body z axis (FRD) in NED, ``d`` (3, m/s^2, NED) is everything else that
+moves the vehicle slowly: drag, wind, a mass or thrust-curve error seen as a force. The model is
+linear in the state ``x = [v (3, m/s), d (3, m/s^2), theta (1/thrust)]`` for known ``T`` and
+attitude, so a linear Kalman filter with a time-varying transition estimates it from the
+velocity telemetry alone::
+
+    x+ = F x + [g e_z dt, 0, 0],   F = [[I, dt I, -dt g T b], [0, I, 0], [0, 0, 1]],  b = R(q) e_z
+    z  = v + noise
+
+``d`` and ``theta`` follow random walks. Near hover ``T b`` barely changes, so ``d_z`` and
+``theta`` are nearly collinear: the filter gives ``d_z`` a much smaller random walk, so that a
+steady vertical offset is read as a hover-thrust error (what it almost always is) and ``d_z``
+stays a slow residual.
+
+How the estimate is used (docs/offset-free.md): the controller's input ``u = [r, psidot]``
+stays the vehicle's *acceleration* in the virtual frame (spec 4); the setpoint mapping (spec 5)
+asks for the specific force ``r - d_v - g e_z`` (``d_v`` = ``d`` in the virtual frame) with the
+estimated hover thrust, so the vehicle achieves ``r`` and the model holds.
+
+Safety: every input is checked (non-finite or implausible data is rejected and counted, the
+estimate is kept); the estimate is clipped to configured bounds after each update; the
+covariance is kept symmetric and bounded; a non-finite result resets the filter. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from companion.core.errors import ParamError
+
+_NX = 7  # v (3), d (3), theta
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    """``[control.estimator]``: the offset-free estimator (units in the names).
+
+    ``velocity_noise_m_s``: std of a velocity measurement. ``disturbance_noise_m_s2_sqrt_s``:
+    random walk of the horizontal disturbance (std growth per sqrt(s));
+    ``vertical_disturbance_noise_m_s2_sqrt_s`` the same for ``d_z`` (small: see the module).
+    ``hover_noise_per_sqrt_s``: random walk of the hover thrust (normalised thrust per
+    sqrt(s)); ``hover_initial_std``: prior std of the configured hover thrust.
+    ``hover_min``/``hover_max``: bounds on the estimate; ``disturbance_max_m_s2``: bound on
+    each component of ``d``. ``max_dt_s``: a longer gap between velocity samples restarts the
+    prediction from the measurement (the estimate is kept). ``innovation_gate``: a velocity
+    whose normalised innovation squared exceeds it is rejected as an outlier.
+    """
+
+    enabled: bool = True
+    velocity_noise_m_s: float = 0.02
+    disturbance_noise_m_s2_sqrt_s: float = 0.3
+    vertical_disturbance_noise_m_s2_sqrt_s: float = 0.01
+    hover_noise_per_sqrt_s: float = 0.02
+    hover_initial_std: float = 0.15
+    hover_min: float = 0.2
+    hover_max: float = 0.8
+    disturbance_max_m_s2: float = 3.0
+    max_dt_s: float = 0.5
+    innovation_gate: float = 400.0
+
+    def __post_init__(self) -> None:
+        pos = ("velocity_noise_m_s", "hover_initial_std", "max_dt_s", "innovation_gate",
+               "disturbance_max_m_s2")
+        for name in pos:
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ParamError(f"control.estimator.{name}: must be > 0 (got {v!r})")
+        for name in ("disturbance_noise_m_s2_sqrt_s", "vertical_disturbance_noise_m_s2_sqrt_s",
+                     "hover_noise_per_sqrt_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ParamError(f"control.estimator.{name}: must be >= 0 (got {v!r})")
+        if not (0.0 < self.hover_min < self.hover_max < 1.0):
+            raise ParamError("control.estimator: need 0 < hover_min < hover_max < 1 "
+                             f"(got {self.hover_min}, {self.hover_max})")
+
+
+@dataclass(frozen=True)
+class DisturbanceEstimate:
+    """What the controller uses: ``hover_thrust`` (normalised, within the bounds),
+    ``d_ned_m_s2`` (3,), their stds, and bookkeeping (``updates``, ``rejected``, last
+    ``innovation_m_s`` (3,), ``reason`` of the last rejection or ``""``)."""
+
+    hover_thrust: float
+    d_ned_m_s2: tuple[float, float, float]
+    hover_std: float
+    d_std_m_s2: tuple[float, float, float]
+    updates: int
+    rejected: int
+    innovation_m_s: tuple[float, float, float]
+    reason: str = ""
+
+    def to_record(self) -> dict[str, object]:
+        return {
+            "hover_thrust": self.hover_thrust, "d_ned_m_s2": list(self.d_ned_m_s2),
+            "hover_std": self.hover_std, "d_std_m_s2": list(self.d_std_m_s2),
+            "updates": self.updates, "rejected": self.rejected,
+            "innovation_m_s": list(self.innovation_m_s), "reason": self.reason,
+        }
+
+
+@dataclass
+class DisturbanceEstimator:
+    """The filter. ``update(t_s, v_ned, thrust, body_z_ned)`` once per new velocity sample:
+    ``thrust`` and ``body_z_ned`` are the normalised thrust commanded and the body z axis in NED
+    (``R(q) e_z``, measured attitude) over the interval since the previous sample."""
+
+    params: EstimatorParams
+    hover_thrust0: float
+    g_m_s2: float = 9.81
+    x: np.ndarray = field(init=False)
+    p: np.ndarray = field(init=False)
+    t_s: float | None = field(init=False, default=None)
+    updates: int = field(init=False, default=0)
+    rejected: int = field(init=False, default=0)
+    innovation: np.ndarray = field(init=False)
+    reason: str = field(init=False, default="")
+
+    def __post_init__(self) -> None:
+        h0 = float(self.hover_thrust0)
+        if not (self.params.hover_min <= h0 <= self.params.hover_max):
+            raise ParamError(
+                f"control.hover_thrust {h0} is outside control.estimator.hover_min..hover_max")
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the prior: ``d = 0``, hover thrust as configured, velocity unknown."""
+        pr = self.params
+        h0 = float(self.hover_thrust0)
+        self.x = np.zeros(_NX)
+        self.x[6] = 1.0 / h0
+        theta_std = pr.hover_initial_std / (h0 * h0)  # d(1/h) = dh / h^2
+        self.p = np.diag([1.0, 1.0, 1.0, 0.05**2, 0.05**2, 0.01**2, theta_std**2])
+        self.t_s = None
+        self.innovation = np.zeros(3)
+
+    # ------------------------------------------------------------------------------------------
+
+    @property
+    def hover_thrust(self) -> float:
+        return 1.0 / float(self.x[6])
+
+    def estimate(self) -> DisturbanceEstimate:
+        theta = float(self.x[6])
+        theta_std = math.sqrt(max(float(self.p[6, 6]), 0.0))
+        d_std = np.sqrt(np.maximum(np.diag(self.p)[3:6], 0.0))
+        return DisturbanceEstimate(
+            hover_thrust=1.0 / theta,
+            d_ned_m_s2=(float(self.x[3]), float(self.x[4]), float(self.x[5])),
+            hover_std=theta_std / (theta * theta),
+            d_std_m_s2=(float(d_std[0]), float(d_std[1]), float(d_std[2])),
+            updates=self.updates, rejected=self.rejected,
+            innovation_m_s=(float(self.innovation[0]), float(self.innovation[1]),
+                            float(self.innovation[2])),
+            reason=self.reason,
+        )
+
+    def update(self, t_s: float, v_ned_m_s: ArrayLike, thrust_norm: float | None,
+               body_z_ned: ArrayLike | None) -> bool:
+        """Predict to ``t_s`` with the command held since the last sample, then correct with
+        the measured velocity. Returns False (estimate unchanged, reason set) for bad data.
+
+        ``thrust_norm is None`` (nothing was commanded: not flying under our control) only
+        re-anchors the velocity; the estimate is not touched.
+        """
+        v = np.asarray(v_ned_m_s, dtype=float).reshape(-1)
+        if v.shape != (3,) or not np.all(np.isfinite(v)) or not math.isfinite(float(t_s)):
+            return self._reject("non-finite velocity or time")
+        if self.t_s is not None and t_s <= self.t_s:
+            return self._reject("velocity sample not newer than the last one")
+        if thrust_norm is None or body_z_ned is None:
+            self._anchor(t_s, v)
+            return True
+        b = np.asarray(body_z_ned, dtype=float).reshape(-1)
+        if (b.shape != (3,) or not np.all(np.isfinite(b)) or not math.isfinite(thrust_norm)
+                or not 0.0 <= thrust_norm <= 1.0 or abs(float(np.linalg.norm(b)) - 1.0) > 1e-3):
+            return self._reject(f"non-finite or implausible thrust {thrust_norm!r} or body z "
+                                f"{b.tolist()}")
+        if self.t_s is None or t_s - self.t_s > self.params.max_dt_s:
+            self._anchor(t_s, v)
+            return True
+        dt = t_s - self.t_s
+        x_pred, p_pred = self._predict(dt, float(thrust_norm), b)
+        # correction with z = v
+        innov = v - x_pred[:3]
+        s = p_pred[:3, :3] + np.eye(3) * self.params.velocity_noise_m_s**2
+        try:
+            s_inv = np.linalg.inv(s)
+        except np.linalg.LinAlgError:
+            self.reset()
+            return self._reject("singular innovation covariance: filter reset")
+        nis = float(innov @ s_inv @ innov)
+        if not math.isfinite(nis) or nis > self.params.innovation_gate:
+            # an outlier: keep the estimate, re-anchor the velocity so one glitch is not
+            # followed by a string of rejections
+            self._anchor(t_s, v)
+            return self._reject(f"velocity outlier (normalised innovation {nis:.3g})")
+        k = p_pred[:, :3] @ s_inv
+        x_new = x_pred + k @ innov
+        i_kh = np.eye(_NX)
+        i_kh[:, :3] -= k
+        r = np.eye(3) * self.params.velocity_noise_m_s**2
+        p_new = i_kh @ p_pred @ i_kh.T + k @ r @ k.T  # Joseph form: stays PSD
+        p_new = 0.5 * (p_new + p_new.T)
+        if not (np.all(np.isfinite(x_new)) and np.all(np.isfinite(p_new))):
+            self.reset()
+            return self._reject("non-finite estimate: filter reset")
+        self.x = self._clip(x_new)
+        self.p = p_new
+        self.t_s = t_s
+        self.innovation = innov
+        self.updates += 1
+        self.reason = ""
+        return True
+
+    # ------------------------------------------------------------------------------------------
+
+    def _predict(self, dt: float, thrust: float, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pr = self.params
+        g = self.g_m_s2
+        f = np.eye(_NX)
+        f[0:3, 3:6] = np.eye(3) * dt
+        f[0:3, 6] = -dt * g * thrust * b
+        x = f @ self.x
+        x[2] += g * dt
+        h = self.hover_thrust
+        q = np.zeros((_NX, _NX))
+        q[3, 3] = q[4, 4] = pr.disturbance_noise_m_s2_sqrt_s**2 * dt
+        q[5, 5] = pr.vertical_disturbance_noise_m_s2_sqrt_s**2 * dt
+        q[6, 6] = (pr.hover_noise_per_sqrt_s / (h * h)) ** 2 * dt
+        # the velocity also integrates the disturbance's random walk over the interval
+        p = f @ self.p @ f.T + q
+        return x, p
+
+    def _anchor(self, t_s: float, v: np.ndarray) -> None:
+        self.x[:3] = v
+        self.p[:3, :] = 0.0
+        self.p[:, :3] = 0.0
+        self.p[:3, :3] = np.eye(3) * self.params.velocity_noise_m_s**2
+        self.t_s = t_s
+
+    def _clip(self, x: np.ndarray) -> np.ndarray:
+        pr = self.params
+        out = x.copy()
+        out[3:6] = np.clip(out[3:6], -pr.disturbance_max_m_s2, pr.disturbance_max_m_s2)
+        out[6] = float(np.clip(out[6], 1.0 / pr.hover_max, 1.0 / pr.hover_min))
+        return out
+
+    def _reject(self, why: str) -> bool:
+        self.rejected += 1
+        self.reason = why
+        return False
+
+
+def compensated_input(u: ArrayLike, d_ned_m_s2: ArrayLike, yaw_rad: float) -> np.ndarray:
+    """The input the setpoint mapping (spec 5) must realise so that the vehicle's acceleration
+    is ``u[0:3]`` despite the disturbance: ``u - [Rz(yaw)' d, 0]`` (4,), virtual frame."""
+    uu = np.array(u, dtype=float).reshape(4)
+    d = np.asarray(d_ned_m_s2, dtype=float).reshape(3)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    d_v = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
+    uu[:3] -= d_v
+    return uu
+
+
+__all__ = ["DisturbanceEstimate", "DisturbanceEstimator", "EstimatorParams", "compensated_input"]

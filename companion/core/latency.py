@@ -1,0 +1,104 @@
+"""Latency compensation: the error state predicted to the moment the command takes effect.
+
+A frame is captured at ``t_cap``; its command reaches the vehicle at ``t_eff = now +
+actuation_delay_s``. Meanwhile the vehicle kept flying on the commands sent before, so the RMPC
+must start from ``eta_e(t_eff)``, not from the measured ``eta_e(t_cap)`` (a Smith-predictor
+step). The prediction integrates the error dynamics of spec 4 (``companion.core.dynamics``)
+from ``t_cap`` to ``t_eff`` with the inputs actually commanded over that interval (piecewise
+constant, each from the time it took effect) and the target's motion held at its current value.
+With the offset-free estimator the commanded input is the vehicle's achieved acceleration, so
+the model is the right one to integrate. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from companion.core.dynamics import error_dynamics
+from companion.core.errors import ParamError
+
+
+@dataclass(frozen=True)
+class LatencyParams:
+    """``[control.latency]``: ``enabled``; ``actuation_delay_s``: from sending a setpoint to
+    the vehicle acting on it (link + PX4's attitude loop onset; 0 in the lockstep emulator);
+    ``max_prediction_s``: the prediction is never longer (a stale frame beyond it is predicted
+    only this far, and the step notes it); ``step_s``: integration step (s)."""
+
+    enabled: bool = True
+    actuation_delay_s: float = 0.0
+    max_prediction_s: float = 0.3
+    step_s: float = 0.01
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.actuation_delay_s) and 0.0 <= self.actuation_delay_s <= 1.0):
+            raise ParamError("control.latency.actuation_delay_s: must be in [0, 1]")
+        if not (math.isfinite(self.max_prediction_s) and 0.0 < self.max_prediction_s <= 2.0):
+            raise ParamError("control.latency.max_prediction_s: must be in (0, 2]")
+        if not (math.isfinite(self.step_s) and 0.0 < self.step_s <= 0.05):
+            raise ParamError("control.latency.step_s: must be in (0, 0.05]")
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """``eta_e`` (7,) at ``t_to_s``, predicted from ``t_from_s``; ``horizon_s`` actually
+    predicted (``<= max_prediction_s``); ``clipped``: the wanted horizon was longer."""
+
+    eta_e: np.ndarray
+    t_from_s: float
+    t_to_s: float
+    horizon_s: float
+    clipped: bool
+
+
+def input_at(history: Sequence[tuple[float, np.ndarray]], t_s: float) -> np.ndarray:
+    """The input in effect at ``t_s``: the newest ``(t_effect_s, u)`` with ``t_effect_s <=
+    t_s`` (``history`` sorted by time); zero acceleration and yaw rate before the first."""
+    u = np.zeros(4)
+    for t_eff, uu in history:
+        if t_eff <= t_s + 1e-9:
+            u = uu
+        else:
+            break
+    return np.asarray(u, dtype=float)
+
+
+def predict_error_state(
+    eta_e: ArrayLike,
+    t_from_s: float,
+    t_to_s: float,
+    history: Sequence[tuple[float, np.ndarray]],
+    v_a: ArrayLike,
+    vdot_a: ArrayLike,
+    psidot_a: float,
+    z_star: float,
+    params: LatencyParams,
+) -> Prediction:
+    """Integrate spec 4's ``f`` from ``t_from_s`` to ``t_to_s`` (explicit Euler, steps of at
+    most ``params.step_s``, split at every input change). ``history``: ``(t_effect_s, u (4,))``
+    sorted by time; ``v_a``, ``vdot_a`` (2,) and ``psidot_a`` the target's motion in the
+    virtual frame, held constant. A non-positive horizon returns ``eta_e`` unchanged."""
+    eta = np.array(eta_e, dtype=float).reshape(7)
+    va = np.asarray(v_a, dtype=float)
+    vda = np.asarray(vdot_a, dtype=float)
+    want = float(t_to_s) - float(t_from_s)
+    horizon = min(max(want, 0.0), params.max_prediction_s)
+    clipped = want > params.max_prediction_s
+    t = float(t_from_s)
+    t_end = t + horizon
+    changes = sorted(te for te, _ in history if t < te < t_end)
+    for bound in [*changes, t_end]:
+        while t < bound - 1e-12:
+            h = min(params.step_s, bound - t)
+            u = input_at(history, t)
+            eta = eta + h * np.asarray(error_dynamics(eta, u, va, vda, psidot_a, z_star))
+            t += h
+    return Prediction(eta, float(t_from_s), t_end, horizon, clipped)
+
+
+__all__ = ["LatencyParams", "Prediction", "input_at", "predict_error_state"]

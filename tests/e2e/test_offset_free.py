@@ -1,0 +1,101 @@
+"""Offset-free tracking and latency compensation, flown end to end (emulator + companion
+processes in lockstep, scored from the emulator's ground truth).
+
+- The companion's hover thrust 30 % off the emulator's 0.5 (0.35 and 0.65): with the estimator
+  no solver failure, no fallback, the target never lost, and the estimate ends at the truth;
+  without it the flight breaks down as the issue reports (measured here, so the test can fail).
+- A constant 0.5 m/s^2 wind: the steady horizontal offset with the estimator is a small
+  fraction of the one without.
+- 60 +- 15 ms camera latency on `edge`: with the compensation every corner stays inside the
+  500 px area and the target is never lost.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from companion.commands.demo import run_demo
+from companion.config import DEFAULT_CONFIG
+from companion.log.reader import LogReader
+
+pytestmark = pytest.mark.slow
+
+
+def _variant(tmp: Path, body: str) -> Path:
+    p = tmp / "sim.toml"
+    p.write_text(f'base = "{DEFAULT_CONFIG}"\n{body}\n')
+    return p
+
+
+def _fly(tmp: Path, scenario: str, duration: float, overrides: list[str],
+         sim_body: str | None = None) -> dict[str, Any]:
+    tmp.mkdir(parents=True, exist_ok=True)
+    sim = _variant(tmp, sim_body) if sim_body else None
+    rep = run_demo(DEFAULT_CONFIG, scenario, duration, tmp, overrides, [], plots=False,
+                   sim_config=sim)
+    with LogReader(tmp / "flight.mcap") as r:
+        rep["_steps"] = [m.data for m in r.messages(topics=["/control/step"]) if m.data]
+        rep["_truth"] = [m.data for m in r.messages(topics=["/truth"]) if m.data]
+    assert len(rep["_steps"]) > 0.9 * duration * 20, "the flight did not run"
+    return rep
+
+
+def _last_horizontal_m(rep: dict[str, Any], window_s: float) -> float:
+    rows = [(r["t_us"] * 1e-6, np.hypot(*(np.array(r["agv"]["pos_ned_m"][:2])
+                                          - np.array(r["uav"]["pos_ned_m"][:2]))))
+            for r in rep["_truth"] if r.get("uav") and r.get("agv")]
+    t_end = rows[-1][0]
+    return float(np.sqrt(np.mean([e * e for t, e in rows if t >= t_end - window_s])))
+
+
+@pytest.mark.parametrize("hover", [0.35, 0.65])
+def test_wrong_hover_thrust_is_estimated_in_flight(tmp_path: Path, hover: float) -> None:
+    rep = _fly(tmp_path, "paper", 15.0, [f"control.hover_thrust={hover}"])
+    sol, vis = rep["solver"], rep["visibility"]
+    assert sol["failures"] == 0 and sol["fallbacks"] == 0, sol
+    assert vis["frames_target_lost"] == 0, vis
+    levels = {s["safety"]["level"] for s in rep["_steps"]}
+    assert levels == {"tracking"}, levels
+    est = [s["estimator"] for s in rep["_steps"] if s.get("estimator")]
+    assert est and est[-1]["hover_thrust"] == pytest.approx(0.5, abs=0.01)
+    assert all(math.isfinite(e["hover_thrust"]) and 0.2 <= e["hover_thrust"] <= 0.8
+               for e in est)
+    for s in rep["_steps"]:
+        sp = s.get("setpoint")
+        assert sp is None or all(math.isfinite(x) for x in [*sp["q_wxyz"], sp["thrust"]])
+
+
+def test_without_the_estimator_a_wrong_hover_thrust_breaks_the_flight(tmp_path: Path) -> None:
+    """The issue's measurement, kept as the baseline the estimator is judged against."""
+    rep = _fly(tmp_path, "paper", 15.0,
+               ["control.hover_thrust=0.35", "control.estimator.enabled=false"])
+    bad = rep["solver"]["failures"] + rep["visibility"]["frames_target_lost"]
+    assert bad > 0, (rep["solver"], rep["visibility"])
+
+
+def test_a_steady_wind_is_rejected(tmp_path: Path) -> None:
+    wind = "[sim.disturbance]\nwind_accel_ned_m_s2 = [0.4, 0.3, 0.0]"
+    on = _fly(tmp_path / "on", "paper", 20.0, [], wind)
+    off = _fly(tmp_path / "off", "paper", 20.0, ["control.estimator.enabled=false"], wind)
+    e_on, e_off = _last_horizontal_m(on, 5.0), _last_horizontal_m(off, 5.0)
+    assert e_on < 0.02, e_on
+    assert e_on < 0.1 * e_off, (e_on, e_off)
+    d = on["_steps"][-1]["estimator"]["d_ned_m_s2"]
+    # the estimate is the wind plus the emulator's drag on the AGV's speed: close to 0.5
+    assert math.hypot(d[0], d[1]) == pytest.approx(0.5, abs=0.1)
+
+
+def test_camera_latency_edge_keeps_the_target_in_view(tmp_path: Path) -> None:
+    lat = "[sim.camera_model]\nlatency_ms = 60.0\nlatency_jitter_ms = 15.0"
+    rep = _fly(tmp_path, "edge", 6.0, [], lat)
+    vis = rep["visibility"]
+    assert max(vis["max_abs_u_px"], vis["max_abs_n_px"]) < 500.0, vis
+    assert vis["frames_target_lost"] == 0
+    ages = [s["latency"]["frame_age_s"] for s in rep["_steps"] if s.get("latency")]
+    # frames reach the companion 50 or 100 ms after capture (lockstep grid): it measures that
+    assert ages and min(ages) >= 0.045 and max(ages) <= 0.105
