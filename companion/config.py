@@ -69,6 +69,34 @@ class MavlinkConfig:
     target_system: int = field(metadata=checked(positive))
     target_component: int = field(metadata=checked(nonneg))
     signing_key_file: str = ""
+    # Receive guard (companion/link/guard.py, docs/reliability.md): pin the autopilot (and the
+    # AGV) to the address of its first valid frame and drop other senders claiming its sysid
+    # unparsed; addresses that may always speak for it ("host" or "host:port", routers).
+    pin_source: bool = True
+    allowed_sources: tuple[str, ...] = ()
+    repin_after_s: float = field(default=5.0, metadata=checked(positive))
+    # Work bounds: datagram size, datagrams read per event-loop wake-up, parses per second of
+    # datagrams from unknown addresses, rejected frames logged per second, socket buffer.
+    max_datagram_bytes: int = field(default=2048, metadata=checked(positive))
+    max_datagrams_per_wakeup: int = field(default=256, metadata=checked(positive))
+    untrusted_parse_per_s: float = field(default=500.0, metadata=checked(positive))
+    reject_log_per_s: float = field(default=200.0, metadata=checked(positive))
+    recv_buffer_bytes: int = field(default=4194304, metadata=checked(positive))
+    # Link counters on /mavlink/stats every this many seconds.
+    stats_interval_s: float = field(default=1.0, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        for i, src in enumerate(self.allowed_sources):
+            host, sep, port = src.rpartition(":")
+            if not sep:
+                host, port = src, ""
+            octets = host.split(".")
+            ok = len(octets) == 4 and all(o.isdigit() and int(o) <= 255 for o in octets)
+            if not ok or not (port == "" or (port.isdigit() and 1 <= int(port) <= 65535)):
+                raise ConfigError(
+                    f"mavlink.allowed_sources[{i}]: {src!r} is not an IPv4 address with an "
+                    "optional :PORT (1..65535)"
+                )
 
 
 @dataclass(frozen=True)
@@ -95,6 +123,10 @@ class SafetyConfig:
     silence_after_s: float = field(metadata=checked(positive))
     reacquire_climb_rate_m_s: float = field(metadata=checked(nonneg))
     reacquire_max_height_m: float = field(metadata=checked(positive))
+    # A camera frame or telemetry message whose delay exceeds its stream's smallest delay by
+    # more than this is stale (a stalled process, a backlog): no command is built from it.
+    # Receipt time base only (control.time_source = "receipt").
+    max_frame_age_s: float = field(default=0.25, metadata=checked(positive))
 
 
 @dataclass(frozen=True)
@@ -124,8 +156,16 @@ class LoggingConfig:
     # autopilot's clock carried by frames and telemetry: a lockstep simulation then plays at
     # its real speed)
     timestamps: str = "receipt"
+    # When the writer thread forces the file to the disk: "interval" (os.fsync every
+    # flush_interval_s and at each full chunk: power loss costs at most that much), "close"
+    # (only at the end: the OS writes back when it likes) or "never".
+    fsync: str = "interval"
 
     def __post_init__(self) -> None:
+        if self.fsync not in ("interval", "close", "never"):
+            raise ConfigError(
+                f"logging.fsync: {self.fsync!r} is not 'interval', 'close' or 'never'"
+            )
         if self.image_encoding not in ("png", "jpeg", "raw"):
             raise ConfigError(
                 f"logging.image_encoding: {self.image_encoding!r} is not 'png', 'jpeg' or 'raw'"

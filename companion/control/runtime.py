@@ -61,6 +61,7 @@ TOPIC_OFFBOARD = "/control/offboard"
 TOPIC_TRUTH = "/truth"
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
+TOPIC_STATS = "/mavlink/stats"
 
 # Messages whose own timestamp field (ms) is the source time in "autopilot" mode.
 _STAMP_FIELDS = {
@@ -76,21 +77,79 @@ class _StopRequested(Exception):
     """A stop was requested (signal, duration) while waiting for a camera frame."""
 
 
+class DelayFloor:
+    """The smallest transport delay ``t_rx - t_src`` of one stream (seconds, in whatever
+    offset the two clocks have), rising by at most ``drift`` s/s (clock drift), so that
+    ``excess = delay - floor`` is how late one item is compared with the stream at its best.
+    After ``relearn_s`` of receipt time in which every item was late by more than
+    ``stale_s`` (the source clock jumped: a reboot), the floor is learnt again."""
+
+    def __init__(self, stale_s: float, drift: float = 1e-3, relearn_s: float = 3.0) -> None:
+        self.stale_s, self.drift, self.relearn_s = stale_s, drift, relearn_s
+        self.floor: float | None = None
+        self._t_last: float | None = None
+        self._late_since: float | None = None
+
+    def excess(self, t_rx_s: float, t_src_s: float) -> float:
+        d = t_rx_s - t_src_s
+        if self.floor is None or self._t_last is None:
+            self.floor, self._t_last = d, t_rx_s
+            return 0.0
+        self.floor += self.drift * max(t_rx_s - self._t_last, 0.0)
+        self._t_last = t_rx_s
+        if d <= self.floor:
+            self.floor, self._late_since = d, None
+            return 0.0
+        ex = d - self.floor
+        if ex <= self.stale_s:
+            self._late_since = None
+        elif self._late_since is None:
+            self._late_since = t_rx_s
+        elif t_rx_s - self._late_since >= self.relearn_s:
+            log.warning("time base: stream delays moved by %.3f s for %.1f s: relearnt", ex,
+                        self.relearn_s)
+            self.floor, self._late_since = d, None
+            return 0.0
+        return ex
+
+
 class TimeBase:
     """Assigns every input a time in seconds on one base (see ``control.time_source``).
 
-    ``receipt``: local monotonic receipt time (ns -> s). ``autopilot``: the source's own
-    stamps (frame ``t_us``, ``time_boot_ms``); messages without a stamp (HEARTBEAT,
-    COMMAND_ACK) get the newest source time seen so far.
+    ``receipt``: local monotonic time. A stamped input (frame ``t_us``, a message's
+    ``time_boot_ms``) gets its source stamp plus its stream's smallest delay
+    (:class:`DelayFloor`), i.e. when it would have arrived at best: a backlog received late
+    (after a process stall, a link hiccup) keeps its true age instead of looking fresh.
+    ``last_excess_s`` is how late the last input was; unstamped messages (HEARTBEAT,
+    COMMAND_ACK) get their receipt time. ``autopilot``: the source's own stamps; messages
+    without a stamp get the newest source time seen so far.
     """
 
-    def __init__(self, source: str) -> None:
+    def __init__(self, source: str, stale_s: float = 0.25) -> None:
         self.source = source
         self.latest_s = -math.inf
+        self.stale_s = stale_s
+        self.last_excess_s = 0.0
+        self.stale_count = 0  # stamped inputs later than stale_s (receipt mode)
+        self._floors: dict[str, DelayFloor] = {}
+
+    def _mapped(self, stream: str, t_rx_s: float, t_src_s: float) -> float:
+        fl = self._floors.get(stream)
+        if fl is None:
+            fl = self._floors[stream] = DelayFloor(self.stale_s)
+        ex = fl.excess(t_rx_s, t_src_s)
+        self.last_excess_s = ex
+        if ex > self.stale_s:
+            self.stale_count += 1
+        return t_rx_s - ex
 
     def message_s(self, name: str, fields: Mapping[str, Any], t_rx_ns: int) -> float:
         if self.source == "receipt":
-            return t_rx_ns * 1e-9
+            key = _STAMP_FIELDS.get(name)
+            if key is None or key not in fields:
+                self.last_excess_s = 0.0
+                return t_rx_ns * 1e-9
+            return self._mapped(name, t_rx_ns * 1e-9, float(fields[key]) * 1e-3)
         key = _STAMP_FIELDS.get(name)
         if key is not None and key in fields:
             t = float(fields[key]) * 1e-3
@@ -100,7 +159,7 @@ class TimeBase:
 
     def frame_s(self, t_us: int, t_rx_ns: int) -> float:
         if self.source == "receipt":
-            return t_rx_ns * 1e-9
+            return self._mapped("camera", t_rx_ns * 1e-9, t_us * 1e-6)
         t = t_us * 1e-6
         self.latest_s = max(self.latest_s, t)
         return t
@@ -125,6 +184,10 @@ class FaultWindow:
         if w.kind != "solver" or not w.t1_s > w.t0_s:
             raise CompanionError(f"--inject-fault {text!r}: kind 'solver' and T1 > T0 only")
         return w
+
+
+def _finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None
 
 
 def _cpu_s() -> float:
@@ -178,10 +241,11 @@ class CompanionApp:
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
+        self.stale_frames = 0  # frames refused as stale (no command built from them)
         self.progress_file = progress_file
         self._cpu0: tuple[float, int] | None = None  # (CPU s, steps) at the first frame
         self.cpu_ms_per_step: float | None = None
-        self.timebase = TimeBase(cfg.control.time_source)
+        self.timebase = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
         self.clock = LogClock(cfg.logging.timestamps)
         self.recorder = FrameRecorder(cfg.logging)
         self.timesync = TimeSync()
@@ -230,7 +294,8 @@ class CompanionApp:
                     async with asyncio.TaskGroup() as tg:
                         control = tg.create_task(self._control(camera))
                         aux = [tg.create_task(self._drain(link)),
-                               tg.create_task(self._heartbeat(link))]
+                               tg.create_task(self._heartbeat(link)),
+                               tg.create_task(self._stats(link))]
                         if cfg.control.time_source == "timesync":
                             aux.append(tg.create_task(self._timesync(link)))
                         if self.truth_port is not None:
@@ -242,6 +307,8 @@ class CompanionApp:
                         await control
                         for t in aux:
                             t.cancel()
+                    self.log_stats(link)
+                    log.info("companion: link counters %s", dict(link.counters))
         finally:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
@@ -315,6 +382,26 @@ class CompanionApp:
             with contextlib.suppress(NoPeerError):
                 link.send_heartbeat()
             await asyncio.sleep(1.0)
+
+    async def _stats(self, link: MavlinkLink) -> None:
+        """The link's counters on /mavlink/stats (a flood or a spoofer shows up here)."""
+        while True:
+            await asyncio.sleep(self.cfg.mavlink.stats_interval_s)
+            self.log_stats(link)
+
+    def log_stats(self, link: MavlinkLink) -> None:
+        assert self._logger is not None
+        pinned = {str(s): f"{a[0]}:{a[1]}" for s in (self.cfg.mavlink.target_system,
+                                                    self.cfg.target.mavlink_sysid)
+                  if (a := link.guard.pinned(s)) is not None}
+        counters = dict(link.counters)
+        counters.update({f"guard_{k}": v for k, v in link.guard.counters.items()})
+        t_ns = time.monotonic_ns() if self.clock.mode == "receipt" else self.clock.now_ns()
+        self._logger.log(TOPIC_STATS, t_ns, {
+            "counters": counters, "pinned": pinned,
+            "stale_dropped": self.stale_frames, "stale_inputs": self.timebase.stale_count,
+            "log_dropped": self._logger.stats.dropped,
+        }, schema=sch.MAVLINK_STATS)
 
     async def _timesync(self, link: MavlinkLink) -> None:
         """TIMESYNC requests at 10 Hz, like PX4's onboard link (the replies feed
@@ -433,8 +520,19 @@ class CompanionApp:
         assert self._logger is not None and self._link is not None
         logger, link = self._logger, self._link
         t_s = self.timebase.frame_s(frame.t_us, frame.t_rx_ns)
+        frame_late_s = self.timebase.last_excess_s
         t_log = self.clock.frame_ns(frame.t_us, frame.t_rx_ns)
         self._log_config()
+        if self.timebase.last_excess_s > self.cfg.safety.max_frame_age_s:
+            # a frame from a backlog (the process or the link stalled): never control from it
+            self.stale_frames += 1
+            self.offboard.on_stream_gap()
+            logger.log_text(TOPIC_SAFETY, t_log,
+                            f"stale frame {frame.seq} dropped: {self.timebase.last_excess_s:.3f}"
+                            f" s late (safety.max_frame_age_s "
+                            f"{self.cfg.safety.max_frame_age_s} s)",
+                            level="WARNING", name="safety")
+            return
         if self._first_frame_s is None:
             self._first_frame_s = t_s
         elapsed = t_s - self._first_frame_s
@@ -475,6 +573,8 @@ class CompanionApp:
             "frame_seq": frame.seq, "frame_t_us": frame.t_us, "t_rx_ns": frame.t_rx_ns,
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
+            "frame_late_s": frame_late_s,
+            "telemetry_age_s": _finite_or_none(self.store.telemetry_age_s(t_s)),
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
             "input": logged_input,
         })

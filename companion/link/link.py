@@ -23,6 +23,7 @@ the signature first and only then update the stream's timestamp (as the C librar
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import logging
 import math
@@ -39,6 +40,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from companion.link.endpoints import Endpoint, parse_connection_string
 from companion.link.errors import LinkError, NoPeerError
 from companion.link.filters import AllowRule, ValueLimits, check_values, default_allow_rules
+from companion.link.guard import GuardParams, SourceGuard
 from companion.link.messages import Received, Sent
 from companion.link.px4 import (
     ARM_FORCE_MAGIC,
@@ -59,18 +61,6 @@ log = logging.getLogger(__name__)
 
 _CLOSED = object()
 _DEDUP_WINDOW = 64
-
-
-class _DatagramProtocol(asyncio.DatagramProtocol):
-    def __init__(self, link: MavlinkLink) -> None:
-        self._link = link
-
-    def datagram_received(self, data: bytes, addr: Any) -> None:
-        self._link._on_datagram(data, addr)
-
-    def error_received(self, exc: Exception) -> None:
-        self._link._count("socket_error")
-        log.debug("MAVLink UDP socket error: %s", exc)
 
 
 class _StreamProtocol(asyncio.Protocol):
@@ -100,7 +90,10 @@ class MavlinkLink:
     queue_size: receive queue bound; the oldest frame is dropped when full.
     clock_ns: the clock stamping ``t_rx_ns`` / ``t_tx_ns`` (default ``time.monotonic_ns``).
     on_rx / on_tx / on_reject: observers called in the event loop thread for every accepted
-        frame, every sent frame, and every rejected frame ``(reason, raw_bytes, t_ns)``.
+        frame, every sent frame, and rejected frames ``(reason, raw_bytes, t_ns)`` (at most
+        ``guard.reject_log_per_s`` per second; every rejection is counted).
+    guard: UDP receive guard (source pinning, allowed sources, work bounds; see
+        :mod:`companion.link.guard`); default :class:`GuardParams` ().
     """
 
     def __init__(
@@ -121,6 +114,7 @@ class MavlinkLink:
         on_rx: Callable[[Received], None] | None = None,
         on_tx: Callable[[Sent], None] | None = None,
         on_reject: Callable[[str, bytes, int], None] | None = None,
+        guard: GuardParams | None = None,
     ) -> None:
         self.endpoint = parse_connection_string(url)
         for nm, v, lo in (
@@ -141,6 +135,18 @@ class MavlinkLink:
             allow if allow is not None else (AllowRule(target_system, target_component or None),)
         )
         self._rules = [(r.sysid, r.compid, r.msgids()) for r in rules]
+        self.guard_params = guard or GuardParams()
+        identities: list[tuple[int, int | None, str | None]] = [
+            (target_system, target_component or None, "HEARTBEAT")]
+        for r in rules:
+            if r.sysid != target_system and all(r.sysid != i[0] for i in identities):
+                identities.append((r.sysid, r.compid, None))
+        self.guard = SourceGuard(self.guard_params, identities)
+        self._reject_tokens = 5.0 * self.guard_params.reject_log_per_s  # 5 s burst
+        self._t_reject_ns = 0
+        self._sock: socket.socket | None = None
+        # udpin: one socket connected to each pinned source (see _attach_pinned)
+        self._pinned_socks: dict[tuple[str, int], socket.socket] = {}
         self.limits = limits or ValueLimits()
         self._clock_ns = clock_ns
         self._on_rx, self._on_tx, self._on_reject = on_rx, on_tx, on_reject
@@ -183,6 +189,16 @@ class MavlinkLink:
                 target_cfg.mavlink_compid,
             ),
         )
+        kwargs.setdefault("guard", GuardParams(
+            pin_source=bool(getattr(mavlink_cfg, "pin_source", True)),
+            allowed_sources=tuple(getattr(mavlink_cfg, "allowed_sources", ())),
+            repin_after_s=float(getattr(mavlink_cfg, "repin_after_s", 5.0)),
+            max_datagram_bytes=int(getattr(mavlink_cfg, "max_datagram_bytes", 2048)),
+            max_datagrams_per_wakeup=int(getattr(mavlink_cfg, "max_datagrams_per_wakeup", 256)),
+            untrusted_parse_per_s=float(getattr(mavlink_cfg, "untrusted_parse_per_s", 500.0)),
+            reject_log_per_s=float(getattr(mavlink_cfg, "reject_log_per_s", 200.0)),
+            recv_buffer_bytes=int(getattr(mavlink_cfg, "recv_buffer_bytes", 4 << 20)),
+        ))
         return cls(
             mavlink_cfg.url,
             source_system=mavlink_cfg.source_system,
@@ -210,18 +226,10 @@ class MavlinkLink:
         ep = self.endpoint
         try:
             if ep.kind == "udpin":
-                self._transport, _ = await self._loop.create_datagram_endpoint(
-                    lambda: _DatagramProtocol(self),
-                    local_addr=(ep.host, ep.port),
-                    family=socket.AF_INET,
-                )
+                self._open_udp((ep.host, ep.port))
             elif ep.kind == "udpout":
                 self._peer = (socket.gethostbyname(ep.host), ep.port)
-                self._transport, _ = await self._loop.create_datagram_endpoint(
-                    lambda: _DatagramProtocol(self),
-                    local_addr=("0.0.0.0", 0),
-                    family=socket.AF_INET,
-                )
+                self._open_udp(("0.0.0.0", 0))
             elif ep.kind == "tcp":
                 self._stream_parser = self._new_parser()
                 self._transport, _ = await self._loop.create_connection(
@@ -233,6 +241,82 @@ class MavlinkLink:
         except OSError as e:
             raise LinkError(f"cannot open MAVLink link {ep}: {e}") from e
         log.info("MAVLink link open: %s (local %s)", ep, self.local_address)
+
+    def _open_udp(self, local: tuple[str, int]) -> None:
+        """A non-blocking UDP socket read in batches by :meth:`_on_udp_readable` (asyncio's
+        datagram transport reads one datagram per loop iteration: under a flood the kernel
+        buffer overflows and drops the real vehicle's datagrams with the garbage)."""
+        assert self._loop is not None
+        if local[1] != 0:
+            # our sockets share the port (SO_REUSEADDR) with each other only: refuse a port
+            # another program (or another link) holds, as a plain bind would
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                probe.bind(local)
+        sock = self._udp_socket()
+        try:
+            sock.bind(local)
+        except OSError:
+            sock.close()
+            raise
+        self._sock = sock
+        self._loop.add_reader(sock.fileno(), self._on_udp_readable, sock)
+
+    def _udp_socket(self) -> socket.socket:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            # SO_REUSEADDR: the per-source sockets of _attach_pinned share the bound port
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF,
+                                self.guard_params.recv_buffer_bytes)
+            sock.setblocking(False)
+        except OSError:
+            sock.close()
+            raise
+        return sock
+
+    def _attach_pinned(self, addr: tuple[str, int]) -> None:
+        """Give a pinned source its own socket, bound to our port and connected to it: the
+        kernel then delivers that source's datagrams there (a connected socket matches better
+        than the bound one), in a buffer a flood from other addresses cannot fill, read on
+        every loop iteration. Everything else stays on the bound socket."""
+        if (self.endpoint.kind != "udpin" or self._sock is None or self._loop is None
+                or addr in self._pinned_socks):
+            return
+        for old in [a for a in self._pinned_socks if not self.guard.is_pinned_address(a)]:
+            self._detach_pinned(old)
+        sock = self._udp_socket()
+        try:
+            sock.bind(self._sock.getsockname())
+            sock.connect(addr)
+        except OSError as e:
+            sock.close()
+            self._count("pinned_socket_error")
+            log.warning("MAVLink: no dedicated socket for %s:%d (%s); sharing the bound one",
+                        *addr, e)
+            return
+        self._pinned_socks[addr] = sock
+        self._loop.add_reader(sock.fileno(), self._on_udp_readable, sock)
+
+    def _detach_pinned(self, addr: tuple[str, int]) -> None:
+        sock = self._pinned_socks.pop(addr, None)
+        if sock is not None:
+            if self._loop is not None:
+                self._loop.remove_reader(sock.fileno())
+            sock.close()
+
+    def _on_udp_readable(self, sock: socket.socket) -> None:
+        for _ in range(self.guard_params.max_datagrams_per_wakeup):
+            try:
+                data, addr = sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:  # ICMP port unreachable and the like
+                self._count("socket_error")
+                log.debug("MAVLink UDP socket error: %s", e)
+                continue
+            self._on_datagram(data, addr)
+        self._count("batch_limit")  # more waiting: read on the next loop iteration
 
     def _open_serial(self, ep: Endpoint) -> None:
         assert self._loop is not None
@@ -273,6 +357,12 @@ class MavlinkLink:
         self._closed = True
         if self._transport is not None:
             self._transport.close()
+        for a in list(self._pinned_socks):
+            self._detach_pinned(a)
+        if self._sock is not None:
+            if self._loop is not None:
+                self._loop.remove_reader(self._sock.fileno())
+            self._sock.close()
         if self._serial_fd is not None:
             if self._loop is not None:
                 self._loop.remove_reader(self._serial_fd)
@@ -285,9 +375,12 @@ class MavlinkLink:
     @property
     def local_address(self) -> tuple[str, int] | None:
         """Bound (host, port) of a UDP/TCP socket (useful with ``udpin:127.0.0.1:0``)."""
-        if self._transport is None:
+        if self._sock is not None:
+            addr = self._sock.getsockname()
+        elif self._transport is None:
             return None
-        addr = self._transport.get_extra_info("sockname")
+        else:
+            addr = self._transport.get_extra_info("sockname")
         return (addr[0], addr[1]) if addr else None
 
     @property
@@ -357,6 +450,11 @@ class MavlinkLink:
         self._count("rx_datagrams")
         self._count("rx_bytes", len(data))
         t = self._clock_ns()
+        addr = (addr[0], addr[1])
+        why = self.guard.admit(data, addr, t)
+        if why is not None:
+            self._reject(why, data, t)
+            return
         parser = self._new_parser()  # fresh per datagram: one bad datagram cannot poison others
         for m in self._parse(parser, data):
             self._handle(m, t, addr)
@@ -402,8 +500,18 @@ class MavlinkLink:
 
     def _reject(self, reason: str, raw: bytes, t_ns: int) -> None:
         self._count(reason)
-        if self._on_reject is not None:
-            self._on_reject(reason, raw, t_ns)
+        self._count("rejected")
+        if self._on_reject is None:
+            return
+        rate = self.guard_params.reject_log_per_s
+        dt = max(t_ns - self._t_reject_ns, 0) * 1e-9
+        self._t_reject_ns = t_ns
+        self._reject_tokens = min(5.0 * rate, self._reject_tokens + dt * rate)
+        if self._reject_tokens < 1.0:
+            self._count("reject_log_suppressed")
+            return
+        self._reject_tokens -= 1.0
+        self._on_reject(reason, raw[:512], t_ns)
 
     def _allowed(self, sysid: int, compid: int, msgid: int) -> bool:
         for s, c, ids in self._rules:
@@ -427,6 +535,9 @@ class MavlinkLink:
         if not self._allowed(sysid, compid, msgid):
             self._reject("not_whitelisted", raw, t_ns)
             return
+        if not self.guard.frame_source_ok(sysid, compid, addr, t_ns):
+            self._reject("spoofed_source", raw, t_ns)
+            return
         if self._verifier is not None:
             why = self._verifier.check(raw, sysid, compid, msgid)
             if why is not None:
@@ -445,13 +556,17 @@ class MavlinkLink:
             self._reject(why, raw, t_ns)
             return
         recent.append(raw)
-        if (
-            self.endpoint.kind == "udpin"
-            and addr is not None
-            and sysid == self.target_system
-            and (self.target_component == 0 or compid == self.target_component)
-        ):
-            self._peer = (addr[0], addr[1])
+        is_autopilot = sysid == self.target_system and (
+            self.target_component == 0 or compid == self.target_component)
+        if addr is not None and self.guard.on_valid(sysid, compid, name, addr, t_ns):
+            self._attach_pinned(addr)
+        if self.endpoint.kind == "udpin" and addr is not None and is_autopilot:
+            if not self.guard_params.pin_source:
+                self._peer = (addr[0], addr[1])
+            elif self.guard.pinned(sysid) is not None:
+                self._peer = self.guard.pinned(sysid)
+            elif self._peer is None:
+                self._peer = (addr[0], addr[1])  # telemetry before the first HEARTBEAT
         rx = Received(
             msg=m,
             raw=raw,
@@ -479,7 +594,8 @@ class MavlinkLink:
         """Encode ``msg`` (MAVLink 2, our source ids, signed if configured), send it to the peer
         and return the bytes sent. Raises :class:`NoPeerError` (udpin before the autopilot was
         heard) or :class:`LinkError`."""
-        if self._closed or (self._transport is None and self._serial_fd is None):
+        if self._closed or (self._transport is None and self._serial_fd is None
+                            and self._sock is None):
             raise LinkError("MAVLink link is not open")
         kind = self.endpoint.kind
         if kind in ("udpin", "udpout") and self._peer is None:
@@ -494,7 +610,8 @@ class MavlinkLink:
         self._enc.seq = (self._enc.seq + 1) % 256
         try:
             if kind in ("udpin", "udpout"):
-                self._transport.sendto(raw, self._peer)
+                assert self._sock is not None and self._peer is not None
+                self._sock.sendto(raw, self._peer)
             elif kind == "tcp":
                 self._transport.write(raw)
             else:

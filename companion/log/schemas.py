@@ -39,6 +39,7 @@ SAFETY_TRANSITION = "companion.SafetyTransition"
 CONFIG = "companion.Config"
 MAVLINK_REJECTED = "companion.MavlinkRejected"
 JSON = "companion.Json"
+MAVLINK_STATS = "companion.MavlinkStats"
 
 #: foxglove.Log levels
 LOG_LEVELS: Mapping[str, int] = {
@@ -199,6 +200,20 @@ _STATIC: dict[str, dict[str, Any]] = {
             "raw_b64": {**_B64, "description": "the rejected bytes"},
             "t_rx_ns": {**_INT, "description": "link clock at receipt (ns)"},
         },
+    ),
+    MAVLINK_STATS: _obj(
+        MAVLINK_STATS,
+        "The MAVLink link's receive/send counters since it opened (cumulative), and the "
+        "addresses the autopilot and the AGV are pinned to",
+        {
+            "counters": {"type": "object", "additionalProperties": _INT,
+                         "description": "rx_datagrams, rx_accepted, rejected, one per reason "
+                                        "(spoofed_source, rate_limited, bad_data, ...), tx_frames"},
+            "pinned": {"type": "object", "additionalProperties": _STR,
+                       "description": "sysid -> host:port"},
+            "stale_dropped": {**_INT, "description": "frames/messages refused as stale"},
+        },
+        additionalProperties=True,
     ),
     JSON: _obj(JSON, "Free-form JSON object", {}, additionalProperties=True),
 }

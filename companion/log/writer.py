@@ -4,9 +4,12 @@
 JPEG/PNG encoding (cv2) and ``mcap.writer.Writer`` calls all happen in the writer thread. When
 the queue is full the item is dropped and counted (a warning at most once per second).
 
-Durability: the current chunk is closed, the file flushed and ``os.fsync``-ed every
-``flush_interval_s`` (and whenever a chunk reaches ``chunk_size`` bytes), so a process killed
-at any time leaves a file that :mod:`companion.log.reader` salvages up to the last flush.
+Durability: the current chunk is closed and the file flushed every ``flush_interval_s`` (a
+chunk also closes when it reaches ``chunk_size`` bytes), so a process killed at any time leaves
+a file that :mod:`companion.log.reader` salvages up to the last closed chunk. ``fsync`` policy:
+"interval" (default) also ``os.fsync``-s at every timed flush, so a power loss costs at most
+``flush_interval_s``; "close" only at the end; "never" leaves it to the OS. The fsyncs run in the
+writer thread (``fsync_count``, ``fsync_time_s``), never in the caller's.
 
 Times: ``log_time_ns`` comes from the caller's clock; the logger never reads a clock for data
 (only to pace flushes and warnings). Every channel is JSON with a JSON schema
@@ -52,6 +55,7 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 _STOP = object()
+_FSYNC_POLICIES = ("interval", "close", "never")
 
 
 def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
@@ -138,6 +142,7 @@ class McapLogger:
         *,
         block_on_backlog: bool = False,
         compression: str = "zstd",
+        fsync: str = "interval",
         jpeg_quality: int = 90,
         extra_schemas: Mapping[str, Mapping[str, Any]] | None = None,
     ) -> None:
@@ -149,6 +154,8 @@ class McapLogger:
             raise McapLogError("queue_size must be >= 1")
         if compression not in _COMPRESSION:
             raise McapLogError(f"compression {compression!r} not in {sorted(_COMPRESSION)}")
+        if fsync not in _FSYNC_POLICIES:
+            raise McapLogError(f"fsync policy {fsync!r} not in {_FSYNC_POLICIES}")
         if not 1 <= jpeg_quality <= 100:
             raise McapLogError("jpeg_quality must be in 1..100")
         self.path = Path(path)
@@ -161,6 +168,9 @@ class McapLogger:
         self._images_dropped = 0
         self._last_image_warn = 0.0
         self._compression = _COMPRESSION[compression]
+        self.fsync_policy = fsync
+        self.fsync_count = 0  # os.fsync calls made by the writer thread
+        self.fsync_time_s = 0.0  # wall time spent in them (writer thread, never the loop)
         self._jpeg_quality = jpeg_quality
         self._extra = {k: dict(v) for k, v in (extra_schemas or {}).items()}
         self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
@@ -192,6 +202,7 @@ class McapLogger:
             max_pending_image_bytes=int(getattr(logging_cfg, "max_pending_image_mb", 64)) << 20,
             block_on_backlog=bool(getattr(logging_cfg, "block_on_backlog", False)),
             compression=str(getattr(logging_cfg, "compression", "lz4")),
+            fsync=str(getattr(logging_cfg, "fsync", "interval")),
         )
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -499,7 +510,8 @@ class McapLogger:
                     next_flush = time.monotonic() + self.flush_interval_s
             writer.finish()  # type: ignore[no-untyped-call]
             sink.flush()
-            sink.fsync()
+            if self.fsync_policy != "never":
+                self._fsync(sink)
             with self._lock:
                 self._flushed = self._written
         except BaseException as e:  # disk full, broken pipe...: stop logging, never the flight
@@ -530,9 +542,16 @@ class McapLogger:
     def _flush(self, writer: Writer, sink: _Sink) -> None:
         n = self._written
         writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk, flushes the stream
-        sink.fsync()
+        if self.fsync_policy == "interval":
+            self._fsync(sink)
         with self._lock:
             self._flushed = n
+
+    def _fsync(self, sink: _Sink) -> None:
+        t0 = time.perf_counter()
+        sink.fsync()
+        self.fsync_time_s += time.perf_counter() - t0
+        self.fsync_count += 1
 
     def _write(
         self,
