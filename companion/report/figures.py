@@ -68,6 +68,8 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     }
     out["safety"] = _safety(steps)
     out["engaged"] = _engaged(truth, steps, st)
+    out["engagement"] = _engagement(truth, steps, st)
+    out["agv"] = _agv(truth)
     return out
 
 
@@ -130,6 +132,63 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
         "recovery_fraction": modes.count("recovery") / n if n else None,
         "fallbacks": modes.count("fallback"),
     }
+
+
+def _outside(r: Mapping[str, Any], st: ReportSettings) -> tuple[bool, bool] | None:
+    """(a corner outside the visible bound, the centroid outside it) for a truth record, in
+    the paper's pixels; None without four finite corners."""
+    c = np.asarray(r.get("corners_px") or [], dtype=float)
+    if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+        return None
+    scale = st.pixel_size_m / st.report_pixel_size_m
+    u = -(c[:, 1] - (st.height_px - 1) / 2.0) * scale
+    n = (c[:, 0] - (st.width_px - 1) / 2.0) * scale
+    b = st.visible_bound_report_px
+    corner = max(float(np.max(np.abs(u))), float(np.max(np.abs(n)))) > b
+    return corner, max(abs(float(u.mean())), abs(float(n.mean()))) > b
+
+
+def _engagement(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
+                st: ReportSettings) -> dict[str, Any]:
+    """When OFFBOARD engaged (the emulator's mode in the ground truth), what the first RMPC
+    problem was (``optimal`` = the hard problem was feasible), and visibility counted from
+    :data:`ENGAGE_GRACE_S` after engagement on: frames with a corner / the centroid outside
+    the visible bound, frames the target was not detected (companion steps)."""
+    t_eng = next((r["t_us"] * 1e-6 for r in truth if r.get("mode") == "OFFBOARD"), None)
+    first = next((s["rmpc"].get("mode") for s in steps if s.get("rmpc")), None)
+    out: dict[str, Any] = {"offboard_t_s": t_eng, "first_solve_mode": first,
+                           "grace_s": ENGAGE_GRACE_S}
+    corner_all = centroid_all = 0
+    corner_after = centroid_after = judged = 0
+    t_from = None if t_eng is None else t_eng + ENGAGE_GRACE_S
+    for r in truth:
+        o = _outside(r, st)
+        if o is None:
+            continue
+        corner_all += o[0]
+        centroid_all += o[1]
+        if t_from is not None and r["t_us"] * 1e-6 >= t_from:
+            judged += 1
+            corner_after += o[0]
+            centroid_after += o[1]
+    out["frames_centroid_outside"] = centroid_all
+    out["frames_judged"] = judged
+    out["frames_corner_outside_after_grace"] = corner_after
+    out["frames_centroid_outside_after_grace"] = centroid_after
+    out["frames_target_lost_after_grace"] = None if t_from is None else sum(
+        1 for s in steps if s.get("t_s", -math.inf) >= t_from
+        and (s.get("perception") or {}).get("status") != "ok")
+    return out
+
+
+def _agv(truth: list[Mapping[str, Any]]) -> dict[str, Any]:
+    """The AGV's peak ground speed (m/s) and heading rate (rad/s) over the flight (truth)."""
+    v = [float(np.hypot(*np.asarray(r["agv"]["vel_ned_m_s"], dtype=float)[:2]))
+         for r in truth if (r.get("agv") or {}).get("vel_ned_m_s") is not None]
+    w = [abs(float(r["agv"]["yaw_rate_rad_s"])) for r in truth
+         if (r.get("agv") or {}).get("yaw_rate_rad_s") is not None]
+    return {"max_speed_m_s": max(v) if v else None,
+            "max_yaw_rate_rad_s": max(w) if w else None}
 
 
 def _visibility(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],

@@ -117,11 +117,11 @@ def test_yaw_offset_recovers_then_tracks(tmp_path: Path) -> None:
 
 def test_aruco_marker_flight_tracks_including_yaw(tmp_path: Path) -> None:
     """The real-vehicle target: the emulator draws an ArUco marker on the AGV, the companion
-    detects it (cv2.aruco) and takes s4 from its corner order (a square's moments have none)."""
-    sim_cfg = tmp_path / "sim.toml"
-    sim_cfg.write_text(f'base = "{DEFAULT_CONFIG}"\n[target]\npattern = "aruco"\n')
+    detects it (cv2.aruco) and takes s4 from its corner order (a square's moments have none).
+    One ``--set`` of the shared key ``target.pattern`` reaches both processes."""
     rep = run_demo(DEFAULT_CONFIG, "paper", 8.0, tmp_path, ['target.pattern="aruco"'], [],
-                   plots=False, sim_config=sim_cfg)
+                   plots=False)
+    assert 'pattern = "aruco"' in (tmp_path / "config.toml").read_text()
     assert rep["visibility"]["frames_target_lost"] == 0
     assert rep["solver"]["failures"] == 0 and rep["solver"]["fallbacks"] == 0
     # the true yaw error (psi_a - psi_q) starts at pi/8 and must be driven down
