@@ -8,10 +8,11 @@ Two clocks:
   in fixed steps up to "now" every tick; setpoints are applied as they arrive.
 * ``lockstep``: simulated time advances one ``step_dt_s`` at a time. At step ``k`` the emulator
   sends the MAVLink messages due by ``t = k step_dt_s`` (stamped ``t``), FOLLOW_TARGET if due,
-  the ground-truth record and the camera frame; then waits up to ``lockstep_timeout_s`` of
-  wall time for a SET_ATTITUDE_TARGET addressed to it that arrives after that frame (a
-  timeout is counted as a lost setpoint and is no offboard signal; an answer that arrives
-  late, during the next step's telemetry, is applied but does not release that step); then
+  the ground-truth record and the camera frame(s) due; then waits up to ``lockstep_timeout_s``
+  of wall time until every frame delivered so far has been answered by one SET_ATTITUDE_TARGET
+  (camera latency jitter can deliver two frames in one step: the step then waits for two
+  answers; a timeout is counted as a lost setpoint, is no offboard signal, and clears the
+  count); then
   integrates to ``t + step_dt_s``. Commands are handled whenever they arrive, stamped ``t``.
 """
 
@@ -241,6 +242,10 @@ class SimBridge:
         self._unix_t0_s = time.time()  # SYSTEM_TIME: Unix time at simulation time 0
         self.t_s = 0.0
         self._setpoint_event = asyncio.Event()
+        # lockstep: frames delivered and not yet answered by a setpoint (one answer per frame)
+        self._unanswered = 0
+        # links whose setpoints are counted before the impairment (_on_raw_datagram)
+        self._raw_counted: set[str] = set()
         self._links: dict[str, MavUdpLink] = {}
         self._streams: dict[str, _Streams] = {}
         c, tg = cfg.camera, cfg.target
@@ -356,6 +361,7 @@ class SimBridge:
                 name, imp.seed, imp.vehicle_to_companion, imp.companion_to_vehicle, imp.cuts,
                 imp.heartbeat_stop_s if imp.heartbeat_stop_s >= 0 else None)
             opts["on_raw_datagram"] = self._on_raw_datagram
+            self._raw_counted.add(name)
         return opts
 
     def _on_raw_datagram(self, data: bytes) -> None:
@@ -363,6 +369,15 @@ class SimBridge:
         releases the step even if the network then drops, corrupts or delays it: the client
         has answered; what the network does to the answer is the experiment."""
         if self.lockstep and msgid_of(data) == SET_ATTITUDE_TARGET:
+            self._answered()
+
+    def _answered(self) -> None:
+        """Lockstep: a setpoint answers one delivered frame; the step is released once every
+        frame delivered in it has its answer. (Releasing on the first setpoint let the answer
+        to a step's second frame, when latency jitter delivers two, release the NEXT step
+        before its frame was handled: the emulator then ran a frame ahead of its client.)"""
+        self._unanswered = max(0, self._unanswered - 1)
+        if self._unanswered == 0:
             self._setpoint_event.set()
 
     def _deliver_due(self, t_s: float) -> None:
@@ -437,7 +452,8 @@ class SimBridge:
                                   float(msg.body_yaw_rate)),
                 thrust_norm=float(msg.thrust))
             self.px4.on_attitude_target(t, sp)
-            self._setpoint_event.set()
+            if link.name not in self._raw_counted:
+                self._answered()
             self._note_changes(t)
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
             self._on_command(link, msg, addr, t)
@@ -645,6 +661,7 @@ class SimBridge:
         for seq, stamp_us, image in self._frame_line.pop_due(now_s):
             self._frames_delivered += 1
             self._delivered_this_step += 1
+            self._unanswered += 1
             if self._frame_server is not None:
                 await self._frame_server.publish(seq, stamp_us, image)
 
@@ -750,18 +767,19 @@ class SimBridge:
                 self._send_follow_target(t)
                 next_ft += ft_dt
             self._delivered_this_step = 0
-            await self._publish_frame(t)
-            # only a setpoint that arrives after the frame releases the step: a late answer
-            # to an earlier frame must not (the frame leaves once this coroutine waits).
-            # A step that delivers no frame (latency, drop) does not wait: a client that
-            # answers frames has nothing to answer, and PX4 keeps the last setpoint.
             self._setpoint_event.clear()
-            if self._delivered_this_step:
+            await self._publish_frame(t)
+            # the step is released once every frame delivered in it has been answered (one
+            # setpoint each; a step that delivers two frames, by latency jitter, waits for
+            # two). A step that delivers no frame (latency, drop) does not wait: a client that
+            # answers frames has nothing to answer, and PX4 keeps the last setpoint.
+            if self._delivered_this_step and self._unanswered > 0:
                 try:
                     await asyncio.wait_for(self._setpoint_event.wait(),
                                            sim.lockstep_timeout_s)
                 except TimeoutError:
                     self._timeouts += 1
+                    self._unanswered = 0  # a frame left unanswered: start counting afresh
             self._advance_delivering((k + 1) * step)
             self._steps += 1
             k += 1
