@@ -49,6 +49,10 @@ def main() -> int:
                     help="use this soak result (written by bench/reliab/soak.py) instead of "
                          "running the soak")
     ap.add_argument("--only", default="", help="comma-separated probe names (debugging)")
+    ap.add_argument("--impaired-duration", type=float, default=None,
+                    help="simulated seconds of each impaired/clean flight (default 251, "
+                         "quick 30)")
+    ap.add_argument("--kills", type=int, default=None, help="kill -9 repetitions (20; quick 3)")
     a = ap.parse_args()
     q = a.quick
     out = a.out / ("quick" if q else "full")
@@ -73,11 +77,12 @@ def main() -> int:
                                              flood_at_s=12.0, realtime=True)],
         "signing": lambda: [run_signing(out / "signing", 20.0 if q else 40.0)],
         "mavsdk": lambda: [_mavsdk(out)],
-        "impaired": lambda: [run_impaired(out / "impaired", 30.0 if q else 251.0)],
+        "impaired": lambda: [run_impaired(out / "impaired", a.impaired_duration
+                                          or (30.0 if q else 251.0))],
         "stall": lambda: [run_stall(out / "stall")],
         "disk": lambda: run_disk(out / "disk", 8.0 if q else 20.0),
         "fsync": lambda: [run_fsync(out / "disk", 8.0 if q else 20.0)],
-        "kill9": lambda: [run_kill9(out / "kill9", 3 if q else 20)],
+        "kill9": lambda: [run_kill9(out / "kill9", a.kills or (3 if q else 20))],
         "soak": soak,
     }
     only = [s for s in a.only.split(",") if s]
@@ -101,8 +106,9 @@ def main() -> int:
                                                       indent=2, default=str))
     meta = {"started": started, "finished": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "machine": _machine(), "load_before": load0, "load_after": load_avg(),
-            "command": "python bench/reliability.py" + (" --quick" if q else "")
-            + (f" --soak-json {a.soak_json}" if a.soak_json else "")}
+            "command": "python " + " ".join(
+                [str(Path(sys.argv[0]).relative_to(ROOT)) if Path(sys.argv[0]).is_absolute()
+                 else sys.argv[0], *sys.argv[1:]])}
     write_report(a.doc, results, meta)
     print(f"[reliability] wrote {a.doc}")
     return 0 if all(r.passed for r in results) else 1
