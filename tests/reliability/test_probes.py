@@ -33,7 +33,7 @@ def test_flood_of_1e5_hostile_datagrams_during_a_flight(tmp_path: Path) -> None:
 
 
 def test_signing_both_ends_under_attack(tmp_path: Path) -> None:
-    r = run_signing(tmp_path, duration_s=20.0, n_unsigned=100, attack_at_s=3.0)
+    r = run_signing(tmp_path, duration_s=40.0, n_unsigned=100, attack_at_s=2.0)
     c, e = r.figures["companion_counters"], r.figures["emulator"]
     assert c["unsigned"] >= 100 and c["bad_signature"] >= 1 and c["old_timestamp"] >= 1
     assert e["unsigned"] > 0 and e["bad_signature"] >= 1 and e["replayed"] >= 1
