@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from companion import CompanionError
 from companion.core.errors import CoreError
 
-SUBCOMMANDS = ("certify", "run", "demo", "replay", "report", "log")
+SUBCOMMANDS = ("certify", "run", "demo", "replay", "report", "log", "campaign")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -23,6 +23,7 @@ from typing import Any
 
 from companion import ConfigError
 from companion.core.errors import ParamError
+from companion.core.geometry import rectangle_corners_m
 from companion.core.params import (
     CameraParams,
     ControlParams,
@@ -207,6 +208,33 @@ class LiveConfig:
             raise ConfigError(f"live.port: {self.port} is not a TCP port (0..65535)")
 
 
+CONTROLLER_KINDS = ("rmpc", "rmpc-centroid", "mpc-novis", "ibvs-pd")
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Which control law flies (docs/visibility.md, ``companion/control/factory.py``).
+
+    ``kind``: ``rmpc`` (the RMPC as configured in [rmpc]; paper.toml keeps every corner in
+    view), ``rmpc-centroid`` (the same with the paper's centroid rows), ``mpc-novis`` (the same
+    MPC without visibility rows), ``ibvs-pd`` (classical moment-based IBVS: a PD on the same
+    virtual-camera moments). ``ibvs_*``: the IBVS gains (1/s): image-error decay rate
+    ``lambda``, velocity-loop gain ``k_v`` (critically damped at ``k_v = 4 lambda``) and the
+    yaw gain.
+    """
+
+    kind: str = "rmpc"
+    ibvs_lambda_1_s: float = field(default=0.5, metadata=checked(positive))
+    ibvs_kv_1_s: float = field(default=2.0, metadata=checked(positive))
+    ibvs_yaw_gain_1_s: float = field(default=1.0, metadata=checked(positive))
+
+    def __post_init__(self) -> None:
+        if self.kind not in CONTROLLER_KINDS:
+            raise ConfigError(
+                f"controller.kind: {self.kind!r} is not one of {', '.join(CONTROLLER_KINDS)}"
+            )
+
+
 @dataclass(frozen=True)
 class Config:
     """The whole companion configuration. ``source`` is the file it came from."""
@@ -219,6 +247,7 @@ class Config:
     offboard: OffboardConfig
     safety: SafetyConfig
     logging: LoggingConfig
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
     live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
@@ -249,11 +278,27 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
             continue
         if f.name not in data:
             if f.default_factory is not dataclasses.MISSING:  # an optional table
+                sections[f.name] = f.default_factory()
                 continue
             raise ConfigError(f"{f.name}: missing table [{f.name}]")
-        sections[f.name] = _build(_resolve(f.type), data[f.name], f.name)
+        table = data[f.name]
+        if f.name == "rmpc" and isinstance(table, Mapping):
+            table = _with_target_corners(table, sections["target"])
+        sections[f.name] = _build(_resolve(f.type), table, f.name)
     plain = {k: v for k, v in data.items() if k not in _FOREIGN_TABLES}
     return Config(**sections, source=source, raw=types.MappingProxyType(plain))
+
+
+def _with_target_corners(table: Mapping[str, Any], target: TargetConfig) -> dict[str, Any]:
+    """The [rmpc] table with ``target_corners_m`` filled from [target] (the corners the
+    detector returns: the rectangle's, or the marker's)."""
+    if "target_corners_m" in table:
+        raise ConfigError("rmpc.target_corners_m: not a config key (it comes from [target])")
+    if target.pattern == "aruco":
+        pts = rectangle_corners_m(target.aruco_size_m, target.aruco_size_m)
+    else:
+        pts = rectangle_corners_m(target.length_m, target.width_m)
+    return {**table, "target_corners_m": [[float(x), float(y)] for x, y in pts]}
 
 
 def read_document(path: str | Path) -> dict[str, Any]:

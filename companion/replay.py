@@ -116,9 +116,25 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
         return load_config(config, overrides)
     for m in reader.messages(topics=["/config"]):
         if m.data and isinstance(m.data.get("config"), dict):
-            return config_from_dict(with_overrides(m.data["config"], overrides),
+            recorded = _as_flown(m.data["config"])
+            return config_from_dict(with_overrides(recorded, overrides),
                                     source=f"{m.data.get('source', '')} (recorded)")
     raise ReplayError("the log has no /config channel: pass --config FILE")
+
+
+#: ``[control.*]`` features newer than some logs: a log whose config has no such table was flown
+#: without the feature, so its replay keeps it off (the defaults would switch it on)
+_ADDED_LATER = ("estimator", "latency")
+
+
+def _as_flown(cfg: dict[str, Any]) -> dict[str, Any]:
+    control = cfg.get("control")
+    if not isinstance(control, dict) or all(k in control for k in _ADDED_LATER):
+        return cfg
+    control = dict(control)
+    for key in _ADDED_LATER:
+        control.setdefault(key, {"enabled": False})
+    return {**cfg, "control": control}
 
 
 def replay(log_path: Path, out_path: Path | None, config: Path | None = None,

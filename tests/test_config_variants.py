@@ -27,6 +27,12 @@ def test_every_shipped_config_loads(path: Path) -> None:
      ("rmpc.solver=\"qpoases\"", "rmpc.solver"), ("control.time_source=\"gps\"", "time_source"),
      ("rmpc.u_max=[1,1,1]", "rmpc.u_max"), ("safety.nope=1", "safety.nope"),
      ("logging.compression=\"gzip\"", "logging.compression"),
+     ("rmpc.visibility=\"edges\"", "rmpc.visibility"), ("rmpc.heading=\"soft\"", "rmpc.heading"),
+     ("rmpc.target_motion=\"exact\"", "rmpc.target_motion"),
+     ("rmpc.min_depth_m=0", "rmpc.min_depth_m"),
+     ("rmpc.target_corners_m=[[1,1]]", "rmpc.target_corners_m"),
+     ("controller.kind=\"pid\"", "controller.kind"),
+     ("controller.ibvs_kv_1_s=-1", "controller.ibvs_kv_1_s"),
      # the companion flies only the paper's mount: a tilted or offset camera is refused, not ignored
      ("camera.mount_rpy_rad=[0.0,0.2,0.0]", "camera.mount_rpy_rad"),
      ("camera.mount_offset_m=[0.1,0.0,0.0]", "camera.mount_offset_m")],

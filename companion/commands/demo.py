@@ -1,9 +1,12 @@
 """``companion demo``: the emulator and the companion as two processes on loopback, in lockstep.
 
 They meet only on sockets (docs/wire.md), exactly as the companion meets a real PX4. The demo
-picks free ports, starts ``python -m sim_bridge --lockstep`` and ``python -m companion run``,
-waits for the flight, then scores it from the log (ground truth recorded on ``/truth``) into
-``DIR/report.json`` and the report figures.
+merges the config file and every ``--set`` override into ``DIR/config.toml`` (so an override
+reaches both processes, ``sim.*`` keys the emulator and shared ``camera.*``/``target.*`` keys
+both), has both programs validate it (``sim-bridge --check-config``; a key neither knows is
+refused before anything flies), picks free ports, starts ``python -m sim_bridge --lockstep`` and
+``python -m companion run`` on that file, waits for the flight, then scores it from the log
+(ground truth recorded on ``/truth``) into ``DIR/report.json`` and the report figures.
 """
 
 from __future__ import annotations
@@ -12,16 +15,18 @@ import argparse
 import json
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from companion import CompanionError
-from companion.config import DEFAULT_CONFIG, load_config, read_document
+from companion import CompanionError, ConfigError
+from companion.config import DEFAULT_CONFIG, Config, config_from_dict, read_document
+from companion.config_file import absolutize_paths, dump_toml, merged_document
 from companion.report.files import build_report
 
 log = logging.getLogger(__name__)
@@ -37,7 +42,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="switch the RMPC's visibility constraints off (for comparison)")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="companion config override (repeatable)")
+                   help="config override for both processes, e.g. sim.agv.speed_scale=3 "
+                        "(repeatable; a key neither program knows is refused)")
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1")
     p.add_argument("--out", type=Path, default=None, help="output dir (default out/SCENARIO)")
     p.add_argument("--no-plots", action="store_true", help="report.json only")
@@ -53,9 +59,11 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
 
 
 def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
-                  overrides: list[str], faults: list[str],
+                  overrides: Sequence[str], faults: Sequence[str],
                   live: bool = False) -> tuple[list[str], list[str]]:
-    """The two command lines (emulator, companion) of a lockstep flight on free ports."""
+    """The two command lines (emulator, companion) of a lockstep flight on free ports, both
+    reading ``config`` (the merged file); ``overrides`` go to the companion only (the demo's
+    own lockstep settings)."""
     p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = (free_port() for _ in range(6))
     p_frame = free_port(socket.SOCK_STREAM)
     sim = [
@@ -82,43 +90,88 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
     return sim, comp
 
 
+def write_merged_config(config: Path, overrides: Sequence[str], path: Path) -> dict[str, Any]:
+    """``config`` (its base chain merged) with ``overrides`` applied, written to ``path`` as one
+    self-contained TOML file (file paths made absolute); returns the document."""
+    doc = merged_document(read_document(config), overrides)
+    absolutize_paths(doc, config)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"# {config} with --set {' '.join(overrides) or '(none)'}\n"
+                    + dump_toml(doc))
+    return doc
+
+
+def check_emulator_config(path: Path, scenario: str, env: Mapping[str, str]) -> None:
+    """Have the emulator validate ``path`` (``sim-bridge --check-config``); raise
+    :class:`ConfigError` with its message if it refuses."""
+    r = subprocess.run([sys.executable, "-m", "sim_bridge", "--check-config", "--config",
+                        str(path), "--scenario", scenario, "--log-level", "ERROR"],
+                       capture_output=True, text=True, env=dict(env), timeout=120.0)
+    if r.returncode != 0:
+        lines = [ln for ln in (r.stderr + r.stdout).splitlines() if ln.strip()]
+        msg = lines[-1] if lines else f"exit {r.returncode}"
+        raise ConfigError(f"the emulator refuses the config: {msg.split(': ', 1)[-1]}")
+
+
+def prepare_configs(config: Path, scenario: str, overrides: Sequence[str], out: Path,
+                    env: Mapping[str, str], sim_config: Path | None = None,
+                    ) -> tuple[Config, Path, Path, dict[str, Any]]:
+    """Merge and validate the flight's config for both programs: ``(companion config,
+    companion file, emulator file, emulator document)``. Raises :class:`ConfigError` naming
+    the key either program refuses."""
+    comp_path = out / "config.toml"
+    doc = write_merged_config(config, overrides, comp_path)
+    cfg = config_from_dict(doc, source=str(comp_path))  # the companion's validation
+    sim_path, sim_doc = comp_path, doc
+    if sim_config is not None:  # the emulator reads another file (plus the same overrides)
+        sim_path = out / "sim-config.toml"
+        sim_doc = write_merged_config(sim_config, overrides, sim_path)
+    check_emulator_config(sim_path, scenario, env)
+    return cfg, comp_path, sim_path, sim_doc
+
+
 def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
-             overrides: list[str], faults: list[str], plots: bool = True,
+             overrides: Sequence[str], faults: Sequence[str], plots: bool = True,
              monitor: Callable[[subprocess.Popen[bytes]], None] | None = None,
-             sim_config: Path | None = None, live: bool = False,
-             show_progress: bool = False) -> dict[str, Any]:
-    """Fly a scenario; ``monitor(companion_process)`` is called every 50 ms during the flight
-    (benchmarks sample its memory); ``sim_config`` gives the emulator a different file (e.g.
-    with fault injection) than the companion's ``config``; with ``live`` the companion serves
-    its channels to Foxglove while it flies (``[live]`` config)."""
-    cfg = load_config(config, overrides)  # fail early, in this process, on a bad config
-    if duration_s is None:
-        # the emulator's own setting, through the file's base chain
-        duration_s = float(read_document(config).get("sim", {}).get("duration_s", 251.0))
-    out.mkdir(parents=True, exist_ok=True)
-    sim_cmd, comp_cmd = demo_commands(config, scenario, duration_s, out, overrides, faults,
-                                      live=live)
-    if sim_config is not None:
-        sim_cmd[sim_cmd.index("--config") + 1] = str(sim_config)
+             sim_config: Path | None = None, budget_s: float | None = None,
+             live: bool = False, show_progress: bool = False) -> dict[str, Any]:
+    """Fly a scenario; ``overrides`` reach both processes (``OUT/config.toml``).
+    ``budget_s``: wall time allowed for the flight (default 120 s + 4 times the flight).
+    ``monitor(companion_process)`` is called every 50 ms during the flight (benchmarks sample
+    its memory); ``sim_config`` gives the emulator a different file (e.g. with fault
+    injection) than the companion's ``config``, with the same overrides; with ``live`` the
+    companion serves its channels to Foxglove while it flies (``[live]`` config)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    out.mkdir(parents=True, exist_ok=True)
+    # fail early, before anything starts, on a key either program refuses
+    cfg, comp_path, sim_path, sim_doc = prepare_configs(config, scenario, overrides, out, env,
+                                                        sim_config)
+    if duration_s is None:
+        duration_s = float(sim_doc.get("sim", {}).get("duration_s", 251.0))
+    sim_cmd, comp_cmd = demo_commands(comp_path, scenario, duration_s, out, [], faults,
+                                      live=live)
+    sim_cmd[sim_cmd.index("--config") + 1] = str(sim_path)
     t0 = time.monotonic()
     with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
+        startup_s = 300.0 if budget_s is None else max(300.0, budget_s)
         ready = out / ".companion-ready"
         ready.unlink(missing_ok=True)
         comp = subprocess.Popen(comp_cmd, stdout=comp_log, stderr=subprocess.STDOUT, env=env)
         # The vehicle starts talking only once the companion listens (first start compiles
         # the solver: allow for it).
         while not ready.exists():
-            if comp.poll() is not None or time.monotonic() - t0 > 300.0:
+            if comp.poll() is not None or time.monotonic() - t0 > startup_s:
                 comp.kill()
-                raise CompanionError(f"demo: the companion did not start (see {out}/companion.log)")
+                comp.wait()
+                raise CompanionError(f"demo: the companion did not start within "
+                                     f"{time.monotonic() - t0:.0f} s (see {out}/companion.log)")
             time.sleep(0.05)
         t0 = time.monotonic()
         progress_file = out / ".companion-progress"
         progress_file.unlink(missing_ok=True)
         bar = bar_for(duration_s, show_progress)
         sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
-        budget = 60.0 + 2.0 * duration_s
+        budget = budget_s if budget_s is not None else 120.0 + 4.0 * duration_s
         sim_rc = comp_rc = None
         wall = 0.0
         try:
@@ -126,12 +179,24 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
                 sim_rc, comp_rc = sim.poll(), comp.poll()
                 if sim_rc is not None:
                     wall = time.monotonic() - t0
+                    # the flight is over: the companion stops at once (it would otherwise
+                    # wait for frames that will not come)
+                    if sim_rc == 0 and comp.poll() is None:
+                        comp.send_signal(signal.SIGTERM)
                     comp_rc = comp.wait(timeout=30.0)
                     break
-                if comp_rc is not None:  # the companion died: no point flying on
+                if comp_rc is not None:  # the companion stopped: at the end, or early?
+                    try:
+                        sim_rc = sim.wait(timeout=5.0)
+                        wall = time.monotonic() - t0
+                        break
+                    except subprocess.TimeoutExpired:
+                        pass
                     sim.terminate()
-                    sim_rc = sim.wait(timeout=10.0)
-                    break
+                    sim.wait(timeout=10.0)
+                    raise CompanionError(
+                        f"demo: the companion exited ({comp_rc}) before the flight's end "
+                        f"(see {out}/companion.log)")
                 if monitor is not None:
                     monitor(comp)
                 if bar is not None:
@@ -168,7 +233,8 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     report["real_time_factor"] = report["sim_time_s"] / wall if wall > 0 else None
     report["companion_cpu_ms_per_step"] = read_progress(progress_file)[2]
     report["scenario"] = scenario
-    report["overrides"] = overrides
+    report["overrides"] = list(overrides)
+    report["config_file"] = str(comp_path)
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
 
@@ -198,7 +264,7 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append("rmpc.enable_visibility=false")
     out = args.out or Path("out") / (args.scenario + ("-novis" if args.no_visibility else ""))
     if args.live:
-        lc = load_config(args.config, overrides).live
+        lc = config_from_dict(merged_document(read_document(args.config), overrides)).live
         where = f"ws://{lc.host}:{lc.port}" if lc.port else f"a free port ({out}/companion.log)"
         print(f"live view: {where} (Foxglove: Open connection, Foxglove WebSocket; layout "
               "foxglove/layout.json)", flush=True)
@@ -211,6 +277,12 @@ def _run(args: argparse.Namespace) -> int:
           f"{rep['wall_time_s']:.1f} s ({rep['real_time_factor']:.1f}x real time)")
     print(f"visibility: max |u| {vis['max_abs_u_px']:.1f} px, max |n| {vis['max_abs_n_px']:.1f}"
           f" px (bound {vis['bound_px']:.0f}), frames target lost {vis['frames_target_lost']}")
+    eng = rep.get("engaged") or {}
+    if eng.get("t_engaged_s") is not None:
+        print(f"after OFFBOARD (+1 s, controller {rep.get('controller')}): worst corner "
+              f"{eng['corner_max_px']:.1f} px, {eng['frames_outside_bound']} frames out, "
+              f"recovery {100 * (eng['recovery_fraction'] or 0):.1f} %, "
+              f"{eng['fallbacks']} fallbacks")
     print(f"tracking: rms s_e {trk['rms_se']}, final s_e {trk['final_se']}")
     print(f"solver: {rep['solver']}")
     cpu = rep.get("companion_cpu_ms_per_step")

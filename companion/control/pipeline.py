@@ -39,7 +39,7 @@ from companion.core.geometry import (
     wrap_pi,
 )
 from companion.core.latency import Prediction, predict_error_state
-from companion.core.moments import DegenerateTargetError, a_star
+from companion.core.moments import DegenerateTargetError, a_star, fold_s4
 from companion.core.prediction import predict_target_motion
 from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
@@ -141,9 +141,9 @@ class ControlPipeline:
         self.perception = perception
         self.terminal = terminal or design_terminal(cfg.rmpc, cfg.camera)
         if rmpc is None:
-            from companion.core.rmpc import Rmpc
+            from companion.control.factory import build_controller
 
-            rmpc = Rmpc(cfg.rmpc, cfg.camera, self.terminal)
+            rmpc = build_controller(cfg, self.terminal)
         self.rmpc: Controller = rmpc
         self.safety = SafetySupervisor(cfg.safety)
         self.a_star = a_star(_target_points(cfg), cfg.rmpc.desired_depth_m,
@@ -159,6 +159,7 @@ class ControlPipeline:
             if est.enabled else None)
         # (t_effect_s, u: the vehicle's acceleration/yaw rate asked for (4,), thrust sent)
         self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)
+        self._control_since: float | None = None  # since when our setpoints fly the vehicle
         self.force_solver_failure = False
         # Optional stage timing (seconds clock, e.g. time.perf_counter): measurement only,
         # it never changes a result, so replay stays exact with or without it.
@@ -198,7 +199,7 @@ class ControlPipeline:
         # 2. telemetry at the frame's time
         att = store.attitude_at(t_s)
         kin = store.kinematics
-        self._update_estimator(store, in_control)
+        self._update_estimator(store, in_control, t_now)
         lat = cfg.control.latency
         kin_cap = store.kinematics_at(t_s) if lat.enabled else kin
         finite = True
@@ -216,7 +217,11 @@ class ControlPipeline:
                     v_q_ned_m_s=(kin_cap or kin).vel_ned_m_s,
                     v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
                     psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
-                    lam=cfg.camera.focal_length_m, s4_prev_rad=self._s4_prev,
+                    lam=cfg.camera.focal_length_m,
+                    # folded: a target turning faster than the yaw-rate bound must not wind
+                    # s4 up (its period: pi for the moments, 2 pi for ordered corners)
+                    s4_prev_rad=fold_s4(self._s4_prev, 2.0 * math.pi
+                                        if cfg.target.pattern == "aruco" else math.pi),
                     # a square marker's moments carry no orientation: use its corner order
                     heading_from_corners=cfg.target.pattern == "aruco",
                 )
@@ -341,7 +346,8 @@ class ControlPipeline:
                                  hover_thrust=hover, thrust_min=c.thrust_min,
                                  thrust_max=c.thrust_max)
 
-    def _update_estimator(self, store: TelemetryStore, in_control: bool | None) -> None:
+    def _update_estimator(self, store: TelemetryStore, in_control: bool | None,
+                          t_now: float) -> None:
         """Feed every velocity sample newer than the filter's with the thrust commanded over
         the interval (time-weighted) and the body z axis measured at its middle. Only while
         PX4 is in OFFBOARD and armed (otherwise our thrust is not what flies the vehicle)."""
@@ -352,10 +358,19 @@ class ControlPipeline:
         ours = mode is not None and mode.armed and mode.main_mode == PX4_MAIN_OFFBOARD
         if in_control is not None:
             ours = in_control
+        if not ours:
+            self._control_since = None
+        elif self._control_since is None:
+            # our setpoints fly the vehicle from the next one on: an interval that began
+            # earlier was flown by PX4's own controller and says nothing about our thrust
+            self._control_since = t_now
+        since = self._control_since
         for k in store.kinematics_history:
             if f.t_s is not None and k.t_s <= f.t_s:
                 continue
-            thrust = self._thrust_over(f.t_s, k.t_s) if ours and f.t_s is not None else None
+            thrust = (self._thrust_over(f.t_s, k.t_s)
+                      if since is not None and f.t_s is not None and f.t_s >= since - 1e-9
+                      else None)
             body_z = None
             if thrust is not None and f.t_s is not None:
                 a = store.attitude_at(0.5 * (f.t_s + k.t_s))

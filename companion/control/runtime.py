@@ -73,6 +73,10 @@ _STAMP_FIELDS = {
 STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
 
 
+class _StopRequested(Exception):
+    """A stop was requested (signal, duration) while waiting for a camera frame."""
+
+
 class DelayFloor:
     """The smallest transport delay ``t_rx - t_src`` of one stream (seconds, in whatever
     offset the two clocks have), rising by at most ``drift`` s/s (clock drift), so that
@@ -218,6 +222,7 @@ class CompanionApp:
         truth_port: int | None = None,
         duration_s: float | None = None,
         idle_timeout_s: float = 5.0,
+        startup_timeout_s: float = FIRST_FRAME_TIMEOUT_S,
         faults: tuple[FaultWindow, ...] = (),
         config_text: str = "",
         ready_file: Path | None = None,
@@ -230,6 +235,9 @@ class CompanionApp:
         self.truth_port = truth_port
         self.duration_s = duration_s
         self.idle_timeout_s = idle_timeout_s
+        # before the first frame nothing is under our control: wait longer for the camera
+        # (an emulator starting on a loaded machine takes seconds)
+        self.startup_timeout_s = startup_timeout_s
         self.faults = faults
         self.config_text = config_text
         self.ready_file = ready_file
@@ -466,20 +474,47 @@ class CompanionApp:
                 time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
             ):
                 break
+            # before the first frame the camera may still be starting (a loaded machine takes
+            # seconds to start the emulator): wait longer than between frames
+            wait_s = self.idle_timeout_s if self._first_frame_s is not None else max(
+                self.idle_timeout_s, self.startup_timeout_s)
+            if exit_deadline is not None:  # stopping: wait no longer than the exit allows
+                wait_s = max(0.0, min(wait_s, exit_deadline - time.monotonic()))
             try:
-                # Before the first frame the camera (or a loaded machine's emulator) may
-                # still be starting: wait longer than between frames (not once stopping).
-                first = not self.steps and exit_deadline is None
-                wait_s = max(self.idle_timeout_s, FIRST_FRAME_TIMEOUT_S) if first \
-                    else self.idle_timeout_s
-                frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
+                frame: CameraFrame = await self._next_frame(it, wait_s,
+                                                            wake_on_stop=exit_deadline is None)
+            except _StopRequested:
+                continue  # SIGTERM/SIGINT while waiting: start the exit now
             except (TimeoutError, StopAsyncIteration):
-                log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                 if exit_deadline is None:
+                    log.info("companion: no camera frame for %.1f s, stopping", wait_s)
                     self._stop.set()
                     continue
                 break
             self._step(frame)
+
+    async def _next_frame(self, it: Any, wait_s: float, wake_on_stop: bool) -> CameraFrame:
+        """The camera's next frame within ``wait_s`` (``TimeoutError``); with
+        ``wake_on_stop``, raises :class:`_StopRequested` as soon as a stop is requested."""
+        if not wake_on_stop:
+            frame: CameraFrame = await asyncio.wait_for(it.__anext__(), wait_s)
+            return frame
+        nxt = asyncio.ensure_future(it.__anext__())
+        stop = asyncio.ensure_future(self._stop.wait())
+        try:
+            done, _ = await asyncio.wait({nxt, stop}, timeout=wait_s,
+                                         return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+        if nxt in done:
+            frame = nxt.result()
+            return frame
+        nxt.cancel()
+        with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
+            await nxt
+        if stop in done:
+            raise _StopRequested
+        raise TimeoutError
 
     def _step(self, frame: CameraFrame) -> None:
         assert self._logger is not None and self._link is not None

@@ -9,8 +9,11 @@ Pure logic with explicit time. Fallback order (issue: the companion process, Saf
 3. ``TERMINAL``   something is unhealthy (solver failure, target lost with no FOLLOW_TARGET)
                   but the error state is still valid: the terminal law ``K eta + Gamma``.
 4. ``HOVER``      after ``hover_fallback_s`` of trouble, or at once when the state itself is
-                  invalid (stale telemetry, non-finite values): a level-attitude hover setpoint
-                  (hover thrust, last valid yaw). Built from no measurement at all.
+                  invalid (stale telemetry, non-finite values): a hover setpoint at the last
+                  valid yaw, built from no current measurement: zero acceleration through the
+                  offset-free estimate as it stood (bounded, from data that passed its checks:
+                  the estimated hover thrust, tilted against the estimated disturbance), or
+                  level at the configured hover thrust with the estimator off.
 5. ``SILENT``     after ``silence_after_s``: stop streaming, so PX4's own offboard-loss
                   failsafe (COM_OBL_RC_ACT) takes over.
 

@@ -149,6 +149,29 @@ def unwrap_angle(raw_rad: float, prev_rad: float | None, period_rad: float) -> f
     return float(raw_rad + round((prev_rad - raw_rad) / period_rad) * period_rad)
 
 
+S4_FOLD_HYSTERESIS_RAD = 0.25
+
+
+def fold_s4(s4_rad: float | None, period_rad: float,
+            hysteresis_rad: float = S4_FOLD_HYSTERESIS_RAD) -> float | None:
+    """``s4`` shifted by one ``period_rad`` towards 0 once it is more than half a period plus
+    ``hysteresis_rad`` away from it (None stays None).
+
+    The unwrapped ``s4`` is continuous but unbounded: a target that keeps turning faster than
+    the yaw-rate bound winds it up (and the state box ``|s4| <= eta_max[3]`` then makes every
+    problem infeasible). The target is symmetric under ``period_rad`` (pi for the rectangle's
+    moments, 2 pi for ordered corners), so the shifted value is the same heading, the nearer
+    way round; the hysteresis keeps it from flipping back and forth at the fold."""
+    if s4_rad is None or not math.isfinite(s4_rad):
+        return s4_rad
+    half = 0.5 * period_rad + hysteresis_rad
+    while s4_rad > half:
+        s4_rad -= period_rad
+    while s4_rad < -half:
+        s4_rad += period_rad
+    return s4_rad
+
+
 def image_moments(
     points_v_m: ArrayLike, a_star: float, lam: float, s4_prev_rad: float | None = None,
     *, heading_from_corners: bool = False,

@@ -120,11 +120,45 @@ class RmpcParams:
     # the paper's (2d); the applied input u(0) is in no row), "causal" = p(n+1), the image
     # taken with the attitude u(n) produces (u(0) checked against the next image).
     visibility_pairing: str = "spec"
+    # What the visibility rows keep inside the visible area (docs/visibility.md): "centroid"
+    # (the paper's rows: the image of the target's centre) or "corners" (every target corner,
+    # its image predicted from s_e, s3 and s4 and the target's known shape).
+    visibility: str = "centroid"
+    # Depth bound for the corner rows' tightening: the predicted depth never goes below it
+    # (imposed as a state bound s3 >= min_depth_m / z* with "corners"), metres.
+    min_depth_m: float = field(default=1.0, metadata=checked(positive))
+    # Where the yaw error s4 enters the hard rows: "tube" (the paper: in the tube and the
+    # terminal set, so a yaw error the yaw-rate bound cannot remove in time makes the problem
+    # infeasible) or "cost" (s4 minimised out of those rows: heading only in the cost).
+    heading: str = "tube"
+    # Target motion over the horizon: "nominal" (the vehicle assumed to turn with the target,
+    # v_a and vdot_a fixed parameters) or "planned_yaw" (v_a and vdot_a rotated by the planned
+    # yaw, vdot_a with the planned yaw rate: exact for the constant-turn target model).
+    target_motion: str = "nominal"
+    # L1 weight of the tube and terminal rows' slacks in the soft (recovery) copy; the
+    # visibility rows keep recovery_penalty (docs/visibility.md: keep the two equal).
+    recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
+    # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
+    # key: companion.config fills it from [target] (used by visibility = "corners").
+    target_corners_m: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.visibility_pairing not in ("spec", "causal"):
             raise ParamError(
                 f"rmpc.visibility_pairing: {self.visibility_pairing!r} is not 'spec' or 'causal'"
+            )
+        for key, value, allowed in (
+            ("visibility", self.visibility, ("centroid", "corners")),
+            ("heading", self.heading, ("tube", "cost")),
+            ("target_motion", self.target_motion, ("nominal", "planned_yaw")),
+        ):
+            if value not in allowed:
+                raise ParamError(
+                    f"rmpc.{key}: {value!r} is not one of {', '.join(map(repr, allowed))}"
+                )
+        if self.visibility == "corners" and len(self.target_corners_m) < 3:
+            raise ParamError(
+                "rmpc.visibility: 'corners' needs the target's corners (from [target])"
             )
         for name in ("q_diag", "r_diag", "eta_max", "u_max"):
             for i, v in enumerate(getattr(self, name)):

@@ -37,8 +37,12 @@ from companion.core.rmpc_problem import (
     Layout,
     build_nlp,
     centre,
+    corner_gain,
+    corner_points,
     image_point,
+    stage_motion,
     tube_bound,
+    tube_matrix,
     visibility_pairs,
     visibility_radius,
 )
@@ -219,6 +223,23 @@ def _state_offset(v_a: np.ndarray) -> np.ndarray:
     return np.array([*S_REF, v_a[0], v_a[1], 0.0])
 
 
+def state_lower(rmpc: RmpcParams) -> np.ndarray:
+    """Lower bound of the absolute state ``col(s, v_q)`` (7,): ``-eta_max``, and with the
+    corner rows ``s3 >= min_depth_m / z*`` (the depth bound their tightening assumes)."""
+    lo = -np.asarray(rmpc.eta_max, dtype=float)
+    if rmpc.enable_visibility and rmpc.visibility == "corners":
+        lo[2] = max(lo[2], rmpc.min_depth_m / rmpc.desired_depth_m)
+    return lo
+
+
+def planned_motion(rmpc: RmpcParams, eta: np.ndarray, u: np.ndarray, target: TargetMotion,
+                   n: int, s4_ref: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Stage ``n``'s target motion as the NLP uses it (:func:`stage_motion`, numpy)."""
+    v_a, vdot_a, psidot_a = target.stage(n)
+    va, vd, pd = stage_motion(rmpc, eta, u, v_a, vdot_a, psidot_a, s4_ref)
+    return np.asarray(va, dtype=float), np.asarray(vd, dtype=float), float(pd)
+
+
 class _Solver:
     """One compiled NLP (hard or soft) with its bounds template."""
 
@@ -266,6 +287,7 @@ class _Solver:
         self._lbg_dm = ca.DM(self.lbg)
         self._ubg_dm = ca.DM(self.ubg)
         self.eta_max = np.asarray(rmpc.eta_max, dtype=float)
+        self.state_lo = state_lower(rmpc)
         self.eq_rows = layout.gap_index.ravel()
         self.ineq_rows = np.array([row.g_index for row in layout.rows], dtype=int)
 
@@ -278,7 +300,7 @@ class _Solver:
         off = np.zeros((big_n + 1, NX))
         off[:, :4] = S_REF
         off[:, 4:6] = v
-        lbx[lay.x_index[1:]] = -self.eta_max - off[1:]
+        lbx[lay.x_index[1:]] = self.state_lo - off[1:]
         ubx[lay.x_index[1:]] = self.eta_max - off[1:]
         lbx[lay.x_index[0]] = eta0
         ubx[lay.x_index[0]] = eta0
@@ -361,6 +383,8 @@ class Rmpc:
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
         # sqrt((P^-1)_44): |eta|_P >= |se4| / this (see _infeasibility_certificate)
         self._se4_scale = float(np.sqrt(np.linalg.inv(np.asarray(terminal.p))[3, 3]))
+        self._p_tube = tube_matrix(rmpc, np.asarray(terminal.p, dtype=float))
+        self._s4_ref = 0.0  # eta0[3] of the current step (stage_motion's reference yaw)
 
     @property
     def compiled(self) -> tuple[CompiledNlp | None, CompiledNlp | None]:
@@ -386,7 +410,8 @@ class Rmpc:
             raise RmpcParameterError(f"eta0: not finite ({e0.tolist()})")
         if not isinstance(target, TargetMotion) or target.horizon != self.horizon:
             raise RmpcParameterError(f"target: need a TargetMotion with {self.horizon} rows")
-        par = target.packed()
+        par = np.append(target.packed(), e0[3])
+        self._s4_ref = float(e0[3])
         eta_g, u_g = self._guess(e0, target)
 
         lay = self._hard.layout
@@ -432,7 +457,8 @@ class Rmpc:
         q, r = np.asarray(self.cfg.q_diag), np.asarray(self.cfg.r_diag)
         total = 0.0
         for n in range(self.horizon):
-            ue = np.asarray(input_error(u[n], *target.stage(n)))
+            motion = planned_motion(self.cfg, eta[n], u[n], target, n, float(eta[0][3]))
+            ue = np.asarray(input_error(u[n], *motion))
             total += float(eta[n] @ (q * eta[n]) + ue @ (r * ue))
         return total + float(eta[-1] @ self.terminal.p @ eta[-1])
 
@@ -449,8 +475,10 @@ class Rmpc:
         tube, term = "tube" in self.groups, "terminal" in self.groups
         if not (tube or term):
             return None
-        if tube and float(eta0 @ self.terminal.p @ eta0) > tube_bound(self.cfg, 0) ** 2:
+        if tube and float(eta0 @ self._p_tube @ eta0) > tube_bound(self.cfg, 0) ** 2:
             return "infeasible: |eta0|_P > X(0)"
+        if self.cfg.heading == "cost":  # s4 is in no hard row: no yaw argument
+            return None
         dt = self.cfg.dt_s
         drift = eta0[3] + np.concatenate([[0.0], np.cumsum(target.psidot_a_rad_s) * dt])
         reach = np.arange(self.horizon + 1) * dt * self.u_max[3]
@@ -468,11 +496,14 @@ class Rmpc:
 
     # ------------------------------------------------------------------------------------
     def _law(self, eta: np.ndarray, target: TargetMotion, n: int) -> np.ndarray:
+        # the law's own yaw rate is not known before it is computed: the nominal one
         v_a, vdot_a, psidot_a = target.stage(n)
+        u_nom = np.array([0.0, 0.0, 0.0, psidot_a])
+        v_a, vdot_a, psidot_a = planned_motion(self.cfg, eta, u_nom, target, n, self._s4_ref)
         return terminal_law(eta, v_a, vdot_a, psidot_a, self.k, self.u_max)
 
     def _step(self, eta: np.ndarray, u: np.ndarray, target: TargetMotion, n: int) -> np.ndarray:
-        v_a, vdot_a, psidot_a = target.stage(n)
+        v_a, vdot_a, psidot_a = planned_motion(self.cfg, eta, u, target, n, self._s4_ref)
         return np.asarray(
             euler_step(eta, u, v_a, vdot_a, psidot_a, self.cfg.desired_depth_m, self.cfg.dt_s)
         )
@@ -522,21 +553,26 @@ class Rmpc:
                      target: TargetMotion) -> np.ndarray:
         """Slacks that make the guess feasible for the soft rows (plus a small interior gap)."""
         out = np.zeros(len(lay.slack_index))
+        pairs = {st: img for st, img, _ in visibility_pairs(self.cfg)}
         for i, row in enumerate(lay.rows):
             u_n = u[row.stage] if row.stage < len(u) else None
+            img = pairs.get(row.stage, row.stage) if row.kind in ("visibility", "corner") \
+                else row.stage
             d_n = target.disturbance(row.stage) if row.stage < len(u) else None
-            val = _row_value(row.kind, eta[row.stage], u_n, self.terminal.p, self.cfg,
-                             self.camera, d_n)
+            val = _row_value(row.kind, eta[img], u_n, self._p_tube, self.cfg,
+                             self.camera, d_n, row.corner)
             out[i] = max(val - row.upper, 0.0) + 1e-3
         return out
 
 
 def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarray,
-               rmpc: RmpcParams, camera: CameraParams, d: np.ndarray | None = None) -> float:
-    """The squared-form value of one path row (as in the NLP), evaluated with numpy."""
+               rmpc: RmpcParams, camera: CameraParams, d: np.ndarray | None = None,
+               corner: int = -1) -> float:
+    """The squared-form value of one path row (as in the NLP), evaluated with numpy
+    (``eta``: the state the row's image is taken from)."""
     if kind in ("tube", "terminal_set"):
         return float(eta @ p_mat @ eta)
-    pu, pn = image_point(eta)
+    pu, pn = corner_points(eta, rmpc)[corner] if kind == "corner" else image_point(eta)
     if kind == "terminal_visibility":
         return float(pu**2 + pn**2)
     assert u is not None
@@ -566,6 +602,7 @@ def check_solution(
     big_n = rmpc.horizon
     p_mat = np.asarray(terminal.p, dtype=float)
     eta_max = np.asarray(rmpc.eta_max, dtype=float)
+    state_lo = state_lower(rmpc)
     u_max = np.asarray(rmpc.u_max, dtype=float)
     out: list[ConstraintViolation] = []
 
@@ -575,24 +612,25 @@ def check_solution(
 
     if eta.shape != (big_n + 1, NX) or u.shape != (big_n, NU):
         return [ConstraintViolation("shape", -1, float("inf"))]
+    s4_ref = float(eta[0][3])
     for n in range(big_n):
-        v_a, vdot_a, psidot_a = tgt.stage(n)
+        v_a, vdot_a, psidot_a = planned_motion(rmpc, eta[n], u[n], tgt, n, s4_ref)
         nxt = euler_step(eta[n], u[n], v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s)
         add("dynamics", n, float(np.max(np.abs(eta[n + 1] - nxt))))
         add("input", n, float(np.max(np.abs(u[n]) - u_max)))
     for n in range(1, big_n + 1):
         absolute = eta[n] + _state_offset(tgt.v_a_m_s[min(n, big_n - 1)])
-        add("state", n, float(np.max(np.abs(absolute) - eta_max)))
-    norm_p = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", eta, p_mat, eta), 0.0))
+        add("state", n, float(max(np.max(absolute - eta_max), np.max(state_lo - absolute))))
+    p_tube = tube_matrix(rmpc, p_mat)
+    norm_p = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", eta, p_tube, eta), 0.0))
     if "tube" in groups:
         for n in range(big_n):
             add("tube", n, float(norm_p[n] - tube_bound(rmpc, n)))
     if "visibility" in groups:
         for n, img, inp in visibility_pairs(rmpc):
-            pu, pn = image_point(eta[img])
             mu, mn = centre(u[inp], rmpc, camera, tgt.disturbance(inp))
-            dist = float(np.hypot(pu - mu, pn - mn))
-            add("visibility", n, dist - visibility_radius(rmpc, terminal, img))
+            for pu, pn, radius in _visibility_points(eta[img], rmpc, camera, terminal, img):
+                add("visibility", n, float(np.hypot(pu - mu, pn - mn)) - radius)
     if "terminal" in groups or "tube" in groups:  # X(N) = eps
         add("terminal_set", big_n, float(norm_p[big_n] - rmpc.eps))
     if "terminal" in groups:
@@ -611,7 +649,18 @@ def visibility_margin(
     pairs = visibility_pairs(rmpc)
     out = np.zeros(len(pairs))
     for i, (_, img, inp) in enumerate(pairs):
-        pu, pn = image_point(result.eta_pred[img])
         mu, mn = centre(result.u_pred[inp], rmpc, camera, result.target.disturbance(inp))
-        out[i] = visibility_radius(rmpc, terminal, img) - float(np.hypot(pu - mu, pn - mn))
+        out[i] = min(radius - float(np.hypot(pu - mu, pn - mn)) for pu, pn, radius
+                     in _visibility_points(result.eta_pred[img], rmpc, camera, terminal, img))
     return out
+
+
+def _visibility_points(eta: np.ndarray, rmpc: RmpcParams, camera: CameraParams,
+                       terminal: TerminalDesign, img: int) -> list[tuple[float, float, float]]:
+    """``(p_u, p_n, tightened radius)`` of each point a visibility row keeps in view: the
+    centroid (``rmpc.visibility = "centroid"``) or every corner (``"corners"``)."""
+    if rmpc.visibility == "corners":
+        radius = visibility_radius(rmpc, terminal, img, corner_gain(rmpc, camera))
+        return [(float(pu), float(pn), radius) for pu, pn in corner_points(eta, rmpc)]
+    pu, pn = image_point(eta)
+    return [(float(pu), float(pn), visibility_radius(rmpc, terminal, img))]

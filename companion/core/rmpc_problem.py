@@ -11,23 +11,31 @@ slacks of the soft (recovery) copy only. Constraint rows, stage by stage::
 
 with the gap rows written ``x_{n+1} - F(x_n, u_n)`` (explicit Euler) and the path rows of stage
 ``n`` depending on ``x_n, u_n, sl_n`` only. ``eta(0)`` is fixed by equal bounds on ``x_0``;
-input and state boxes are bounds on ``w``. Parameters ``p`` (8 N): per stage
+input and state boxes are bounds on ``w``. Parameters ``p`` (8 N + 1): per stage
 ``[v_ax, v_ay, vdot_ax, vdot_ay, psidot_a, d_x, d_y, d_z]`` (m/s, m/s^2, rad/s, m/s^2; virtual
-frame). ``d`` is the estimated disturbance acceleration (``companion.core.disturbance``): the
-input ``u`` is the vehicle's acceleration, so the attitude that realises it, and with it the
-visible area's centre ``M``, is the one of the specific force ``u - d``.
+frame), then ``s4_ref`` (rad, the measured ``s4 = eta0[3]``: the yaw the nominal motion was
+predicted for, used by ``target_motion = "planned_yaw"``, :func:`stage_motion`). ``d`` is the
+estimated disturbance acceleration (``companion.core.disturbance``): the input ``u`` is the
+vehicle's acceleration, so the attitude that realises it, and with it the visible area's
+centre ``M``, is the one of the specific force ``u - d``.
 
 Groups (RmpcParams switches):
 
 - ``tube``: ``eta(n)' P eta(n) <= X(n)^2``, ``X(n) = ((N-n) H + n)/N eps`` for n = 0..N
   (the row at n = N, ``X(N) = eps``, is the terminal set and is shared with ``terminal``);
 - ``visibility``: ``|p(n) - M(u(n))|^2 <= (r_v - n rho e^{L (n-1) delta})^2`` for n = 1..N-1,
-  ``p(n) = [se1, se2]/s3``, ``s3 = se3 + 1``, ``M`` the mapped visible-area centre;
+  ``p(n) = [se1, se2]/s3``, ``s3 = se3 + 1``, ``M`` the mapped visible-area centre; with
+  ``rmpc.visibility = "corners"`` one row per target corner ``p_i`` (:func:`corner_points`),
+  tightened by ``k_c`` times the paper's margin (:func:`visibility_radius`, docs/visibility.md);
 - ``terminal``: ``eta(N)' P eta(N) <= eps^2`` (Omega) and ``|p(N)|^2 <= gamma^2``.
 
+With ``rmpc.heading = "cost"`` the tube and terminal-set rows use ``P`` with ``s4`` minimised
+out (:func:`tube_matrix`): the yaw error is then only in the cost.
+
 The soft copy subtracts a slack ``>= 0`` from each of these rows and adds
-``recovery_penalty * slack`` to the cost (an exact L1 penalty); dynamics, input bounds and the
-state box stay hard.
+``recovery_penalty * slack`` (visibility rows) or ``recovery_tube_penalty * slack`` (tube and
+terminal rows) to the cost (an exact L1 penalty); dynamics, input bounds and the state box stay
+hard.
 """
 
 from __future__ import annotations
@@ -38,10 +46,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from companion.core._backend import is_symbolic, xp
 from companion.core.dynamics import S_REF, euler_step, input_error
 from companion.core.geometry import attitude_from_accel, visible_area_centre
 from companion.core.params import CameraParams, RmpcParams
-from companion.core.terminal import TerminalDesign
+from companion.core.terminal import TerminalDesign, tilt_limits
 
 NX = 7
 NU = 4
@@ -54,11 +63,12 @@ class Row:
     """One soft-able path-constraint row: group, stage, g index, bound on g, slack index."""
 
     group: str
-    kind: str  # "tube", "visibility", "terminal_set", "terminal_visibility"
+    kind: str  # "tube", "visibility", "corner", "terminal_set", "terminal_visibility"
     stage: int
     g_index: int
     upper: float
     slack_index: int | None
+    corner: int = -1  # which target corner a "corner" row keeps in view
 
 
 @dataclass(frozen=True)
@@ -99,9 +109,95 @@ def visibility_pairs(rmpc: RmpcParams) -> list[tuple[int, int, int]]:
     return [(n, n, n) for n in range(1, big_n)]
 
 
-def visibility_radius(rmpc: RmpcParams, terminal: TerminalDesign, n: int) -> float:
-    """``r_v - n rho e^{L (n-1) delta}`` (spec 6), the tightened radius at stage ``n``."""
-    return terminal.r_v - n * rmpc.rho * float(np.exp(terminal.lipschitz_l * (n - 1) * rmpc.dt_s))
+def visibility_radius(rmpc: RmpcParams, terminal: TerminalDesign, n: int,
+                      gain: float = 1.0) -> float:
+    """``r_v - gain n rho e^{L (n-1) delta}`` (spec 6), the tightened radius at stage ``n``.
+
+    ``gain`` 1 is the paper's centroid row; the corner rows use :func:`corner_gain`."""
+    margin = n * rmpc.rho * float(np.exp(terminal.lipschitz_l * (n - 1) * rmpc.dt_s))
+    return terminal.r_v - gain * margin
+
+
+def corners_m(rmpc: RmpcParams) -> np.ndarray:
+    """The target's corners (K, 2) in its own frame (m, x forward, y right)."""
+    return np.asarray(rmpc.target_corners_m, dtype=float).reshape(-1, 2)
+
+
+def corner_gain(rmpc: RmpcParams, camera: CameraParams) -> float:
+    """``k_c``: how much a state disturbance of Euclidean size 1 in ``(se1, se2, se3, s4)``
+    can move a corner's normalised image point (docs/visibility.md):
+
+        k_c = sqrt(1 + (c_max / z*)^2 + p_max^2) / s3_min
+
+    ``c_max`` the largest corner distance from the target's centre, ``s3_min = min_depth/z*``
+    (a state bound with the corner rows), ``p_max = r_v + |M|_max`` the farthest a corner
+    satisfying its row can be from the image centre (``|M|`` at the tilt limits)."""
+    c_max = float(np.max(np.hypot(*corners_m(rmpc).T)))
+    phi_max, theta_max = tilt_limits(rmpc.u_max, rmpc.g_m_s2)
+    half = camera.visible_half_m
+    mu, mn = visible_area_centre(phi_max, theta_max, half, half, camera.focal_length_m)
+    p_max = camera.r_v + float(np.hypot(mu, mn))
+    s3_min = rmpc.min_depth_m / rmpc.desired_depth_m
+    return float(np.sqrt(1.0 + (c_max / rmpc.desired_depth_m) ** 2 + p_max**2) / s3_min)
+
+
+def corner_points(eta: Any, rmpc: RmpcParams) -> list[tuple[Any, Any]]:
+    """Normalised virtual-image points ``p_i`` of the target's corners predicted from ``eta``.
+
+    A corner ``c_i`` (target frame) sits at ``Rz(psi_a) c_i`` from the target's centre; in the
+    virtual frame (yaw ``psi_q``) that is ``Rz(s4) c_i`` with ``s4 = psi_a - psi_q`` (spec 3),
+    at the depth ``z = s3 z*``. So ``p_i = ([se1, se2] + Rz(s4) c_i / z*) / s3``: exact for a
+    horizontal planar target (no approximation beyond the error state itself)."""
+    m = xp(eta)
+    s3 = eta[2] + S_REF[2]
+    c4, s4 = m.cos(eta[3]), m.sin(eta[3])
+    z = rmpc.desired_depth_m
+    out = []
+    for cx, cy in corners_m(rmpc):
+        du = (c4 * cx - s4 * cy) / z
+        dn = (s4 * cx + c4 * cy) / z
+        out.append(((eta[0] + du) / s3, (eta[1] + dn) / s3))
+    return out
+
+
+def tube_matrix(rmpc: RmpcParams, p_mat: np.ndarray) -> np.ndarray:
+    """The matrix of the tube and terminal-set rows: ``P`` (``heading = "tube"``), or ``P``
+    with ``s4`` minimised out (``"cost"``): ``min_{s4} eta' P eta = eta' P_r eta``,
+    ``P_r = P - P[:, 3] P[3, :] / P[3, 3]`` (the Schur complement; row/column 3 are zero)."""
+    p = np.asarray(p_mat, dtype=float)
+    if rmpc.heading == "tube":
+        return p
+    out: np.ndarray = p - np.outer(p[:, 3], p[3, :]) / p[3, 3]
+    out[3, :] = 0.0
+    out[:, 3] = 0.0
+    return out
+
+
+def stage_motion(rmpc: RmpcParams, x: Any, u: Any, v_a: Any, vdot_a: Any, psidot_a: Any,
+                 s4_ref: Any) -> tuple[Any, Any, Any]:
+    """The target motion ``(v_a, vdot_a, psidot_a)`` stage ``n`` uses (spec 4).
+
+    ``"nominal"``: the parameters as given (predicted for a vehicle yaw that turns with the
+    target, :mod:`companion.core.prediction`). ``"planned_yaw"``: the vehicle's planned yaw
+    differs from that nominal yaw by ``theta = s4_ref - s4(n)`` (``s4 = psi_a - psi_q`` and the
+    nominal keeps ``s4 = s4_ref``), so the target's velocity in the virtual frame is the nominal
+    one rotated by ``-theta``, and ``vdot_a = Rz(-theta) a_nom + psidot_q(n) [v_ay, -v_ax]``
+    with the planned yaw rate ``psidot_q(n) = u[3]``, where ``a_nom = vdot_nom - psidot_a
+    [v_y, -v_x]_nom`` is the target's acceleration in the nominal frame."""
+    if rmpc.target_motion == "nominal":
+        return v_a, vdot_a, psidot_a
+    m = xp(x, u, v_a, vdot_a, s4_ref)
+    th = s4_ref - x[3]
+    c, s = m.cos(th), m.sin(th)
+    va0 = c * v_a[0] + s * v_a[1]
+    va1 = -s * v_a[0] + c * v_a[1]
+    an0 = vdot_a[0] - psidot_a * v_a[1]
+    an1 = vdot_a[1] + psidot_a * v_a[0]
+    vd0 = c * an0 + s * an1 + u[3] * va1
+    vd1 = -s * an0 + c * an1 - u[3] * va0
+    if is_symbolic(x, u, v_a, vdot_a, s4_ref):
+        return ca.vertcat(va0, va1), ca.vertcat(vd0, vd1), psidot_a
+    return np.array([float(va0), float(va1)]), np.array([float(vd0), float(vd1)]), psidot_a
 
 
 def image_point(eta: Any) -> tuple[Any, Any]:
@@ -130,9 +226,13 @@ def build_nlp(
     q = np.diag(rmpc.q_diag)
     r = np.diag(rmpc.r_diag)
     p_mat = np.asarray(terminal.p, dtype=float)
+    p_tube = tube_matrix(rmpc, p_mat)
+    corners = rmpc.visibility == "corners"
+    k_c = corner_gain(rmpc, camera) if corners else 1.0
     xs = [ca.SX.sym(f"x{n}", NX) for n in range(big_n + 1)]
     us = [ca.SX.sym(f"u{n}", NU) for n in range(big_n)]
-    par = ca.SX.sym("p", NP_STAGE * big_n)
+    par = ca.SX.sym("p", NP_STAGE * big_n + 1)
+    s4_ref = par[NP_STAGE * big_n]
 
     w: list[ca.SX] = []
     g: list[ca.SX] = []
@@ -159,45 +259,55 @@ def build_nlp(
                   d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
-        items: list[tuple[str, str, ca.SX, float]] = []
+        items: list[tuple[str, str, ca.SX, float, int]] = []
         if n < big_n:
             if rmpc.enable_tube:
-                items.append(("tube", "tube", ca.bilin(p_mat, x, x), tube_bound(rmpc, n) ** 2))
+                items.append(("tube", "tube", ca.bilin(p_tube, x, x),
+                              tube_bound(rmpc, n) ** 2, -1))
             if rmpc.enable_visibility and n in vis_stage:
                 assert u is not None and x_next is not None
                 img = vis_stage[n]
-                pu, pn = image_point(x if img == n else x_next)
+                x_img = x if img == n else x_next
                 mu, mn = centre(u, rmpc, camera, d)
-                val = (pu - mu) ** 2 + (pn - mn) ** 2
-                items.append(
-                    ("visibility", "visibility", val, visibility_radius(rmpc, terminal, img) ** 2)
-                )
+                if corners:
+                    rad2 = visibility_radius(rmpc, terminal, img, k_c) ** 2
+                    for i, (pu, pn) in enumerate(corner_points(x_img, rmpc)):
+                        val = (pu - mu) ** 2 + (pn - mn) ** 2
+                        items.append(("visibility", "corner", val, rad2, i))
+                else:
+                    pu, pn = image_point(x_img)
+                    val = (pu - mu) ** 2 + (pn - mn) ** 2
+                    items.append(("visibility", "visibility", val,
+                                  visibility_radius(rmpc, terminal, img) ** 2, -1))
         else:
             if rmpc.enable_tube or rmpc.enable_terminal:  # X(N) = eps: the tube ends in Omega
                 group = "terminal" if rmpc.enable_terminal else "tube"
-                items.append((group, "terminal_set", ca.bilin(p_mat, x, x), rmpc.eps**2))
+                items.append((group, "terminal_set", ca.bilin(p_tube, x, x), rmpc.eps**2, -1))
             if rmpc.enable_terminal:
                 pu, pn = image_point(x)
                 items.append(
-                    ("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2)
+                    ("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2, -1)
                 )
-        for group, kind, val, upper in items:
+        for group, kind, val, upper, corner in items:
             s_idx: int | None = None
             if soft:
                 s = ca.SX.sym(f"sl_{kind}_{n}")
                 s_idx = int(add_w(s)[0])
                 slack_index.append(s_idx)
-                cost = cost + rmpc.recovery_penalty * s
+                weight = (rmpc.recovery_penalty if group == "visibility"
+                          else rmpc.recovery_tube_penalty)
+                cost = cost + weight * s
                 val = val - s
             g.append(val)
             equality.append(False)
-            rows.append(Row(group, kind, n, n_g, upper, s_idx))
+            rows.append(Row(group, kind, n, n_g, upper, s_idx, corner))
             n_g += 1
 
     for n in range(big_n):
         x, u = xs[n], us[n]
         pn_ = par[NP_STAGE * n : NP_STAGE * (n + 1)]
-        v_a, vdot_a, psidot_a, d_n = pn_[0:2], pn_[2:4], pn_[4], pn_[5:8]
+        v_a, vdot_a, psidot_a = stage_motion(rmpc, x, u, pn_[0:2], pn_[2:4], pn_[4], s4_ref)
+        d_n = pn_[5:8]
         x_index[n] = add_w(x)
         u_index[n] = add_w(u)
         ue = input_error(u, v_a, vdot_a, psidot_a)

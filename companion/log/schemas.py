@@ -178,7 +178,19 @@ _STATIC: dict[str, dict[str, Any]] = {
     CONTROLLER_STEP: _obj(
         CONTROLLER_STEP,
         "One control step: state, RMPC solve status, command sent (units in field names)",
-        {"t_us": _INT, "success": {"type": "boolean"}, "status": _STR},
+        {"t_us": _INT, "success": {"type": "boolean"}, "status": _STR,
+         "t_now_s": {"type": ["number", "null"],
+                     "description": "when the step ran, on the frames' time base (s)"},
+         "in_control": {"type": ["boolean", "null"],
+                        "description": "our setpoints fly the vehicle (estimator input)"},
+         "estimator": {"type": ["object", "null"], "description":
+                       "offset-free estimator (docs/offset-free.md): hover_thrust, "
+                       "d_ned_m_s2 (m/s^2, NED), hover_std, d_std_m_s2, updates, rejected, "
+                       "innovation_m_s, reason",
+                       "properties": {"hover_thrust": _NUM,
+                                      "d_ned_m_s2": {"type": "array", "items": _NUM}}},
+         "latency": {"type": ["object", "null"], "description":
+                     "latency compensation: frame_age_s, horizon_s, clipped, eta_pred"}},
         additionalProperties=True,
     ),
     SAFETY_TRANSITION: _obj(

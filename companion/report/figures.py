@@ -67,6 +67,9 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
         "rate_hz": len(sat_times) / span_s if span_s and math.isfinite(span_s) else 0.0,
     }
     out["safety"] = _safety(steps)
+    out["engaged"] = _engaged(truth, steps, st)
+    out["engagement"] = _engagement(truth, steps, st)
+    out["agv"] = _agv(truth)
     return out
 
 
@@ -75,6 +78,117 @@ def _sim_t(rec: Mapping[str, Any]) -> float:
     that predate ``sim_t_s`` carry only ``t_us``, which was simulated time then."""
     t = rec.get("sim_t_s")
     return float(t) if t is not None else float(rec["t_us"]) * 1e-6
+
+
+ENGAGE_GRACE_S = 1.0
+"""Figures after engagement start this long after the first step in OFFBOARD (issue 11's
+acceptance: every corner inside "after the first second of offboard")."""
+
+
+def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
+             st: ReportSettings) -> dict[str, Any]:
+    """Figures over the part of the flight the controller flew: from the first frame in
+    OFFBOARD (+ :data:`ENGAGE_GRACE_S` for the visibility figures).
+
+    ``corner_max_px``: the largest ``|u_px|, |n_px|`` of any true corner (paper pixels);
+    ``frames_outside_bound``: frames with a corner outside the visible area;
+    ``recovery_fraction``: recovery solves / solves over the active steps; ``fallbacks``."""
+    # the autopilot's own mode (ground truth) when recorded; else the companion's view, which
+    # lags by up to a HEARTBEAT period
+    # Truth records are in simulated time, steps in the companion's (autopilot) time: the
+    # steps are matched to the truth through the frame they were computed from when both
+    # carry ``frame_seq``, else by time.
+    eng = next((r for r in truth if r.get("mode") == "OFFBOARD"), None)
+    t_eng: float | None
+    if eng is not None:
+        t_eng = _sim_t(eng)
+    else:
+        t_eng = next((float(s["t_s"]) for s in steps if s.get("offboard") == "active"), None)
+    if t_eng is None:
+        return {"t_engaged_s": None}
+    t0 = t_eng + ENGAGE_GRACE_S
+    late = [r for r in truth if _sim_t(r) >= t0]
+    vis = _visibility(late, [], st)
+    seq_t = {r["frame_seq"]: _sim_t(r) for r in truth if r.get("frame_seq") is not None}
+
+    def step_t(s: Mapping[str, Any]) -> float:
+        t = seq_t.get(s.get("frame_seq"))
+        return float(s["t_s"]) if t is None else t
+
+    active = [s for s in steps if step_t(s) >= t_eng and s.get("rmpc")]
+    modes = [s["rmpc"]["mode"] for s in active]
+    n = len(modes)
+    return {
+        "t_engaged_s": t_eng,
+        "from_s": t0,
+        "corner_max_px": max(vis["max_abs_u_px"], vis["max_abs_n_px"]),
+        "centroid_max_px": vis["max_abs_centroid_px"],
+        "frames": vis["frames"],
+        "frames_outside_bound": vis["frames_outside_bound"],
+        "frames_target_lost": sum(
+            1 for s in steps if step_t(s) >= t0
+            and (s.get("perception") or {}).get("status") != "ok"),
+        "solves": n,
+        "recovery_fraction": modes.count("recovery") / n if n else None,
+        "fallbacks": modes.count("fallback"),
+    }
+
+
+def _outside(r: Mapping[str, Any], st: ReportSettings) -> tuple[bool, bool] | None:
+    """(a corner outside the visible bound, the centroid outside it) for a truth record, in
+    the paper's pixels; None without four finite corners."""
+    c = np.asarray(r.get("corners_px") or [], dtype=float)
+    if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+        return None
+    scale = st.pixel_size_m / st.report_pixel_size_m
+    u = -(c[:, 1] - (st.height_px - 1) / 2.0) * scale
+    n = (c[:, 0] - (st.width_px - 1) / 2.0) * scale
+    b = st.visible_bound_report_px
+    corner = max(float(np.max(np.abs(u))), float(np.max(np.abs(n)))) > b
+    return corner, max(abs(float(u.mean())), abs(float(n.mean()))) > b
+
+
+def _engagement(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
+                st: ReportSettings) -> dict[str, Any]:
+    """When OFFBOARD engaged (the emulator's mode in the ground truth), what the first RMPC
+    problem was (``optimal`` = the hard problem was feasible), and visibility counted from
+    :data:`ENGAGE_GRACE_S` after engagement on: frames with a corner / the centroid outside
+    the visible bound, frames the target was not detected (companion steps)."""
+    t_eng = next((r["t_us"] * 1e-6 for r in truth if r.get("mode") == "OFFBOARD"), None)
+    first = next((s["rmpc"].get("mode") for s in steps if s.get("rmpc")), None)
+    out: dict[str, Any] = {"offboard_t_s": t_eng, "first_solve_mode": first,
+                           "grace_s": ENGAGE_GRACE_S}
+    corner_all = centroid_all = 0
+    corner_after = centroid_after = judged = 0
+    t_from = None if t_eng is None else t_eng + ENGAGE_GRACE_S
+    for r in truth:
+        o = _outside(r, st)
+        if o is None:
+            continue
+        corner_all += o[0]
+        centroid_all += o[1]
+        if t_from is not None and r["t_us"] * 1e-6 >= t_from:
+            judged += 1
+            corner_after += o[0]
+            centroid_after += o[1]
+    out["frames_centroid_outside"] = centroid_all
+    out["frames_judged"] = judged
+    out["frames_corner_outside_after_grace"] = corner_after
+    out["frames_centroid_outside_after_grace"] = centroid_after
+    out["frames_target_lost_after_grace"] = None if t_from is None else sum(
+        1 for s in steps if s.get("t_s", -math.inf) >= t_from
+        and (s.get("perception") or {}).get("status") != "ok")
+    return out
+
+
+def _agv(truth: list[Mapping[str, Any]]) -> dict[str, Any]:
+    """The AGV's peak ground speed (m/s) and heading rate (rad/s) over the flight (truth)."""
+    v = [float(np.hypot(*np.asarray(r["agv"]["vel_ned_m_s"], dtype=float)[:2]))
+         for r in truth if (r.get("agv") or {}).get("vel_ned_m_s") is not None]
+    w = [abs(float(r["agv"]["yaw_rate_rad_s"])) for r in truth
+         if (r.get("agv") or {}).get("yaw_rate_rad_s") is not None]
+    return {"max_speed_m_s": max(v) if v else None,
+            "max_yaw_rate_rad_s": max(w) if w else None}
 
 
 def _visibility(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],

@@ -50,6 +50,14 @@ def build_report(log_path: Path, cfg: Config, out: Path, plots: bool = True,
     st = report_settings(cfg)
     report = compute_report(msgs, st)
     report["log"] = {"path": str(log_path), **recovery}
+    kind = report["controller"] = cfg.controller.kind
+    if kind != "ibvs-pd":  # the rows the kind flies with (companion/control/factory.py)
+        vis = {"rmpc-centroid": "centroid", "mpc-novis": "none"}.get(kind, cfg.rmpc.visibility)
+        if not cfg.rmpc.enable_visibility:
+            vis = "none"
+        report["controller_rmpc"] = {"visibility": vis,
+                                     "heading": cfg.rmpc.heading,
+                                     "target_motion": cfg.rmpc.target_motion}
     if plots:
         from companion.report.plots import write_figures, write_html
 

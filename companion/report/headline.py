@@ -66,6 +66,25 @@ def headline(report: Mapping[str, Any]) -> list[Verdict]:
          f"no: {int(outside or 0)} frames with a corner out, {int(lost or 0)} lost"),
         "every corner inside on every frame", _judge(in_view)))
 
+    eng = report.get("engaged") or {}
+    e_out = _num(eng.get("frames_outside_bound"))
+    e_max = _num(eng.get("corner_max_px"))
+    e_frac = _num(eng.get("recovery_fraction"))
+    e_fb = _num(eng.get("fallbacks"))
+    e_ok = None if e_out is None or e_max is None else e_out == 0
+    rows.append(Verdict(
+        "in_view_engaged", "Every corner in view from 1 s after OFFBOARD",
+        "n/a" if e_ok is None else
+        (f"yes, worst corner {e_max:.0f} px" if e_ok else
+         f"no: {int(e_out or 0)} frames out, worst corner {e_max:.0f} px"),
+        "every corner inside on every frame", _judge(e_ok)))
+    rows.append(Verdict(
+        "recovery_engaged", "Recovery steps in OFFBOARD",
+        "n/a" if e_frac is None else f"{e_frac * 100:.1f} %, {int(e_fb or 0)} fallbacks",
+        f"<= {RECOVERY_FRACTION_TARGET * 100:.0f} %, 0 fallbacks",
+        _judge(None if e_frac is None else
+               e_frac <= RECOVERY_FRACTION_TARGET and (e_fb or 0) == 0)))
+
     bound = _num(vis.get("bound_px"))
     worst = [v for v in (_num(vis.get("max_abs_u_px")), _num(vis.get("max_abs_n_px")))
              if v is not None]

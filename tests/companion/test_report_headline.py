@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from companion.report.headline import headline
 
 
@@ -48,3 +50,38 @@ def test_headline_misses_and_missing_data() -> None:
     assert v["solver"][0] == "miss"  # 5.5 % recovery
     assert v["safety"] == ("miss", "1 transitions")
     assert _v({})["in_view"][0] == "n/a"
+
+
+def test_headline_judges_the_engaged_figures() -> None:
+    ok = _v(_rep(engaged={"frames_outside_bound": 0, "corner_max_px": 496.4,
+                          "recovery_fraction": 0.045, "fallbacks": 0}))
+    assert ok["in_view_engaged"] == ("pass", "yes, worst corner 496 px")
+    assert ok["recovery_engaged"] == ("pass", "4.5 %, 0 fallbacks")
+    bad = _v(_rep(engaged={"frames_outside_bound": 3, "corner_max_px": 513.0,
+                           "recovery_fraction": 0.07, "fallbacks": 1}))
+    assert bad["in_view_engaged"] == ("miss", "no: 3 frames out, worst corner 513 px")
+    assert bad["recovery_engaged"][0] == "miss"
+    assert _v(_rep())["in_view_engaged"][0] == "n/a"
+
+
+def test_engaged_figures_start_one_second_after_offboard() -> None:
+    """compute_report: frames before OFFBOARD + 1 s (truth mode) do not count."""
+    from companion.report.figures import ReportSettings, compute_report
+
+    st = ReportSettings(1000, 1000, 5.04e-6, 2.52e-6, 500.0, 2.0)
+    out, inside = [[500.0, 100.0]] * 4, [[500.0, 450.0]] * 4  # row 100: 800 px up; row 450: 98
+    msgs = []
+    for k in range(60):  # 3 s at 20 Hz, OFFBOARD from 0.5 s, corner out until 1.45 s
+        t = k * 0.05
+        msgs.append(("/truth", k, {"t_us": round(t * 1e6), "corners_px": out if t < 1.5
+                                   else inside, "mode": "OFFBOARD" if t >= 0.5 else "POSCTL"}))
+        msgs.append(("/control/step", k, {"t_s": t, "perception": {"status": "ok"},
+                                          "rmpc": {"mode": "recovery" if t < 1.0 else "optimal",
+                                                   "success": True, "solve_time_s": 1e-3,
+                                                   "iterations": 3}}))
+    rep = compute_report(msgs, st)
+    eng = rep["engaged"]
+    assert eng["t_engaged_s"] == 0.5 and eng["from_s"] == 1.5
+    assert eng["frames_outside_bound"] == 0 and eng["corner_max_px"] < 500.0
+    assert rep["visibility"]["frames_outside_bound"] == 30
+    assert eng["recovery_fraction"] == pytest.approx(10 / 50)

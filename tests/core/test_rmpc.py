@@ -42,9 +42,15 @@ RHO = 1e-4
 HARD = ("dynamics", "input", "state")
 
 
+# The paper's problem (spec 6): centroid rows, the yaw error in the tube, the nominal target
+# motion. The whole-target variants are tested in tests/core/test_visibility_corners.py.
+PAPER_RMPC = ('rmpc.visibility="centroid"', 'rmpc.heading="tube"',
+              'rmpc.target_motion="nominal"')
+
+
 @pytest.fixture(scope="module")
 def cfg() -> Config:
-    return load_config()
+    return load_config(overrides=PAPER_RMPC)
 
 
 @pytest.fixture(scope="module")
@@ -180,7 +186,8 @@ def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
     assert loop[0].result.hard_status.startswith("infeasible: yaw error")
     hard, tm0 = fresh._hard, loop[0].result.target
     w0 = fresh._pack(hard.layout, *fresh._rollout(eta0, tm0))
-    ok, status, *_ = hard.solve(w0, tm0.packed(), *hard.bounds(eta0, tm0))
+    ok, status, *_ = hard.solve(w0, np.append(tm0.packed(), eta0[3]), *hard.bounds(eta0, tm0))
+    assert not status.startswith("exception"), status  # a real solve, not a bad call
     assert not ok, status
     for s in loop:
         if s.result.hard_status.startswith("infeasible"):
@@ -294,7 +301,7 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
     code = (
         "import json; from companion.config import load_config;"
         "from companion.core.design import design_terminal;"
-        "from companion.core.rmpc import Rmpc; c = load_config();"
+        f"from companion.core.rmpc import Rmpc; c = load_config(overrides={PAPER_RMPC!r});"
         "m = Rmpc(c.rmpc, c.camera, design_terminal(c.rmpc, c.camera));"
         "print(json.dumps([[str(x.library), x.compiled_now] for x in m.compiled]))"
     )
@@ -302,6 +309,12 @@ def test_a_second_process_loads_the_compiled_code_from_the_cache(mpc: Rmpc) -> N
                          text=True, timeout=120, check=True)
     libs = json.loads(out.stdout.strip().splitlines()[-1])
     assert libs == [[str(hard.library), False], [str(soft.library), False]]
+    # the whole-target rows are another problem: another cache entry (the key hashes the
+    # generated source), never the centroid library
+    corners = Rmpc(dataclasses.replace(mpc.cfg, visibility="corners"), mpc.camera, mpc.terminal)
+    k_hard, k_soft = corners.compiled
+    assert k_hard is not None and k_soft is not None
+    assert k_hard.key != hard.key and k_soft.key != soft.key
 
 
 @pytest.mark.parametrize(
@@ -368,12 +381,13 @@ def test_disturbance_moves_the_visible_area_centre_in_the_solved_problem(
 
 
 def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDesign) -> None:
-    """The NLP's visibility rows evaluated at a random point equal numpy's |p - M(u - d)|^2."""
+    """The NLP's visibility rows (centroid or corner) evaluated at a random point equal numpy's
+    |p - M(u - d)|^2, with the planned-yaw target motion of ``stage_motion``."""
     import casadi as ca
 
     from companion.core.dynamics import euler_step
     from companion.core.rmpc import _row_value
-    from companion.core.rmpc_problem import build_nlp
+    from companion.core.rmpc_problem import build_nlp, stage_motion
 
     nlp, lay = build_nlp(cfg.rmpc, cfg.camera, design, soft=False)
     g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
@@ -382,17 +396,21 @@ def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDe
     base = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, lay.horizon)
     d = rng.normal(0.0, 0.5, (lay.horizon, 3))
     tm = TargetMotion(base.v_a_m_s, base.vdot_a_m_s2, base.psidot_a_rad_s, d)
-    got = g(w, tm.packed()).full().ravel()
-    got0 = g(w, base.packed()).full().ravel()
     x = w[lay.x_index]
     u = w[lay.u_index]
-    rows = [r for r in lay.rows if r.kind == "visibility"]
+    s4_ref = float(x[0][3])
+    got = g(w, np.append(tm.packed(), s4_ref)).full().ravel()
+    got0 = g(w, np.append(base.packed(), s4_ref)).full().ravel()
+    rows = [r for r in lay.rows if r.kind in ("visibility", "corner")]
     assert rows
     for r in rows:
         n = r.stage
         # causal rows: the image after the step, p(F(x_n, u_n)) (rmpc_problem)
+        v_a, vdot_a, psidot_a = base.stage(n)
+        motion = stage_motion(cfg.rmpc, x[n], u[n], v_a, vdot_a, psidot_a, s4_ref)
         img = x[n] if cfg.rmpc.visibility_pairing == "spec" else euler_step(
-            x[n], u[n], *base.stage(n), cfg.rmpc.desired_depth_m, cfg.rmpc.dt_s)
-        want = _row_value("visibility", img, u[n], design.p, cfg.rmpc, cfg.camera, d[n])
+            x[n], u[n], *motion, cfg.rmpc.desired_depth_m, cfg.rmpc.dt_s)
+        want = _row_value(r.kind, img, u[n], design.p, cfg.rmpc, cfg.camera, d[n],
+                          corner=r.corner)
         assert got[r.g_index] == pytest.approx(want, rel=1e-9, abs=1e-12)
         assert abs(got[r.g_index] - got0[r.g_index]) > 1e-6

@@ -40,9 +40,13 @@ def edge_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     return {
         "constrained": _fly(tmp_path_factory.mktemp("edge"), "edge", EDGE_S, []),
         "unconstrained": _fly(tmp_path_factory.mktemp("edge-novis"), "edge", EDGE_S,
-                              ["rmpc.enable_visibility=false"]),
+                              ['controller.kind="mpc-novis"']),
+        "centroid": _fly(tmp_path_factory.mktemp("edge-centroid"), "edge", EDGE_S,
+                         ['controller.kind="rmpc-centroid"']),
+        "ibvs": _fly(tmp_path_factory.mktemp("edge-ibvs"), "edge", EDGE_S,
+                     ['controller.kind="ibvs-pd"']),
         "spec_pairing": _fly(tmp_path_factory.mktemp("edge-spec"), "edge", EDGE_S,
-                             ['rmpc.visibility_pairing="spec"']),
+                             ['rmpc.visibility_pairing="spec"', 'rmpc.visibility="centroid"']),
     }
 
 
@@ -52,6 +56,32 @@ def test_edge_visibility_constraint_keeps_every_corner_inside(edge_runs: dict[st
     assert rep["visibility"]["frames_outside_bound"] == 0
     assert rep["visibility"]["frames_target_lost"] == 0
     assert rep["solver"]["failures"] == 0 and rep["solver"]["fallbacks"] == 0
+
+
+def test_every_controller_kind_flies_through_the_same_companion_and_report(
+    edge_runs: dict[str, dict],
+) -> None:
+    """controller.kind picks the law; the report names it and scores it after engagement."""
+    kinds = {"constrained": "rmpc", "unconstrained": "mpc-novis", "centroid": "rmpc-centroid",
+             "ibvs": "ibvs-pd"}
+    for run, kind in kinds.items():
+        rep = edge_runs[run]
+        assert rep["controller"] == kind
+        assert rep["solver"]["solves"] >= rep["steps"] - 3
+        assert rep["solver"]["fallbacks"] == 0 and rep["solver"]["failures"] == 0
+        eng = rep["engaged"]
+        assert eng["t_engaged_s"] is not None and eng["frames"] > 0
+        assert eng["corner_max_px"] <= _peak(rep)
+    assert edge_runs["centroid"]["controller_rmpc"]["visibility"] == "centroid"
+    assert edge_runs["constrained"]["controller_rmpc"]["visibility"] == "corners"
+
+
+def test_edge_the_ibvs_baseline_loses_corners(edge_runs: dict[str, dict]) -> None:
+    """Measured: the classical IBVS PD (no visibility constraint, exponential decrease of the
+    image error) lets corners leave the visible area on the edge start (545 px)."""
+    rep = edge_runs["ibvs"]
+    assert rep["visibility"]["frames_outside_bound"] > 0
+    assert _peak(rep) > BOUND_PX > _peak(edge_runs["constrained"])
 
 
 def test_edge_without_the_constraint_corners_leave_the_area(edge_runs: dict[str, dict]) -> None:
@@ -71,7 +101,8 @@ def test_edge_with_the_spec_pairing_the_applied_input_is_unchecked(
 
 
 def test_yaw_offset_recovers_then_tracks(tmp_path: Path) -> None:
-    rep = _fly(tmp_path, "yaw-offset", 8.0, [])
+    """With the paper's tube on the yaw error (rmpc.heading = "tube")."""
+    rep = _fly(tmp_path, "yaw-offset", 8.0, ['rmpc.heading="tube"'])
     sol = rep["solver"]
     assert sol["recoveries"] > 0 and sol["optimal"] > 0
     assert sol["failures"] == 0 and sol["fallbacks"] == 0
@@ -86,11 +117,11 @@ def test_yaw_offset_recovers_then_tracks(tmp_path: Path) -> None:
 
 def test_aruco_marker_flight_tracks_including_yaw(tmp_path: Path) -> None:
     """The real-vehicle target: the emulator draws an ArUco marker on the AGV, the companion
-    detects it (cv2.aruco) and takes s4 from its corner order (a square's moments have none)."""
-    sim_cfg = tmp_path / "sim.toml"
-    sim_cfg.write_text(f'base = "{DEFAULT_CONFIG}"\n[target]\npattern = "aruco"\n')
+    detects it (cv2.aruco) and takes s4 from its corner order (a square's moments have none).
+    One ``--set`` of the shared key ``target.pattern`` reaches both processes."""
     rep = run_demo(DEFAULT_CONFIG, "paper", 8.0, tmp_path, ['target.pattern="aruco"'], [],
-                   plots=False, sim_config=sim_cfg)
+                   plots=False)
+    assert 'pattern = "aruco"' in (tmp_path / "config.toml").read_text()
     assert rep["visibility"]["frames_target_lost"] == 0
     assert rep["solver"]["failures"] == 0 and rep["solver"]["fallbacks"] == 0
     # the true yaw error (psi_a - psi_q) starts at pi/8 and must be driven down
