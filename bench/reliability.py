@@ -49,6 +49,10 @@ def main() -> int:
                     help="use this soak result (written by bench/reliab/soak.py) instead of "
                          "running the soak")
     ap.add_argument("--only", default="", help="comma-separated probe names (debugging)")
+    ap.add_argument("--impaired-duration", type=float, default=None,
+                    help="simulated seconds of each impaired/clean flight (default 251, "
+                         "quick 30)")
+    ap.add_argument("--kills", type=int, default=None, help="kill -9 repetitions (20; quick 3)")
     a = ap.parse_args()
     q = a.quick
     out = a.out / ("quick" if q else "full")
@@ -57,27 +61,30 @@ def main() -> int:
     from bench.reliab.impaired import run_impaired
     from bench.reliab.kill9 import run_kill9
     from bench.reliab.signing import run_signing
-    from bench.reliab.soak import run_soak
+    from bench.reliab.soak import run_soak, soak_partial
     from bench.reliab.stall import run_stall
 
     def soak() -> list[ProbeResult]:
         if a.soak_json is not None:
-            d = json.loads(a.soak_json.read_text())
-            return [ProbeResult(**d)]
+            if a.soak_json.exists():
+                return [ProbeResult(**json.loads(a.soak_json.read_text()))]
+            # the soak (bench/reliab/soak.py) is still flying: its figures so far
+            return [soak_partial(a.soak_json.parent)]
         return [run_soak(out / "soak", 120.0 if q else 7200.0)]
 
     probes: dict[str, Callable[[], list[ProbeResult]]] = {
-        "flood": lambda: [run_flood(out / "flood", 100_000, duration_s=30.0 if q else 40.0,
-                                    flood_at_s=6.0)],
-        "flood-realtime": lambda: [run_flood(out / "flood-rt", 100_000, duration_s=30.0,
-                                             flood_at_s=12.0, realtime=True)],
+        "flood": lambda: [run_flood(out / "flood", 100_000, duration_s=60.0 if q else 90.0,
+                                    flood_at_s=2.0)],
+        "flood-realtime": lambda: [run_flood(out / "flood-rt", 100_000, duration_s=40.0,
+                                             flood_at_s=5.0, realtime=True)],
         "signing": lambda: [run_signing(out / "signing", 20.0 if q else 40.0)],
         "mavsdk": lambda: [_mavsdk(out)],
-        "impaired": lambda: [run_impaired(out / "impaired", 30.0 if q else 251.0)],
+        "impaired": lambda: [run_impaired(out / "impaired", a.impaired_duration
+                                          or (30.0 if q else 251.0))],
         "stall": lambda: [run_stall(out / "stall")],
         "disk": lambda: run_disk(out / "disk", 8.0 if q else 20.0),
         "fsync": lambda: [run_fsync(out / "disk", 8.0 if q else 20.0)],
-        "kill9": lambda: [run_kill9(out / "kill9", 3 if q else 20)],
+        "kill9": lambda: [run_kill9(out / "kill9", a.kills or (3 if q else 20))],
         "soak": soak,
     }
     only = [s for s in a.only.split(",") if s]
@@ -101,8 +108,9 @@ def main() -> int:
                                                       indent=2, default=str))
     meta = {"started": started, "finished": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "machine": _machine(), "load_before": load0, "load_after": load_avg(),
-            "command": "python bench/reliability.py" + (" --quick" if q else "")
-            + (f" --soak-json {a.soak_json}" if a.soak_json else "")}
+            "command": "python " + " ".join(
+                [str(Path(sys.argv[0]).relative_to(ROOT)) if Path(sys.argv[0]).is_absolute()
+                 else sys.argv[0], *sys.argv[1:]])}
     write_report(a.doc, results, meta)
     print(f"[reliability] wrote {a.doc}")
     return 0 if all(r.passed for r in results) else 1

@@ -122,6 +122,8 @@ def flight(out: Path, *, scenario: str = "paper", duration_s: float = 20.0,
         comp_cmd[i] = 'control.time_source="receipt"'
         comp_cmd[comp_cmd.index("logging.block_on_backlog=true")] = "logging.block_on_backlog=false"
     sim_cmd += list(sim_args or [])
+    # the probes compare log times with their own monotonic clock (flood windows, stalls)
+    comp_cmd[comp_cmd.index('logging.timestamps="source"')] = 'logging.timestamps="receipt"'
     comp_port = int(comp_cmd[comp_cmd.index("--mavlink") + 1].rsplit(":", 1)[1])
     sim_port = int(sim_cmd[sim_cmd.index("--offboard-port") + 1])
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))

@@ -135,8 +135,10 @@ def run_flood(out: Path, n: int = 100_000, rate_per_s: float = 21_700.0,
     """A flight (lockstep by default: the flood competes with the real telemetry for the
     socket and the CPU, and a lost real datagram shows up as stale telemetry in simulated time
     whatever the machine's load; ``realtime``: on the wall clock, where the load of the machine
-    matters too); ``n`` hostile datagrams from ``flood_at_s`` of wall time after the emulator
-    started."""
+    matters too); ``n`` hostile datagrams from ``flood_at_s`` of wall time after the companion
+    reports OFFBOARD active. The flood must end before the flight does (``flood_inside``):
+    once the vehicle is gone for ``mavlink.repin_after_s`` an unsigned spoofer may take the
+    pin, which is not what this probe measures."""
     t_w, c0 = time.monotonic(), children_cpu_s()
     datagrams, kinds = hostile_datagrams(n, seed)
     load0 = load_avg()
@@ -148,8 +150,13 @@ def run_flood(out: Path, n: int = 100_000, rate_per_s: float = 21_700.0,
                 drops[k] = max(drops[k], v)
 
         def attack() -> None:
-            time.sleep(max(0.0, f.t_start + flood_at_s - time.monotonic()))
-            if f.comp.poll() is None:
+            # during the flight: once OFFBOARD is active (the vehicle is pinned by then)
+            while f.comp.poll() is None and f.sim.poll() is None:
+                if "-> active" in (out / "companion.log").read_text():
+                    break
+                time.sleep(0.05)
+            time.sleep(flood_at_s)
+            if f.comp.poll() is None and f.sim.poll() is None:
                 window["t0"], window["t1"], window["errors"] = send_flood(
                     f.comp_port, datagrams, rate_per_s)
         th = threading.Thread(target=attack, daemon=True)
@@ -167,7 +174,9 @@ def run_flood(out: Path, n: int = 100_000, rate_per_s: float = 21_700.0,
     changes = sum(1 for a, b in itertools.pairwise(in_win) if a[1] != b[1])
     bad_cmds = _commands_after(log, first_bad_ns) if first_bad_ns is not None else 0
     stats = _last_stats(log)
-    ok = (sim_rc == 0 and comp_rc == 0 and accepted == 0 and bad_cmds == 0
+    ended = f.sim.returncode is not None
+    flood_inside = "t1" in window and _last_step_ns(log) * 1e-9 >= t1 + 1.0
+    ok = (sim_rc == 0 and comp_rc == 0 and accepted == 0 and flood_inside and bad_cmds == 0
           and figs.non_finite_commands == 0 and not_tracking == 0 and figs.offboard_left == 0
           and bool(in_win) and drops["connected"] == 0)
     rate = n / (t1 - t0) if t1 > t0 else math.nan
@@ -186,7 +195,8 @@ def run_flood(out: Path, n: int = 100_000, rate_per_s: float = 21_700.0,
         bad_commands=bad_cmds + figs.non_finite_commands,
         figures={"flight": figs.to_json(), "link_counters": stats, "send_errors":
                  window.get("errors"), "kernel_drops": drops, "load_before": load0,
-                 "load_after": load_avg(),
+                 "load_after": load_avg(), "flood_inside_flight": flood_inside,
+                 "sim_ended": ended,
                  "flood_window_s": [t0 - f.t_start, t1 - f.t_start] if "t0" in window else None},
         wall_s=time.monotonic() - t_w,
         cpu_s=children_cpu_s() - c0,
@@ -202,6 +212,14 @@ def _step_levels(log: Path) -> list[tuple[float, str]]:
             d = m.data or {}
             out.append((m.log_time_ns * 1e-9, str((d.get("safety") or {}).get("level"))))
     return out
+
+
+def _last_step_ns(log: Path) -> int:
+    last = 0
+    with LogReader(log) as r:
+        for m in r.messages(topics=["/control/step"], decode=False):
+            last = m.log_time_ns
+    return last
 
 
 def _commands_after(log: Path, t_ns: int) -> int:

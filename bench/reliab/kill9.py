@@ -33,6 +33,7 @@ def run_kill9(out: Path, kills: int = 20, seed: int = 9, replay_logs: bool = Tru
     sim_cmd.remove("--lockstep")
     comp_cmd[comp_cmd.index('control.time_source="autopilot"')] = 'control.time_source="receipt"'
     comp_cmd[comp_cmd.index("logging.block_on_backlog=true")] = "logging.block_on_backlog=false"
+    comp_cmd[comp_cmd.index('logging.timestamps="source"')] = 'logging.timestamps="receipt"'
     i_log, i_ready = comp_cmd.index("--log") + 1, comp_cmd.index("--ready-file") + 1
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))
     runs: list[dict[str, Any]] = []
