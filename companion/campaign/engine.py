@@ -81,8 +81,11 @@ def run_campaign(specs: Sequence[RunSpec], workers: int | None = None,
     if address:
         client = Client(address)
     else:
+        # the scheduler's HTTP server binds even without a dashboard, on 8787 unless told
+        # otherwise: a free port, so a second campaign (or a test beside one) does not collide
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, host="127.0.0.1",
+                               dashboard_address="127.0.0.1:0", host="127.0.0.1",
+                               scheduler_kwargs={"dashboard": False},
                                silence_logs=logging.ERROR)
         client = Client(cluster)
     t0 = time.monotonic()

@@ -39,7 +39,7 @@ def test_lockstep_frames_arrive_late_by_the_latency_with_capture_stamps(
             while rs.thread.is_alive():
                 try:
                     batch = [read_frame(cam)[0]]
-                    # every frame of this step (a step can deliver two), then one answer
+                    # every frame of this step (a step can deliver two), then the answers
                     while select.select([cam], [], [], 0.03)[0]:
                         batch.append(read_frame(cam)[0])
                 except (TimeoutError, ConnectionError):
@@ -49,8 +49,9 @@ def test_lockstep_frames_arrive_late_by_the_latency_with_capture_stamps(
                     if m.get_type() == "ATTITUDE_QUATERNION":
                         latest_ms = max(latest_ms, m.time_boot_ms)
                 got += [(h["seq"], h["t_us"], latest_ms * 1000) for h in batch]
-                client.send(client.mav.set_attitude_target_encode(
-                    latest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
+                for _ in batch:  # one answer per frame (docs/wire.md, lockstep)
+                    client.send(client.mav.set_attitude_target_encode(
+                        latest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
         finally:
             cam.close()
         stats = rs.stop()
