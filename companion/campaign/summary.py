@@ -243,29 +243,22 @@ def write_plots(rows: Sequence[Mapping[str, Any]], out: Path) -> dict[str, Path]
           "corner_max", line=500.0)
     boxes("recovery_fraction", "recovery steps (% of solves)", "recovery_fraction", 100.0)
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-    for ax, key, label in ((axes[0], "rms_horizontal_error_m", "RMS horizontal error (m)"),
-                           (axes[1], "rms_height_error_m", "RMS height error (m)")):
-        data = [_vals(by_c[c], key) for c in ctrls]
-        pos = [i + 1 for i, d in enumerate(data) if d.size]
-        if pos:
-            ax.boxplot([d for d in data if d.size], positions=pos, widths=0.6)
-        ax.set_xticks(range(1, len(ctrls) + 1), ctrls, rotation=20)
-        ax.set_xlim(0.5, len(ctrls) + 0.5)
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    save(fig, "rms_errors")
+    def pair(name: str, panels: tuple[tuple[str, str], tuple[str, str]]) -> None:
+        """Two box plots side by side, one box per controller."""
+        fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+        for ax, (key, label) in zip(axes, panels, strict=True):
+            data = [_vals(by_c[c], key) for c in ctrls]
+            pos = [i + 1 for i, d in enumerate(data) if d.size]
+            if pos:
+                ax.boxplot([d for d in data if d.size], positions=pos, widths=0.6)
+            ax.set_xticks(range(1, len(ctrls) + 1), ctrls, rotation=20)
+            ax.set_xlim(0.5, len(ctrls) + 0.5)
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        save(fig, name)
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-    for ax, key, label in ((axes[0], "solve_median_ms", "solve time, median per run (ms)"),
-                           (axes[1], "solve_p95_ms", "solve time, p95 per run (ms)")):
-        data = [_vals(by_c[c], key) for c in ctrls]
-        pos = [i + 1 for i, d in enumerate(data) if d.size]
-        if pos:
-            ax.boxplot([d for d in data if d.size], positions=pos, widths=0.6)
-        ax.set_xticks(range(1, len(ctrls) + 1), ctrls, rotation=20)
-        ax.set_xlim(0.5, len(ctrls) + 0.5)
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    save(fig, "solve_times")
+    pair("rms_errors", (("rms_horizontal_error_m", "RMS horizontal error (m)"),
+                        ("rms_height_error_m", "RMS height error (m)")))
+    pair("solve_times", (("solve_median_ms", "solve time, median per run (ms)"),
+                         ("solve_p95_ms", "solve time, p95 per run (ms)")))
     return files
