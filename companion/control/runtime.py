@@ -68,6 +68,7 @@ _STAMP_FIELDS = {
     "ATTITUDE_QUATERNION": "time_boot_ms",
     "ATTITUDE": "time_boot_ms",
     "LOCAL_POSITION_NED": "time_boot_ms",
+    "ATTITUDE_TARGET": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
 }
 STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
@@ -202,7 +203,8 @@ def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
 
 def new_store(cfg: Config) -> TelemetryStore:
     t = cfg.target
-    return TelemetryStore(t.mavlink_sysid, t.origin_lat_deg, t.origin_lon_deg, t.origin_alt_m)
+    return TelemetryStore(t.mavlink_sysid, t.origin_lat_deg, t.origin_lon_deg, t.origin_alt_m,
+                          autopilot_sysid=cfg.mavlink.target_system)
 
 
 def is_autopilot(cfg: Config, sysid: int, compid: int) -> bool:
