@@ -235,7 +235,8 @@ def state_lower(rmpc: RmpcParams) -> np.ndarray:
 
 
 def velocity_box_return(
-    x0_abs: np.ndarray, lo: np.ndarray, hi: np.ndarray, u_max: np.ndarray, dt_s: float
+    x0_abs: np.ndarray, lo: np.ndarray, hi: np.ndarray, u_max: np.ndarray, dt_s: float,
+    target_drift_m_s2: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The state box of stages ``1..N`` (``lo``, ``hi``: (N, 7), absolute ``col(s, v_q)``) as
     the soft copy uses it when the measured vehicle velocity ``x0_abs[4:7]`` is already outside
@@ -245,16 +246,20 @@ def velocity_box_return(
     admissible rate instead of being infeasible (a fallback that ignores the target).
     ``a_ret``: ``v_q' = r + psidot_q [v_q2, -v_q1]`` (spec 4 with ``v_q = v_e + v_a``), so
     ``|r_i| = u_max_i`` against a coupling of at most ``u_max_4 |v|_inf`` brakes axis ``i`` at
-    ``a_ret = u_max_i - u_max_4 |v0|_inf`` or faster (the vertical axis has no coupling); if that
-    is not positive the excess is only kept from growing. A velocity inside the box changes
-    nothing: the box is then exactly the hard problem's."""
+    ``a_ret = u_max_i - u_max_4 |v0|_inf`` or faster (the vertical axis has no coupling), less
+    ``target_drift_m_s2`` on the horizontal axes: the box is on ``v_e + v_a`` with the nominal
+    ``v_a(n)`` while the planned-yaw dynamics use ``v_a`` rotated by the planned yaw
+    (``stage_motion``), which moves by at most ``|v_a| (u_max_4 + |psidot_a|)`` per second. If
+    ``a_ret`` is negative the bound may move further out at that rate (never infeasible by
+    construction). A velocity inside the box changes nothing: the box is then exactly the hard
+    problem's."""
     lo, hi = lo.copy(), hi.copy()
     v0 = np.asarray(x0_abs, dtype=float)[4:7]
     vinf = float(np.max(np.abs(v0[:2])))
     steps = np.arange(1, lo.shape[0] + 1) * dt_s
     for i, axis in enumerate(range(4, 7)):
-        a_ret = u_max[i] - (u_max[3] * vinf if i < 2 else 0.0)
-        reach = v0[i] - np.sign(v0[i]) * steps * max(a_ret, 0.0)
+        a_ret = u_max[i] - (u_max[3] * vinf + target_drift_m_s2 if i < 2 else 0.0)
+        reach = v0[i] - np.sign(v0[i]) * steps * a_ret
         if v0[i] > hi[0, axis]:
             hi[:, axis] = np.maximum(hi[:, axis], reach)
         elif v0[i] < lo[0, axis]:
@@ -337,6 +342,7 @@ class _Solver:
         self.state_lo = state_lower(rmpc)
         self.u_max = np.asarray(rmpc.u_max, dtype=float)
         self.dt_s = rmpc.dt_s
+        self.planned_yaw = rmpc.target_motion == "planned_yaw"
         self.eq_rows = layout.gap_index.ravel()
         self.ineq_rows = np.array([row.g_index for row in layout.rows], dtype=int)
 
@@ -352,7 +358,11 @@ class _Solver:
         lo = np.tile(self.state_lo, (big_n, 1))
         hi = np.tile(self.eta_max, (big_n, 1))
         if self.kind == "soft":
-            lo, hi = velocity_box_return(eta0 + off[0], lo, hi, self.u_max, self.dt_s)
+            drift = 0.0
+            if self.planned_yaw:
+                drift = float(np.max(np.hypot(*target.v_a_m_s.T))) * (
+                    self.u_max[3] + float(np.max(np.abs(target.psidot_a_rad_s))))
+            lo, hi = velocity_box_return(eta0 + off[0], lo, hi, self.u_max, self.dt_s, drift)
         lbx[lay.x_index[1:]] = lo - off[1:]
         ubx[lay.x_index[1:]] = hi - off[1:]
         lbx[lay.x_index[0]] = eta0
