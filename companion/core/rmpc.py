@@ -20,7 +20,8 @@ The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code c
 from __future__ import annotations
 
 import logging
-import time
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -275,8 +276,9 @@ class _Solver:
 
     def __init__(
         self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
-        solver: str,
+        solver: str, clock: Callable[[], float] | None = None,
     ) -> None:
+        self._clock = clock
         nlp, layout = build_nlp(rmpc, camera, terminal, soft)
         self.layout: Layout = layout
         self.kind = "soft" if soft else "hard"
@@ -368,14 +370,14 @@ class _Solver:
         self._lbx_in[:] = lbx
         self._ubx_in[:] = ubx
         self.calls += 1
-        t0 = time.perf_counter()
+        t0 = self._clock() if self._clock is not None else math.nan
         try:
             self._buf._eval()
             flag = int(self._buf.ret())
         except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
             log.warning("RMPC %s solve raised: %s", self.kind, exc)
             return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
-        t = time.perf_counter() - t0
+        t = self._clock() - t0 if self._clock is not None else math.nan
         if flag != 0:  # what ``Function.call`` raises as "Evaluation failed"
             log.warning("RMPC %s solve: evaluation failed (flag %d)", self.kind, flag)
             return False, f"exception: evaluation failed (flag {flag})", {}, w0, float("nan"), \
@@ -415,10 +417,13 @@ class Rmpc:
     """The RMPC of spec 6, built (and compiled, or loaded from the cache) once.
 
     ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
-    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start).
+    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start). ``clock``
+    (seconds, e.g. ``time.perf_counter``, given by the shell: the core reads no clock) times
+    each solve for ``RmpcResult.solve_time_s``; without it that is NaN.
     """
 
-    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> None:
+    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
+                 clock: Callable[[], float] | None = None) -> None:
         self.cfg = rmpc
         self.camera = camera
         self.terminal = terminal
@@ -434,9 +439,10 @@ class Rmpc:
             )
             if on
         )
-        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver)
+        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver,
+                             clock=clock)
         self._soft = (
-            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER)
+            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER, clock=clock)
             if self.groups
             else None
         )
