@@ -50,17 +50,21 @@ from companion.log.reader import LogReader  # noqa: E402
 from companion.report.files import build_report  # noqa: E402
 
 PAPER = ROOT / "config" / "paper.toml"
+REALISTIC = ROOT / "config" / "realistic.toml"
 OFF = ["control.estimator.enabled=false"]
+# the estimator without the autopilot's thrust setpoint (ATTITUDE_TARGET) before OFFBOARD:
+# it starts estimating with our first command
+NO_AP = ["control.estimator.autopilot_thrust=false"]
 # The emulator waits this long (wall time) for each setpoint: on a loaded machine one companion
 # step can take longer than the default 0.5 s and the flight would stop being lockstep.
 PATIENT = "[sim]\nlockstep_timeout_s = 10.0\n"
 LAT_OFF = ["control.latency.enabled=false"]
 
 
-def sim_variant(tmp: Path, name: str, body: str) -> Path:
-    """A config file with ``base`` = the paper config and ``body`` on top (emulator side)."""
+def sim_variant(tmp: Path, name: str, body: str, base: Path = PAPER) -> Path:
+    """A config file with ``base`` (the paper config) and ``body`` on top (emulator side)."""
     p = tmp / f"{name}.toml"
-    p.write_text(f'base = "{PAPER}"\n{PATIENT}{body}\n')
+    p.write_text(f'base = "{base}"\n{PATIENT}{body}\n')
     return p
 
 
@@ -74,6 +78,15 @@ def steps(log: Path) -> list[dict[str, Any]]:
         return [m.data for m in r.messages(topics=["/control/step"]) if m.data]
 
 
+def _sim_s(step: dict[str, Any], truth_rows: list[dict[str, Any]]) -> float:
+    """A step's time in simulated seconds (the truth's clock: the autopilot's boot time may
+    start later, e.g. the realistic telemetry level)."""
+    off = 0.0
+    if truth_rows and truth_rows[0].get("sim_t_s") is not None:
+        off = truth_rows[0]["t_us"] * 1e-6 - truth_rows[0]["sim_t_s"]
+    return float(step["t_s"]) - off
+
+
 def height_back_within(rows: list[dict[str, Any]], tol_m: float,
                        z_star: float = 2.0) -> float | None:
     """Simulated time after which |height error| stays within ``tol_m`` to the end."""
@@ -83,7 +96,7 @@ def height_back_within(rows: list[dict[str, Any]], tol_m: float,
             pq, pa = r["uav"]["pos_ned_m"], r["agv"]["pos_ned_m"]
         except (KeyError, TypeError):
             continue
-        t.append(r["t_us"] * 1e-6)
+        t.append(r["sim_t_s"] if r.get("sim_t_s") is not None else r["t_us"] * 1e-6)
         dh.append((pa[2] - pq[2]) - z_star)
     if not t:
         return None
@@ -105,7 +118,7 @@ def tail_errors_mm(rows: list[dict[str, Any]], window_s: float = 10.0,
             pq, pa = r["uav"]["pos_ned_m"], r["agv"]["pos_ned_m"]
         except (KeyError, TypeError):
             continue
-        t.append(r["t_us"] * 1e-6)
+        t.append(r["sim_t_s"] if r.get("sim_t_s") is not None else r["t_us"] * 1e-6)
         h.append(float(np.hypot(pa[0] - pq[0], pa[1] - pq[1])))
         z.append((pa[2] - pq[2]) - z_star)
     if not t:
@@ -116,17 +129,19 @@ def tail_errors_mm(rows: list[dict[str, Any]], window_s: float = 10.0,
 
 
 def fly(out: Path, scenario: str, duration: float, overrides: list[str],
-        sim_config: Path | None = None, monitor: Any = None) -> dict[str, Any]:
+        sim_config: Path | None = None, monitor: Any = None,
+        config: Path = PAPER) -> dict[str, Any]:
+    """One flight; ``config`` is the companion's file (the emulator's is ``sim_config``)."""
     out.mkdir(parents=True, exist_ok=True)
     if sim_config is None:
-        sim_config = sim_variant(out, "patient", "")
+        sim_config = sim_variant(out, "patient", "", config)
     try:
-        rep = run_demo(PAPER, scenario, duration, out, overrides, [], plots=False,
+        rep = run_demo(config, scenario, duration, out, overrides, [], plots=False,
                        sim_config=sim_config, monitor=monitor)
     except CompanionError as exc:
         # e.g. the companion fell silent (safety ladder) and the emulator waited for every
         # step: score what was flown
-        rep = build_report(out / "flight.mcap", load_config(PAPER, overrides), out, plots=False)
+        rep = build_report(out / "flight.mcap", load_config(config, overrides), out, plots=False)
         rep["error"] = str(exc)
         rep["real_time_factor"] = None
     rep["_log"] = str(out / "flight.mcap")
@@ -151,7 +166,13 @@ def summary(rep: dict[str, Any]) -> dict[str, Any]:
         "fallbacks": sol["fallbacks"], "levels": levels,
         "height_2cm_s": height_back_within(tr, 0.02),
         "last10s_h_mm": tail[0], "last10s_z_mm": tail[1],
+        "offboard_s": next((_sim_s(s, tr) for s in st if s.get("in_control")), None),
     }
+
+
+def _offboard_s(s: dict[str, Any]) -> float | None:
+    """Simulated time of the first step flown under our control (OFFBOARD requested)."""
+    return s.get("offboard_s")
 
 
 def _mm(x: float | None) -> float | None:
@@ -206,25 +227,36 @@ def main() -> int:
               f"estimator settles at {b['settle_s']}, last 10 s RMS {b['last10s_h_mm']:.1f} / "
               f"{b['last10s_z_mm']:.1f} mm, peak {b['peak_px']:.0f} px, lost {b['lost']}")
     if "hover" in only:
-        hover_sim = sim_variant(tmp, "hover-start", "[sim.scenarios.hover]\n"
-                                "uav_pose = [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]")
+        hover_pose = "[sim.scenarios.hover]\nuav_pose = [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]"
+        hover_sim = sim_variant(tmp, "hover-start", hover_pose)
+        real_hover_sim = sim_variant(tmp, "hover-start-realistic", hover_pose, REALISTIC)
         ref = summary(fly(tmp / "hover-ref", "paper", args.short, []))
         res["hover_ref"] = ref
         print(f"hover thrust right (0.5): height within 2 cm from {ref['height_2cm_s']} s "
               "(paper start, 1.2 m above the set point)")
+        cases = [("paper", "paper", None, PAPER), ("hover", "hover", hover_sim, PAPER),
+                 ("realistic-hover", "hover", real_hover_sim, REALISTIC)]
         for h in (0.35, 0.65):
-            for scen, sim in (("paper", None), ("hover", hover_sim)):
+            for tag, scen, sim, comp_cfg in cases:
                 ov = [f"control.hover_thrust={h}"]
-                a, b = both(f"hover{h}-{scen}", scen, ov, ov + OFF, sim, args.short)
-                t2 = a["height_2cm_s"]
-                ok = a["failures"] == 0 and a["lost"] == 0 and t2 is not None and (
-                    t2 <= 5.0 if scen == "hover" else
-                    ref["height_2cm_s"] is not None and t2 - ref["height_2cm_s"] <= 5.0)
-                print(f"hover_thrust {h} ({scen} start): failures {a['failures']}, frames lost "
-                      f"{a['lost']}, height within 2 cm from {t2} s, steady RMS "
-                      f"{a['rms_h_mm']} / {a['rms_z_mm']} mm [{verdict(ok)}]; without the "
-                      f"estimator failures {b['failures']}, lost {b['lost']}, within 2 cm from "
-                      f"{b['height_2cm_s']}, levels {b['levels']}")
+                runs = {name: summary(fly(tmp / f"hover{h}-{tag}-{name}", scen, args.short,
+                                          ov + extra, sim, config=comp_cfg))
+                        for name, extra in (("on", []), ("no-autopilot-thrust", NO_AP),
+                                            ("off", OFF))}
+                res[f"hover{h}-{tag}"] = runs
+                for name, a in runs.items():
+                    t2 = a["height_2cm_s"]
+                    t_off = _offboard_s(a)
+                    after = None if t2 is None or t_off is None else max(0.0, t2 - t_off)
+                    a["height_2cm_after_offboard_s"] = after
+                    ok = a["failures"] == 0 and a["lost"] == 0 and t2 is not None and (
+                        after is not None and after <= 5.0 if scen == "hover" else
+                        ref["height_2cm_s"] is not None and t2 - ref["height_2cm_s"] <= 5.0)
+                    print(f"hover_thrust {h} ({tag} start, estimator {name}): failures "
+                          f"{a['failures']}, frames lost {a['lost']}, height within 2 cm from "
+                          f"{t2} s ({after} s after OFFBOARD at {t_off}), steady RMS "
+                          f"{a['rms_h_mm']} / {a['rms_z_mm']} mm, levels {a['levels']} "
+                          f"[{verdict(ok)}]", flush=True)
     if "latency" in only:
         sim = sim_variant(tmp, "latency", "[sim.camera_model]\nlatency_ms = 60.0\n"
                           "latency_jitter_ms = 15.0")

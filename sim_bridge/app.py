@@ -39,7 +39,7 @@ from sim_bridge.gcs import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, GcsServices, Par
 from sim_bridge.impairment import LinkImpairment, msgid_of
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
-from sim_bridge.physics.vehicle import VehicleState, initial_state
+from sim_bridge.physics.vehicle import AttitudeCommand, VehicleState, initial_state, quat_from_euler
 from sim_bridge.px4 import (
     ACCEPTED,
     DENIED,
@@ -62,6 +62,7 @@ ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
 SET_ATTITUDE_TARGET = 82
+ATTITUDE_TARGET = 83
 _STATE_STREAMS = frozenset({30, 31, 32})  # ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED
 GLOBAL_POSITION_INT = 33
 TIMESYNC = 111
@@ -82,6 +83,7 @@ DEFAULT_RATES_HZ: dict[int, float] = {
     ATTITUDE_QUATERNION: 50.0,
     ATTITUDE: 25.0,
     LOCAL_POSITION_NED: 30.0,
+    ATTITUDE_TARGET: 10.0,
     GLOBAL_POSITION_INT: 10.0,
     EXTENDED_SYS_STATE: 5.0,
     HOME_POSITION: 0.0,
@@ -99,6 +101,7 @@ PX4_ONBOARD_RATES_HZ: dict[int, float] = {
     LOCAL_POSITION_NED: 30.0,
     ATTITUDE: 100.0,
     ATTITUDE_QUATERNION: 50.0,
+    ATTITUDE_TARGET: 10.0,
     EXTENDED_SYS_STATE: 5.0,
     GLOBAL_POSITION_INT: 50.0,
     HOME_POSITION: 0.5,
@@ -109,6 +112,7 @@ PX4_ONBOARD_RATES_HZ: dict[int, float] = {
 PX4_NORMAL_RATES_HZ: dict[int, float] = {
     HEARTBEAT: 1.0,
     ATTITUDE: 15.0,
+    ATTITUDE_TARGET: 2.0,
     EXTENDED_SYS_STATE: 1.0,
     GLOBAL_POSITION_INT: 5.0,
     HOME_POSITION: 0.5,
@@ -248,6 +252,7 @@ class SimBridge:
         self._raw_counted: set[str] = set()
         self._links: dict[str, MavUdpLink] = {}
         self._streams: dict[str, _Streams] = {}
+        self._attitude_target: AttitudeCommand | None = None  # what the vehicle flies now
         c, tg = cfg.camera, cfg.target
         self.agv = AgvTrajectory(sim.agv.trajectory, sim.agv.speed_scale, sim.agv.top_z_m)
         lens_k = lens_d = None
@@ -557,6 +562,13 @@ class SimBridge:
             w = s.rates_frd_rad_s
             return mav.attitude_encode(ms, s.roll_rad, s.pitch_rad, s.yaw_rad,
                                        *(float(v) for v in w))
+        if mid == ATTITUDE_TARGET:  # PX4 streams/ATTITUDE_TARGET.hpp: the attitude setpoint
+            cmd = self._attitude_target or self.px4.attitude_command()
+            q = quat_from_euler(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad)
+            rates = cmd.body_rates_frd_rad_s or (0.0, 0.0, cmd.yaw_rate_ff_rad_s)
+            return mav.attitude_target_encode(ms, 0, [float(v) for v in q],
+                                              *(float(v) for v in rates),
+                                              float(cmd.thrust_norm))
         if mid == LOCAL_POSITION_NED:
             return mav.local_position_ned_encode(ms, *(float(v) for v in s.pos_ned_m),
                                                  *(float(v) for v in s.vel_ned_m_s))
@@ -695,7 +707,8 @@ class SimBridge:
         self._note_changes(self.state.t_s)
         # PX4's own modes fly with its converged hover-thrust estimate (MPC_USE_HTE)
         self.px4.hover_thrust_estimate = self.model.true_hover_thrust(self.state.t_s)
-        self.state = self.model.step(self.state, self.px4.attitude_command(), n * dt)
+        self._attitude_target = self.px4.attitude_command()
+        self.state = self.model.step(self.state, self._attitude_target, n * dt)
         self.px4.update(self.state.t_s, self.state)
         self._note_changes(self.state.t_s)
 

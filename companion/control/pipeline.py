@@ -349,8 +349,9 @@ class ControlPipeline:
     def _update_estimator(self, store: TelemetryStore, in_control: bool | None,
                           t_now: float) -> None:
         """Feed every velocity sample newer than the filter's with the thrust commanded over
-        the interval (time-weighted) and the body z axis measured at its middle. Only while
-        PX4 is in OFFBOARD and armed (otherwise our thrust is not what flies the vehicle)."""
+        the interval (time-weighted) and the body z axis measured at its middle. While PX4 is
+        in OFFBOARD and armed that is our thrust; before (armed, in the air, PX4's own mode)
+        the autopilot's thrust setpoint from ATTITUDE_TARGET, when it streams one."""
         f = self._dist
         if f is None:
             return
@@ -365,12 +366,19 @@ class ControlPipeline:
             # earlier was flown by PX4's own controller and says nothing about our thrust
             self._control_since = t_now
         since = self._control_since
+        own = self.cfg.control.estimator.autopilot_thrust and mode is not None and mode.armed
         for k in store.kinematics_history:
             if f.t_s is not None and k.t_s <= f.t_s:
                 continue
-            thrust = (self._thrust_over(f.t_s, k.t_s)
-                      if since is not None and f.t_s is not None and f.t_s >= since - 1e-9
-                      else None)
+            thrust = None
+            if f.t_s is not None and since is not None and f.t_s >= since - 1e-9:
+                thrust = self._thrust_over(f.t_s, k.t_s)
+            elif f.t_s is not None and own and (since is None or k.t_s <= since + 1e-9):
+                # PX4's own modes fly the vehicle (e.g. the pre-flight stream before
+                # OFFBOARD): the thrust it reports is the one flying, so the hover thrust is
+                # estimated before our first command is flown
+                thrust = store.autopilot_thrust_over(
+                    f.t_s, k.t_s, self.cfg.control.estimator.autopilot_thrust_max_age_s)
             body_z = None
             if thrust is not None and f.t_s is not None:
                 a = store.attitude_at(0.5 * (f.t_s + k.t_s))

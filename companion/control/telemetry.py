@@ -50,6 +50,14 @@ class TargetSample:
 
 
 @dataclass(frozen=True)
+class ThrustSample:
+    """The autopilot's own collective-thrust setpoint (ATTITUDE_TARGET ``thrust``, 0..1)."""
+
+    t_s: float
+    thrust_norm: float
+
+
+@dataclass(frozen=True)
 class VehicleMode:
     t_s: float
     armed: bool
@@ -62,7 +70,7 @@ class TelemetryStore:
 
     #: the only messages :meth:`ingest` takes (any other returns False and changes nothing)
     MESSAGES = frozenset({"FOLLOW_TARGET", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED",
-                          "HEARTBEAT"})
+                          "HEARTBEAT", "ATTITUDE_TARGET", "EXTENDED_SYS_STATE"})
 
     def __init__(
         self,
@@ -71,14 +79,20 @@ class TelemetryStore:
         origin_lon_deg: float,
         origin_alt_m: float,
         history: int = 64,
+        autopilot_sysid: int | None = None,
     ) -> None:
         self._target_sysid = target_sysid
+        self._autopilot_sysid = autopilot_sysid
         self._origin = (origin_lat_deg, origin_lon_deg, origin_alt_m)
         self.attitude: deque[AttitudeSample] = deque(maxlen=history)
         self.kinematics: KinematicsSample | None = None
         self.kinematics_history: deque[KinematicsSample] = deque(maxlen=history)
         self.target: TargetSample | None = None
         self.mode: VehicleMode | None = None
+        # the autopilot's thrust setpoint (PX4 streams ATTITUDE_TARGET at 10 Hz on an onboard
+        # link) and its landed state (EXTENDED_SYS_STATE: 2 = in air)
+        self.thrust_setpoints: deque[ThrustSample] = deque(maxlen=history)
+        self.landed_state: int | None = None
         self.rejected: dict[str, int] = {}
 
     # -- ingest -----------------------------------------------------------------------------
@@ -106,6 +120,19 @@ class TelemetryStore:
                     return self._reject("LOCAL_POSITION_NED out of order")
                 self.kinematics = k
                 self.kinematics_history.append(k)
+                return True
+            if name in ("ATTITUDE_TARGET", "EXTENDED_SYS_STATE"):
+                if self._autopilot_sysid is not None and src_sysid != self._autopilot_sysid:
+                    return self._reject(f"{name} not from the autopilot")
+                if name == "EXTENDED_SYS_STATE":
+                    self.landed_state = int(fields["landed_state"])
+                    return True
+                thr = float(fields["thrust"])
+                if not (_finite(thr, t_s) and 0.0 <= thr <= 1.0):
+                    return self._reject("ATTITUDE_TARGET thrust not in [0, 1]")
+                if self.thrust_setpoints and t_s <= self.thrust_setpoints[-1].t_s:
+                    return self._reject("ATTITUDE_TARGET out of order")
+                self.thrust_setpoints.append(ThrustSample(t_s, thr))
                 return True
             if name == "HEARTBEAT":
                 custom = int(fields["custom_mode"])
@@ -186,6 +213,29 @@ class TelemetryStore:
         q = _slerp(np.array(prev.q_wxyz), np.array(nxt.q_wxyz), w)
         rate = prev.yaw_rate_rad_s + w * (nxt.yaw_rate_rad_s - prev.yaw_rate_rad_s)
         return AttitudeSample(t_s, tuple(float(x) for x in q), rate)  # type: ignore[arg-type]
+
+    def autopilot_thrust_over(self, t0_s: float, t1_s: float,
+                              max_age_s: float = 0.25) -> float | None:
+        """The autopilot's own thrust setpoint over ``[t0_s, t1_s]``, time-weighted with each
+        ATTITUDE_TARGET held until the next; ``None`` unless a sample at most ``max_age_s``
+        old was in force at ``t0_s`` and the vehicle reports being in the air."""
+        hist = self.thrust_setpoints
+        if self.landed_state != 2 or not hist or t1_s <= t0_s:  # MAV_LANDED_STATE_IN_AIR
+            return None
+        first = None
+        for i in range(len(hist) - 1, -1, -1):
+            if hist[i].t_s <= t0_s + 1e-9:
+                first = i
+                break
+        if first is None or t0_s - hist[first].t_s > max_age_s:
+            return None
+        total = 0.0
+        for i in range(first, len(hist)):
+            end = hist[i + 1].t_s if i + 1 < len(hist) else math.inf
+            lo, hi = max(hist[i].t_s, t0_s), min(end, t1_s)
+            if hi > lo:
+                total += hist[i].thrust_norm * (hi - lo)
+        return total / (t1_s - t0_s)
 
     def kinematics_at(self, t_s: float) -> KinematicsSample | None:
         """Position and velocity linearly interpolated to ``t_s``; the newest sample when

@@ -55,6 +55,11 @@ class EstimatorParams:
     each component of ``d``. ``max_dt_s``: a longer gap between velocity samples restarts the
     prediction from the measurement (the estimate is kept). ``innovation_gate``: a velocity
     whose normalised innovation squared exceeds it is rejected as an outlier.
+    ``autopilot_thrust``: before our setpoints fly the vehicle (PX4's own modes, e.g. the
+    pre-flight stream before OFFBOARD), estimate from the autopilot's own thrust setpoint
+    (ATTITUDE_TARGET) while it reports the vehicle in the air, so the hover thrust is known
+    before the first command of ours is flown; a setpoint older than
+    ``autopilot_thrust_max_age_s`` is not used.
     """
 
     enabled: bool = True
@@ -68,10 +73,12 @@ class EstimatorParams:
     disturbance_max_m_s2: float = 3.0
     max_dt_s: float = 0.5
     innovation_gate: float = 400.0
+    autopilot_thrust: bool = True
+    autopilot_thrust_max_age_s: float = 0.25
 
     def __post_init__(self) -> None:
         pos = ("velocity_noise_m_s", "hover_initial_std", "max_dt_s", "innovation_gate",
-               "disturbance_max_m_s2")
+               "disturbance_max_m_s2", "autopilot_thrust_max_age_s")
         for name in pos:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):

@@ -20,7 +20,8 @@ The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code c
 from __future__ import annotations
 
 import logging
-import time
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -234,6 +235,34 @@ def state_lower(rmpc: RmpcParams) -> np.ndarray:
     return lo
 
 
+def velocity_box_return(
+    x0_abs: np.ndarray, lo: np.ndarray, hi: np.ndarray, u_max: np.ndarray, dt_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The state box of stages ``1..N`` (``lo``, ``hi``: (N, 7), absolute ``col(s, v_q)``) as
+    the soft copy uses it when the measured vehicle velocity ``x0_abs[4:7]`` is already outside
+    the box (a gust, the attitude lag, a late step): each velocity bound it exceeds is moved out
+    to where the vehicle can be after ``n`` steps braking at ``a_ret``,
+    ``bound(n) = max(bound, v0 - n dt a_ret)``, so the recovery plan returns into the box at an
+    admissible rate instead of being infeasible (a fallback that ignores the target).
+    ``a_ret``: ``v_q' = r + psidot_q [v_q2, -v_q1]`` (spec 4 with ``v_q = v_e + v_a``), so
+    ``|r_i| = u_max_i`` against a coupling of at most ``u_max_4 |v|_inf`` brakes axis ``i`` at
+    ``a_ret = u_max_i - u_max_4 |v0|_inf`` or faster (the vertical axis has no coupling); if that
+    is not positive the excess is only kept from growing. A velocity inside the box changes
+    nothing: the box is then exactly the hard problem's."""
+    lo, hi = lo.copy(), hi.copy()
+    v0 = np.asarray(x0_abs, dtype=float)[4:7]
+    vinf = float(np.max(np.abs(v0[:2])))
+    steps = np.arange(1, lo.shape[0] + 1) * dt_s
+    for i, axis in enumerate(range(4, 7)):
+        a_ret = u_max[i] - (u_max[3] * vinf if i < 2 else 0.0)
+        reach = v0[i] - np.sign(v0[i]) * steps * max(a_ret, 0.0)
+        if v0[i] > hi[0, axis]:
+            hi[:, axis] = np.maximum(hi[:, axis], reach)
+        elif v0[i] < lo[0, axis]:
+            lo[:, axis] = np.minimum(lo[:, axis], reach)
+    return lo, hi
+
+
 def planned_motion(rmpc: RmpcParams, eta: np.ndarray, u: np.ndarray, target: TargetMotion,
                    n: int, s4_ref: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Stage ``n``'s target motion as the NLP uses it (:func:`stage_motion`, numpy)."""
@@ -247,8 +276,9 @@ class _Solver:
 
     def __init__(
         self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
-        solver: str,
+        solver: str, clock: Callable[[], float] | None = None,
     ) -> None:
+        self._clock = clock
         nlp, layout = build_nlp(rmpc, camera, terminal, soft)
         self.layout: Layout = layout
         self.kind = "soft" if soft else "hard"
@@ -307,6 +337,8 @@ class _Solver:
         self.calls = 0  # evaluations of the solver (tests: nothing bad reaches it)
         self.eta_max = np.asarray(rmpc.eta_max, dtype=float)
         self.state_lo = state_lower(rmpc)
+        self.u_max = np.asarray(rmpc.u_max, dtype=float)
+        self.dt_s = rmpc.dt_s
         self.eq_rows = layout.gap_index.ravel()
         self.ineq_rows = np.array([row.g_index for row in layout.rows], dtype=int)
 
@@ -319,8 +351,12 @@ class _Solver:
         off = np.zeros((big_n + 1, NX))
         off[:, :4] = S_REF
         off[:, 4:6] = v
-        lbx[lay.x_index[1:]] = self.state_lo - off[1:]
-        ubx[lay.x_index[1:]] = self.eta_max - off[1:]
+        lo = np.tile(self.state_lo, (big_n, 1))
+        hi = np.tile(self.eta_max, (big_n, 1))
+        if self.kind == "soft":
+            lo, hi = velocity_box_return(eta0 + off[0], lo, hi, self.u_max, self.dt_s)
+        lbx[lay.x_index[1:]] = lo - off[1:]
+        ubx[lay.x_index[1:]] = hi - off[1:]
         lbx[lay.x_index[0]] = eta0
         ubx[lay.x_index[0]] = eta0
         return lbx, ubx
@@ -334,14 +370,14 @@ class _Solver:
         self._lbx_in[:] = lbx
         self._ubx_in[:] = ubx
         self.calls += 1
-        t0 = time.perf_counter()
+        t0 = self._clock() if self._clock is not None else math.nan
         try:
             self._buf._eval()
             flag = int(self._buf.ret())
         except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
             log.warning("RMPC %s solve raised: %s", self.kind, exc)
             return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
-        t = time.perf_counter() - t0
+        t = self._clock() - t0 if self._clock is not None else math.nan
         if flag != 0:  # what ``Function.call`` raises as "Evaluation failed"
             log.warning("RMPC %s solve: evaluation failed (flag %d)", self.kind, flag)
             return False, f"exception: evaluation failed (flag {flag})", {}, w0, float("nan"), \
@@ -381,10 +417,13 @@ class Rmpc:
     """The RMPC of spec 6, built (and compiled, or loaded from the cache) once.
 
     ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
-    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start).
+    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start). ``clock``
+    (seconds, e.g. ``time.perf_counter``, given by the shell: the core reads no clock) times
+    each solve for ``RmpcResult.solve_time_s``; without it that is NaN.
     """
 
-    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> None:
+    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
+                 clock: Callable[[], float] | None = None) -> None:
         self.cfg = rmpc
         self.camera = camera
         self.terminal = terminal
@@ -400,9 +439,10 @@ class Rmpc:
             )
             if on
         )
-        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver)
+        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver,
+                             clock=clock)
         self._soft = (
-            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER)
+            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER, clock=clock)
             if self.groups
             else None
         )

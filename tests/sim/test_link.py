@@ -9,7 +9,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from sim_bridge.link import MAX_PEERS, PEER_TIMEOUT_S, MavUdpLink
 from sim_bridge.physics.vehicle import euler_from_quat, quat_from_euler
-from tests.sim.harness import MavClient, sim_with_client
+from tests.sim.harness import MavClient, make_config, sim_with_client
 
 ARM = 400
 SET_MODE = 176
@@ -251,3 +251,24 @@ def test_peers_are_bounded_and_expire() -> None:
     now[0] += PEER_TIMEOUT_S + 1
     assert link.peers == [("127.0.0.1", 9)]
     assert link.counters.rx_messages == 100
+
+
+def test_attitude_target_reports_the_thrust_px4_flies(client: MavClient) -> None:
+    """PX4 streams ATTITUDE_TARGET (10 Hz on an onboard link): before OFFBOARD its thrust is
+    the one PX4's own mode flies, i.e. the vehicle's true hover thrust (MPC_USE_HTE), not the
+    configured MPC_THR_HOVER; in OFFBOARD it is the companion's setpoint."""
+    import dataclasses
+
+    vehicle = dataclasses.replace(make_config().sim.vehicle, true_hover_thrust=0.62)
+    with sim_with_client(client, vehicle=vehicle):
+        msgs = client.collect(1.2)
+        at = [m for m in msgs if m.get_type() == "ATTITUDE_TARGET"]
+        assert 5 <= len(at) <= 16, len(at)  # ~10 Hz
+        assert all(math.isclose(m.thrust, 0.62, abs_tol=0.01) for m in at[2:]), \
+            [m.thrust for m in at]
+        _stream(client, 0.3, thrust=0.44)
+        client.command(SET_MODE, 1, 6)
+        _stream(client, 0.5, thrust=0.44)
+        got = client.collect(0.3)
+        at = [m for m in got if m.get_type() == "ATTITUDE_TARGET"]
+        assert at and all(math.isclose(m.thrust, 0.44, abs_tol=1e-6) for m in at)
