@@ -180,8 +180,8 @@ class RmpcResult:
     (terminal law clipped to U); ``status``: the return status of the solve that produced the
     result (``hard_status``: that of the hard attempt); ``cost``: its objective;
     ``iterations`` and ``solve_time_s``: summed over the solves of this step (wall time of the
-    compiled solver's evaluation, ``perf_counter`` around it; NaN if it raised); ``u0`` (4,):
-    the input to apply;
+    compiled solver's evaluation on the shell's ``clock``; NaN if it raised or without a
+    clock); ``u0`` (4,): the input to apply;
     ``eta_pred`` (N+1, 7), ``u_pred`` (N, 4): the predicted trajectory;
     ``max_soft_violation``: largest slack of the recovery solve in the squared-row units
     (0 otherwise); ``active_groups``: constraint groups in the problem; ``target``: the motion
