@@ -106,6 +106,7 @@ def main() -> int:
                                                  args.duration),
         "real_time_factor": rep["real_time_factor"],
         "companion_cpu_ms_per_step": rep.get("companion_cpu_ms_per_step"),
+        "emulator_cpu_ms_per_step": rep.get("emulator_cpu_ms_per_step"),
         "load_1min": os.getloadavg()[0],
         "targets": {"median_ms": 3.0, "p95_ms": 6.0, "rss_peak_mb": 400.0, "growth": 0.05},
     }
@@ -125,9 +126,10 @@ def main() -> int:
         if a and b:
             print(f"  window medians: {a:.0f} MB over 30-60 s -> {b:.0f} MB over the last 30 s "
                   f"({100 * (b / a - 1):+.1f} %)")
-        cpu = res["companion_cpu_ms_per_step"]
-        print(f"companion CPU per step (getrusage, all threads): "
-              f"{'-' if cpu is None else f'{cpu:.2f} ms'}; load average {res['load_1min']:.1f}")
+        cpu, emu = res["companion_cpu_ms_per_step"], res["emulator_cpu_ms_per_step"]
+        print(f"CPU per step (getrusage): companion {'-' if cpu is None else f'{cpu:.2f} ms'} "
+              f"(all threads), emulator {'-' if emu is None else f'{emu:.2f} ms'}; "
+              f"load average {res['load_1min']:.1f}")
         print(f"flight ran at {res['real_time_factor']:.1f}x real time; log in {out}")
     return 0
 

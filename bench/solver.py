@@ -4,8 +4,9 @@ Closed loops on the nominal error model plus a random disturbance |rho| <= 1e-4 
 400 steps from the paper's initial state (all steps and the first 40 alone), and from the
 `edge` initial state; then the same paper loop with a plain warm-started IPOPT of the same
 problem (same compiled NLP functions) in the same process. Times are measured AROUND the
-Python call ``Rmpc.solve`` (perf_counter), i.e. including CasADi's Python-side overhead;
-CasADi's internal ``t_wall_total`` is reported alongside as ``internal_*``.
+Python call ``Rmpc.solve`` (perf_counter), i.e. including the Python-side packing and checks;
+the compiled solver's own evaluation time (``RmpcResult.solve_time_s``) is reported alongside as
+``internal_*``.
 
     python bench/solver.py [--json] [--steps 400] [--seed 1]
 """

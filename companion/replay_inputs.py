@@ -103,6 +103,31 @@ def _json(raw: bytes) -> dict[str, Any] | None:
     return out if isinstance(out, dict) else None
 
 
+_DECODER = json.JSONDecoder()
+_INPUT_KEY = '"input":'
+
+
+def _step_input(raw: bytes) -> dict[str, Any] | None:
+    """The ``input`` entry of a step record, without parsing the rest of it (a step record
+    is ~7 kB of JSON; perception needs only this entry): the runtime writes it as the record's
+    last key. Falls back to the whole record when the shortcut does not give a dict with the
+    crop's keys (the same value either way). The log's chunks are CRC-checked as they are
+    read, so a record is either what the runtime wrote (valid JSON) or not read at all."""
+    try:
+        text = raw.decode()
+        at = text.rfind(_INPUT_KEY)
+        if at > 0 and text[at - 1] in ",{" and text.startswith("{"):
+            value, end = _DECODER.raw_decode(text, at + len(_INPUT_KEY))
+            if (isinstance(value, dict) and text[end:].strip() == "}"
+                    and {"log_time_ns", "x0", "y0", "x1", "y1", "width", "height"} <= value.keys()):
+                return value
+    except (UnicodeDecodeError, ValueError):
+        pass
+    rec = _json(raw)
+    inp = rec.get("input") if rec is not None else None
+    return inp if isinstance(inp, dict) else None
+
+
 class _Canvas:
     """Full frames to paste crops into; only the last crop's area is ever non-zero."""
 
@@ -172,13 +197,17 @@ def perceive_log(path: Path, cfg: Config) -> Iterator[Perceived]:
                     frames.setdefault(m.log_time_ns, deque()).append(
                         pool.submit(image_from_raw, m.schema_name, m.message_encoding, m.raw))
                     continue
-                rec = _json(m.raw)
-                if rec is None:
-                    continue
                 if mode == "crop":
-                    inp = rec.get("input")
-                    key = int(inp["log_time_ns"]) if isinstance(inp, dict) else None
+                    inp = _step_input(m.raw)
+                    if inp is None and _json(m.raw) is None:
+                        continue
+                    rec: dict[str, Any] = {"input": inp}
+                    key = int(inp["log_time_ns"]) if inp is not None else None
                 else:
+                    whole = _json(m.raw)
+                    if whole is None:
+                        continue
+                    rec = whole
                     key = int(rec.get("t_rx_ns", -1))
                 queue = frames.get(key) if key is not None else None
                 fut = queue.popleft() if queue else None

@@ -15,6 +15,7 @@ import argparse
 import json
 import logging
 import os
+import resource
 import signal
 import socket
 import subprocess
@@ -170,15 +171,21 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
         progress_file = out / ".companion-progress"
         progress_file.unlink(missing_ok=True)
         bar = bar_for(duration_s, show_progress)
+        # the emulator's CPU: what this process's reaped children used from its start until it
+        # is reaped (the companion is reaped after it)
+        children0 = _children_cpu_s()
+        emulator_cpu_s: float | None = None
         sim = subprocess.Popen(sim_cmd, stdout=sim_log, stderr=subprocess.STDOUT, env=env)
         budget = budget_s if budget_s is not None else 120.0 + 4.0 * duration_s
         sim_rc = comp_rc = None
         wall = 0.0
         try:
             while time.monotonic() - t0 < budget:
-                sim_rc, comp_rc = sim.poll(), comp.poll()
+                sim_rc = sim.poll()
+                comp_rc = comp.poll() if sim_rc is None else None
                 if sim_rc is not None:
                     wall = time.monotonic() - t0
+                    emulator_cpu_s = _children_cpu_s() - children0
                     # the flight is over: the companion stops at once (it would otherwise
                     # wait for frames that will not come)
                     if sim_rc == 0 and comp.poll() is None:
@@ -232,11 +239,28 @@ def run_demo(config: Path, scenario: str, duration_s: float | None, out: Path,
     report["wall_time_s"] = wall
     report["real_time_factor"] = report["sim_time_s"] / wall if wall > 0 else None
     report["companion_cpu_ms_per_step"] = read_progress(progress_file)[2]
+    steps = round(duration_s / _step_s(sim_doc))
+    report["emulator_cpu_ms_per_step"] = (
+        emulator_cpu_s * 1e3 / steps if emulator_cpu_s is not None and steps > 0 else None)
+    report["load_1min"] = os.getloadavg()[0]
     report["scenario"] = scenario
     report["overrides"] = list(overrides)
     report["config_file"] = str(comp_path)
     (out / "report.json").write_text(json.dumps(report, indent=2))
     return report
+
+
+def _children_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _step_s(sim_doc: Mapping[str, Any]) -> float:
+    """The lockstep step (one camera frame): ``sim.step_dt_s``, default 50 ms."""
+    try:
+        return float(sim_doc.get("sim", {}).get("step_dt_s", 0.05)) or 0.05
+    except (TypeError, ValueError, AttributeError):
+        return 0.05
 
 
 def bar_for(duration_s: float, show: bool) -> Any:
@@ -286,7 +310,9 @@ def _run(args: argparse.Namespace) -> int:
     print(f"tracking: rms s_e {trk['rms_se']}, final s_e {trk['final_se']}")
     print(f"solver: {rep['solver']}")
     cpu = rep.get("companion_cpu_ms_per_step")
-    print(f"companion CPU per step: {'-' if cpu is None else f'{cpu:.2f} ms'} (getrusage: "
-          f"all its threads, first frame to exit)")
+    emu = rep.get("emulator_cpu_ms_per_step")
+    print(f"CPU per step (getrusage): companion {'-' if cpu is None else f'{cpu:.2f} ms'} (all "
+          f"its threads, first frame to exit), emulator {'-' if emu is None else f'{emu:.2f} ms'}"
+          f" (start to exit); load average {rep.get('load_1min', 0.0):.1f}")
     print(f"report: {out / 'report.json'}")
     return 0

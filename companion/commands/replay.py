@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import resource
 import time
 from pathlib import Path
@@ -76,6 +77,8 @@ def _one(args: argparse.Namespace, overrides: list[str], out: Path, label: str,
     summary = res.summary()
     summary["wall_time_s"] = wall
     summary["cpu_time_s"] = cpu  # this process and the perception worker
+    summary["cpu_ms_per_step"] = cpu * 1e3 / res.steps if res.steps else None
+    summary["load_1min"] = os.getloadavg()[0]
     summary["overrides"] = overrides
     report: dict[str, object] = {"replay": summary}
     from companion.report.files import build_report
@@ -127,11 +130,20 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _per_step(s: dict[str, Any]) -> str:
+    per = s.get("cpu_ms_per_step")
+    if per is None:
+        return ""
+    return (f" ({per:.2f} ms per step, start-up and both processes included; load average "
+            f"{s.get('load_1min', 0.0):.1f})")
+
+
 def _print_single(s: dict[str, Any], out: Path) -> None:
     same = "identical" if s["identical"] else "DIFFERENT"
     speed = s.get("speed_vs_real_time")
     print(f"replayed {s['steps']} steps ({s['perception']}) in {s['wall_time_s']:.1f} s"
-          f"{f' ({speed:.1f}x real time)' if speed else ''}, CPU {s['cpu_time_s']:.1f} s: "
+          f"{f' ({speed:.1f}x real time)' if speed else ''}, CPU {s['cpu_time_s']:.1f} s"
+          f"{_per_step(s)}: "
           f"{s['commands_compared']} commands compared, {same} (max |dq| "
           f"{s['max_quat_diff']:.3g}, max |dthrust| {s['max_thrust_diff']:.3g}, tolerance 1e-6)")
     if s["first_difference_t_s"] is not None:

@@ -21,6 +21,9 @@ PX4_MAIN_MODE_POSCTL = 3
 PX4_MAIN_MODE_AUTO = 4
 PX4_MAIN_MODE_OFFBOARD = 6
 PX4_SUB_MODE_AUTO_LOITER = 3
+MAV_CMD_DO_SET_MODE = 176
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_IN_PROGRESS = 5
 
 
 class OffboardPhase(enum.Enum):
@@ -61,6 +64,9 @@ class OffboardManager:
         self._stream_start_s: float | None = None
         self._last_request_s = -1e9
         self._status: VehicleStatus | None = None
+        #: the autopilot refused the last OFFBOARD request (COMMAND_ACK): our setpoints do not
+        #: fly the vehicle until a new request is accepted
+        self.request_rejected = False
         self.transitions: list[tuple[float, OffboardPhase, str]] = []
 
     @property
@@ -77,6 +83,20 @@ class OffboardManager:
                      f"autopilot left OFFBOARD (main mode {status.main_mode})")
         elif self.phase is OffboardPhase.EXITING and not self.in_offboard:
             self._go(status.t_s, OffboardPhase.DONE, "autopilot out of OFFBOARD")
+
+    def on_command_ack(self, command: int, result: int, t_s: float) -> None:
+        """A COMMAND_ACK from the autopilot: a refused OFFBOARD request (PX4 answers
+        ``TEMPORARILY_REJECTED`` without a fresh offboard signal) is remembered until the next
+        request, so nobody takes our setpoints for what flies the vehicle meanwhile."""
+        if command != MAV_CMD_DO_SET_MODE or self.phase is not OffboardPhase.REQUESTING:
+            return
+        self.request_rejected = result not in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS)
+
+    @property
+    def awaiting_switch(self) -> bool:
+        """OFFBOARD requested and not refused: PX4 switches on the request, the 1 Hz
+        HEARTBEAT confirms it later."""
+        return self.phase is OffboardPhase.REQUESTING and not self.request_rejected
 
     def on_streamed(self, t_s: float) -> None:
         """A setpoint was just sent (the offboard proof of life)."""
@@ -118,6 +138,7 @@ class OffboardManager:
             due = True
         if self.phase is OffboardPhase.REQUESTING and due and not self.in_offboard:
             acts.append(Action("set_mode", PX4_MAIN_MODE_OFFBOARD, 0, "request OFFBOARD"))
+            self.request_rejected = False
         if self.phase is OffboardPhase.EXITING:
             if self.in_offboard and due:
                 if self._cfg.exit_mode == "hold":

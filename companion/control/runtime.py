@@ -374,6 +374,16 @@ class CompanionApp:
         elif rx.name == "COMMAND_ACK":
             log.info("COMMAND_ACK command %s result %s", fields.get("command"),
                      fields.get("result"))
+            if is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
+                refused = self.offboard.request_rejected
+                self.offboard.on_command_ack(int(fields.get("command", -1)),
+                                             int(fields.get("result", -1)), t_s)
+                if self.offboard.request_rejected and not refused and self._logger is not None:
+                    self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
+                                          f"OFFBOARD request refused (result "
+                                          f"{fields.get('result')}): retried in "
+                                          f"{self.cfg.offboard.mode_retry_s} s",
+                                          level="WARNING", name="offboard")
 
     async def _drain(self, link: MavlinkLink) -> None:
         async for _rx in link:  # the callback did the work; keep the queue empty
@@ -415,13 +425,13 @@ class CompanionApp:
 
     def _in_control(self) -> bool:
         """Our setpoints fly the vehicle: armed, and OFFBOARD confirmed (HEARTBEAT) or just
-        requested (PX4 switches at once; the 1 Hz HEARTBEAT confirms up to 1 s later, a
-        rejection shows there too and ends it)."""
+        requested and not refused (PX4 switches at once; the 1 Hz HEARTBEAT confirms up to
+        1 s later; a COMMAND_ACK refusing the request ends it until the next request)."""
         m = self.store.mode
         if m is None or not m.armed:
             return False
         if self.offboard.phase is OffboardPhase.REQUESTING:
-            return True
+            return self.offboard.awaiting_switch
         return m.main_mode == PX4_MAIN_MODE_OFFBOARD and self.offboard.phase in (
             OffboardPhase.ACTIVE, OffboardPhase.LOST, OffboardPhase.EXITING)
 

@@ -8,6 +8,15 @@ CasADi version and the compiler flags. So the key changes whenever the problem (
 weights, terminal matrix, camera, constraint groups ...) changes, and only then.
 Compilation goes through CasADi's own ``shell`` importer into a process-unique temporary name
 that is renamed atomically, so concurrent processes never load a half-written library.
+
+Generating the source only to find its key costs ~1 s of CPU per library (CasADi derives the
+Hessian and Jacobians first): too much for a replay that starts many times. So a cheaper
+*problem key* (the serialized NLP expression graph, the solver's options, the CasADi version and
+the flags: ~10 ms) names a small alias file ``rmpc_<tag>_<problem key>.alias`` holding the
+library's file name, written once the library exists. A later start with the same problem
+reads the alias and loads the library without generating anything. The generated source
+depends only on what the problem key hashes, so the alias can only point to the library that
+generating would have found; a missing or dangling alias falls back to generating.
 """
 
 from __future__ import annotations
@@ -16,6 +25,7 @@ import hashlib
 import logging
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,17 +65,61 @@ def cache_key(source: str) -> str:
     return h.hexdigest()[:24]
 
 
-def compiled_nlp(solver: ca.Function, cache_dir: str, tag: str) -> CompiledNlp:
+def problem_key(nlp: dict[str, ca.SX], tag: str, options: str) -> str:
+    """SHA-256 (first 24 hex digits) of the NLP's expression graph (x, p -> f, g, serialized),
+    ``tag``, the solver ``options`` (their ``repr``), the CasADi version, the oracle functions
+    and the flags: what the generated source is a function of."""
+    h = hashlib.sha256()
+    oracle = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
+    h.update(oracle.serialize().encode())
+    for part in (tag, options, str(getattr(ca, "__version__", "?")), " ".join(ORACLE_FUNCTIONS),
+                 " ".join(COMPILER_FLAGS)):
+        h.update(b"\0" + part.encode())
+    return h.hexdigest()[:24]
+
+
+def compiled_nlp(solver: ca.Function | Callable[[], ca.Function], cache_dir: str, tag: str,
+                 nlp: dict[str, ca.SX] | None = None, options: str = "") -> CompiledNlp:
     """The shared library holding ``solver``'s oracle functions, compiling it on a cache miss.
 
-    ``solver`` is an ``nlpsol`` built from symbolic expressions (not yet compiled); ``tag`` is
-    a short file-name prefix (``"hard"``, ``"soft"``).
+    ``solver`` is an ``nlpsol`` built from symbolic expressions (not yet compiled), or a
+    function building it (called only when the source must be generated); ``tag`` is a short
+    file-name prefix (``"hard"``, ``"soft"``). With ``nlp`` (the problem ``solver`` is built
+    from) and ``options`` (the ``repr`` of its solver options), a problem seen before is found
+    through its alias file without generating the source (module docstring).
     """
     directory = Path(cache_dir).expanduser()
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise RmpcBuildError(f"rmpc.cache_dir: cannot create {directory}: {exc}") from exc
+    alias = None
+    if nlp is not None:
+        alias = directory / f"rmpc_{tag}_{problem_key(nlp, tag, options)}.alias"
+        try:
+            name = alias.read_text().strip()
+        except OSError:
+            name = ""
+        prefix = f"rmpc_{tag}_"
+        if name.startswith(prefix) and name.endswith(".so") and "/" not in name:
+            library = directory / name
+            if library.exists():
+                log.debug("RMPC %s: cache hit %s (alias %s)", tag, library, alias.name)
+                return CompiledNlp(library=library, key=name[len(prefix):-3],
+                                   compiled_now=False)
+    symbolic = solver if isinstance(solver, ca.Function) else solver()
+    found = _generate_and_compile(symbolic, directory, tag)
+    if alias is not None:
+        tmp = alias.with_name(f"{alias.name}.tmp{os.getpid()}")
+        try:
+            tmp.write_text(found.library.name + "\n")
+            os.replace(tmp, alias)
+        except OSError as exc:  # a read-only cache still works, without the shortcut
+            log.debug("RMPC %s: alias not written: %s", tag, exc)
+    return found
+
+
+def _generate_and_compile(solver: ca.Function, directory: Path, tag: str) -> CompiledNlp:
     with tempfile.TemporaryDirectory(prefix="rmpc_gen_") as tmp:
         # what Function.generate_dependencies writes, but into tmp (no chdir: threads)
         src_path = Path(tmp) / f"rmpc_{tag}.c"

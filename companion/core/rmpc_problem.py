@@ -35,7 +35,9 @@ out (:func:`tube_matrix`): the yaw error is then only in the cost.
 The soft copy subtracts a slack ``>= 0`` from each of these rows and adds
 ``recovery_penalty * slack`` (visibility rows) or ``recovery_tube_penalty * slack`` (tube and
 terminal rows) to the cost (an exact L1 penalty); dynamics, input bounds and the state box stay
-hard.
+hard, except that a velocity bound the measured state already exceeds is moved out to where
+braking at an admissible rate can bring it (``rmpc.velocity_box_return``; otherwise the soft
+copy would be infeasible at stage 1).
 """
 
 from __future__ import annotations

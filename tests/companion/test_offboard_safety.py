@@ -104,3 +104,23 @@ def test_safety_reacquires_with_fresh_follow_target() -> None:
     # FOLLOW_TARGET goes stale too: no guess, hover
     assert s.update(_h(0.1, tgt=0.7, fol=1.5)).level is SafetyLevel.HOVER
     assert s.update(_h(0.2, tgt=0.0, fol=1.5)).level is SafetyLevel.TRACKING
+
+
+def test_a_refused_offboard_request_does_not_count_as_control_until_the_next_one() -> None:
+    m = OffboardManager(OffboardConfig(0.25, 1.0, False, "hold"))
+    m.on_heartbeat(_hb(0.0, True, 3))
+    m.on_streamed(0.0)
+    assert m.step(0.2) == [] and not m.awaiting_switch
+    assert [(a.kind, a.main_mode) for a in m.step(0.25)] == [("set_mode", 6)]
+    assert m.awaiting_switch  # PX4 switches on the request: our setpoints fly from here
+    m.on_command_ack(400, 1, 0.3)  # another command's ACK changes nothing
+    assert m.awaiting_switch
+    m.on_command_ack(176, 1, 0.3)  # TEMPORARILY_REJECTED: PX4 did not switch
+    assert m.phase is OffboardPhase.REQUESTING and not m.awaiting_switch
+    assert m.step(0.8) == []  # retried after mode_retry_s, not before
+    assert [a.kind for a in m.step(1.25)] == ["set_mode"]
+    assert m.awaiting_switch
+    m.on_command_ack(176, 0, 1.3)
+    assert m.awaiting_switch
+    m.on_heartbeat(_hb(1.4, True, 6))
+    assert m.phase is OffboardPhase.ACTIVE

@@ -11,6 +11,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,6 +206,46 @@ def test_yaw_offset_start_recovers_then_solves_the_hard_problem(
     assert np.all(norms[-50:] <= cfg.rmpc.eps) and norms[-1] < 0.2 * norms[0]
 
 
+def test_buffer_calls_match_the_dm_call_exactly(fresh: Rmpc) -> None:
+    """The zero-copy solver call (FunctionBuffer) gives bit for bit what ``Function.call`` with
+    DM arguments gives, on the hard problem and on the soft copy (an infeasible start: the
+    recovery path), including the per-solve status and iteration count."""
+    import casadi as ca
+
+    seen: dict[str, int] = {"hard": 0, "soft": 0}
+    originals = {}
+
+    def checked(sv: Any) -> Any:
+        orig = sv.solve
+
+        def solve(w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray) -> Any:
+            out = orig(w0, par, lbx, ubx)
+            _, _, st, w, cost, it, _ = out
+            ref = sv.solver.call([ca.DM(w0), ca.DM(par), ca.DM(lbx), ca.DM(ubx),
+                                  ca.DM(sv.lbg), ca.DM(sv.ubg), ca.DM(), ca.DM()])
+            rst = sv.solver.stats()
+            assert np.array_equal(w, ref[0].full().ravel())
+            assert cost == float(ref[1])
+            assert (st.get("success"), st.get("return_status"), it) == (
+                rst.get("success"), rst.get("return_status"), rst.get("iter_count"))
+            seen[sv.kind] += 1
+            return out
+        return solve
+
+    for sv in (fresh._hard, fresh._soft):
+        assert sv is not None
+        originals[sv.kind] = sv
+        sv.solve = checked(sv)
+    try:
+        loop = closed_loop(fresh, initial_error(*YAW_OFFSET_POSE), 40, RHO, seed=11)
+    finally:
+        for sv in originals.values():
+            del sv.solve
+    modes = {s.result.mode for s in loop}
+    assert modes == {"recovery", "optimal"}
+    assert seen["soft"] > 0 and seen["hard"] > 0
+
+
 def test_edge_start_makes_the_visibility_constraint_bind(
     fresh: Rmpc, cfg: Config, design: TerminalDesign
 ) -> None:
@@ -241,7 +282,7 @@ def test_non_finite_parameters_raise_before_the_solver(fresh: Rmpc, bad: float) 
     assert fresh.solve(ETA0_PAPER, tm).mode == "optimal"
     eta = ETA0_PAPER.copy()
     eta[2] = bad
-    calls = fresh._hard.solver.stats().get("n_call_total")
+    calls = fresh._hard.calls
     with pytest.raises(RmpcParameterError, match="eta0") as exc:
         fresh.solve(eta, tm)
     assert isinstance(exc.value, CoreError)
@@ -251,7 +292,7 @@ def test_non_finite_parameters_raise_before_the_solver(fresh: Rmpc, bad: float) 
         TargetMotion.constant([0.1, 0.0], [0.0, 0.0], bad, fresh.horizon)
     with pytest.raises(RmpcParameterError):
         fresh.solve(ETA0_PAPER, TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, 3))
-    assert fresh._hard.solver.stats().get("n_call_total") == calls
+    assert fresh._hard.calls == calls
 
 
 def test_check_solution_catches_tampered_trajectories(
@@ -414,3 +455,48 @@ def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDe
                           corner=r.corner)
         assert got[r.g_index] == pytest.approx(want, rel=1e-9, abs=1e-12)
         assert abs(got[r.g_index] - got0[r.g_index]) > 1e-6
+
+
+def test_a_known_problem_loads_its_library_without_generating_code(
+    mpc: Rmpc, cfg: Config, design: TerminalDesign, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import companion.core.rmpc_cache as rc
+
+    def generate(*_: object) -> None:
+        raise AssertionError("the source was generated although the alias names the library")
+
+    monkeypatch.setattr(rc, "_generate_and_compile", generate)
+    again = Rmpc(cfg.rmpc, cfg.camera, design)
+    assert [(c.library, c.key, c.compiled_now) for c in again.compiled if c] == [
+        (c.library, c.key, False) for c in mpc.compiled if c]
+
+
+def test_a_dangling_or_foreign_alias_falls_back_to_generating(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import casadi as ca
+
+    import companion.core.rmpc_cache as rc
+
+    x, p = ca.SX.sym("x", 2), ca.SX.sym("p", 1)
+    nlp = {"x": x, "p": p, "f": ca.sumsqr(x - p), "g": x[0] + x[1]}
+    calls: list[str] = []
+
+    def generate(solver: object, directory: Path, tag: str) -> rc.CompiledNlp:
+        calls.append(tag)
+        lib = directory / f"rmpc_{tag}_{'a' * 24}.so"
+        lib.write_bytes(b"")
+        return rc.CompiledNlp(library=lib, key="a" * 24, compiled_now=True)
+
+    monkeypatch.setattr(rc, "_generate_and_compile", generate)
+    alias = tmp_path / f"rmpc_t_{rc.problem_key(nlp, 't', 'o')}.alias"
+    for content in ("rmpc_t_missing.so\n", "../elsewhere/rmpc_t_x.so\n", "garbage"):
+        alias.write_text(content)
+        got = rc.compiled_nlp(lambda: "symbolic", str(tmp_path), "t", nlp=nlp, options="o")
+        assert got.compiled_now and alias.read_text().strip() == got.library.name
+    assert len(calls) == 3
+    hit = rc.compiled_nlp(lambda: "symbolic", str(tmp_path), "t", nlp=nlp, options="o")
+    assert not hit.compiled_now and hit.library == got.library and len(calls) == 3
+    # another problem (or other options) has another alias
+    assert rc.problem_key(nlp, "t", "o2") != rc.problem_key(nlp, "t", "o")
+    assert rc.problem_key({**nlp, "f": ca.sumsqr(x)}, "t", "o") != rc.problem_key(nlp, "t", "o")
