@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config()
     design = design_terminal(cfg.rmpc, cfg.camera)
     t0 = time.perf_counter()
-    mpc = Rmpc(cfg.rmpc, cfg.camera, design)
+    mpc = Rmpc(cfg.rmpc, cfg.camera, design, clock=time.perf_counter)
     build_s = time.perf_counter() - t0
     paper0 = initial_error(*PAPER_POSE)
     edge0 = initial_error(*EDGE_POSE)
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
 
     ipopt_cfg = dataclasses.replace(cfg.rmpc, solver="ipopt")
     t0 = time.perf_counter()
-    ipopt = Rmpc(ipopt_cfg, cfg.camera, design)
+    ipopt = Rmpc(ipopt_cfg, cfg.camera, design, clock=time.perf_counter)
     ipopt_build_s = time.perf_counter() - t0
     times_i, res_i = _run(ipopt, paper0, args.steps, args.seed)
     ip = _summary(times_i, res_i)

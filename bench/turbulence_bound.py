@@ -47,7 +47,8 @@ H = 0.5
 
 
 def fly(mode: str, duration: float, tau: float, seed: int, std: float, corr: float,
-        est_params: EstimatorParams | None = None, vel_noise: float = 0.0) -> dict[str, float]:
+        est_params: EstimatorParams | None = None, vel_noise: float = 0.0,
+        score_from_s: float = 20.0) -> dict[str, float]:
     cfg = load_config()
     k = design_terminal(cfg.rmpc, cfg.camera).k
     z = cfg.rmpc.desired_depth_m
@@ -86,7 +87,7 @@ def fly(mode: str, duration: float, tau: float, seed: int, std: float, corr: flo
         a = np.array([0.0, 0.0, G]) - G / H * tb + d
         acc = np.concatenate([a, [0.0]])
         eta = eta + dt * np.asarray(error_dynamics(eta, acc, np.zeros(2), np.zeros(2), 0.0, z))
-        if t >= 20.0:  # after the start-up of the estimator
+        if t >= score_from_s:  # after the start-up of the estimator
             err_h.append(z * math.hypot(eta[0], eta[1]))
             err_z.append(z * eta[2])
     return {"rms_h_mm": 1e3 * float(np.sqrt(np.mean(np.square(err_h)))),
@@ -100,6 +101,10 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--std", type=float, default=0.05, help="turbulence std (m/s^2)")
     ap.add_argument("--corr", type=float, default=2.0, help="turbulence correlation (s)")
+    ap.add_argument("--score-from", type=float, default=20.0,
+                    help="score from this time (s); with --duration 60 the same turbulence "
+                    "as the 60 s flight's 20-60 s (same seed, same generator)")
+    ap.add_argument("--only", default="", help="comma-separated case numbers (0-6)")
     args = ap.parse_args()
     c0 = time.process_time()
     print(f"turbulence std {args.std} m/s^2, correlation {args.corr} s, attitude lag "
@@ -115,8 +120,12 @@ def main() -> int:
         ("oracle d (true disturbance at each control step)", "oracle", None, 0.0),
         ("oracle d, no attitude lag", "oracle-no-lag", None, 0.0),
     ]
-    for name, mode, ep, vn in cases:
-        r = fly(mode, args.duration, args.tau, args.seed, args.std, args.corr, ep, vn)
+    pick = {int(x) for x in args.only.split(",") if x}
+    for i, (name, mode, ep, vn) in enumerate(cases):
+        if pick and i not in pick:
+            continue
+        r = fly(mode, args.duration, args.tau, args.seed, args.std, args.corr, ep, vn,
+                args.score_from)
         print(f"{name:58s} RMS horizontal {r['rms_h_mm']:6.1f} mm, height {r['rms_z_mm']:6.1f} mm",
               flush=True)
     print(f"CPU {time.process_time() - c0:.1f} s")

@@ -13,6 +13,7 @@ pipeline, safety ladder, emulator and report (docs/visibility.md):
 from __future__ import annotations
 
 import dataclasses
+import time
 
 from companion.config import CONTROLLER_KINDS, Config
 from companion.control.seams import Controller
@@ -43,4 +44,4 @@ def build_controller(cfg: Config, terminal: TerminalDesign) -> Controller:
         return IbvsPd(gains, cfg.rmpc.horizon)
     if kind not in CONTROLLER_KINDS:  # config validation makes this unreachable
         raise ValueError(f"controller.kind: {kind!r} is not one of {CONTROLLER_KINDS}")
-    return Rmpc(rmpc_params_for(kind, cfg.rmpc), cfg.camera, terminal)
+    return Rmpc(rmpc_params_for(kind, cfg.rmpc), cfg.camera, terminal, clock=time.perf_counter)

@@ -20,7 +20,8 @@ The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code c
 from __future__ import annotations
 
 import logging
-import time
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -179,8 +180,8 @@ class RmpcResult:
     (terminal law clipped to U); ``status``: the return status of the solve that produced the
     result (``hard_status``: that of the hard attempt); ``cost``: its objective;
     ``iterations`` and ``solve_time_s``: summed over the solves of this step (wall time of the
-    compiled solver's evaluation, ``perf_counter`` around it; NaN if it raised); ``u0`` (4,):
-    the input to apply;
+    compiled solver's evaluation on the shell's ``clock``; NaN if it raised or without a
+    clock); ``u0`` (4,): the input to apply;
     ``eta_pred`` (N+1, 7), ``u_pred`` (N, 4): the predicted trajectory;
     ``max_soft_violation``: largest slack of the recovery solve in the squared-row units
     (0 otherwise); ``active_groups``: constraint groups in the problem; ``target``: the motion
@@ -280,8 +281,9 @@ class _Solver:
 
     def __init__(
         self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
-        solver: str,
+        solver: str, clock: Callable[[], float] | None = None,
     ) -> None:
+        self._clock = clock
         nlp, layout = build_nlp(rmpc, camera, terminal, soft)
         self.layout: Layout = layout
         self.kind = "soft" if soft else "hard"
@@ -378,14 +380,14 @@ class _Solver:
         self._lbx_in[:] = lbx
         self._ubx_in[:] = ubx
         self.calls += 1
-        t0 = time.perf_counter()
+        t0 = self._clock() if self._clock is not None else math.nan
         try:
             self._buf._eval()
             flag = int(self._buf.ret())
         except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
             log.warning("RMPC %s solve raised: %s", self.kind, exc)
             return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
-        t = time.perf_counter() - t0
+        t = self._clock() - t0 if self._clock is not None else math.nan
         if flag != 0:  # what ``Function.call`` raises as "Evaluation failed"
             log.warning("RMPC %s solve: evaluation failed (flag %d)", self.kind, flag)
             return False, f"exception: evaluation failed (flag {flag})", {}, w0, float("nan"), \
@@ -425,10 +427,13 @@ class Rmpc:
     """The RMPC of spec 6, built (and compiled, or loaded from the cache) once.
 
     ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
-    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start).
+    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start). ``clock``
+    (seconds, e.g. ``time.perf_counter``, given by the shell: the core reads no clock) times
+    each solve for ``RmpcResult.solve_time_s``; without it that is NaN.
     """
 
-    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> None:
+    def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
+                 clock: Callable[[], float] | None = None) -> None:
         self.cfg = rmpc
         self.camera = camera
         self.terminal = terminal
@@ -444,9 +449,10 @@ class Rmpc:
             )
             if on
         )
-        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver)
+        self._hard = _Solver(rmpc, camera, terminal, soft=False, solver=rmpc.solver,
+                             clock=clock)
         self._soft = (
-            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER)
+            _Solver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER, clock=clock)
             if self.groups
             else None
         )

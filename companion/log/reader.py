@@ -34,7 +34,7 @@ from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Message, Schema
-from mcap.stream_reader import breakup_chunk
+from mcap.stream_reader import get_chunk_data_stream
 
 from companion import CompanionError
 from companion.log import schemas as sch
@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 #: What a damaged chunk may raise while being decompressed, CRC-checked or parsed.
 _CHUNK_ERRORS = (
     McapError, ValueError, struct.error, RuntimeError, EOFError, IndexError, KeyError,
@@ -233,9 +234,12 @@ class LogReader:
                 c[1] = min(c[1], m.log_time)
                 c[2] = max(c[2], m.log_time)
 
-    def _read_chunk(self, offset: int, learn: bool) -> list[Message] | None:
+    def _read_chunk(self, offset: int, learn: bool,
+                    channel_ids: frozenset[int] | None = None) -> list[Message] | None:
         """Messages of the chunk record at ``offset`` (None if it is damaged). ``learn``:
-        record the schemas and channels defined inside it."""
+        record the schemas and channels defined inside it. ``channel_ids``: only the messages
+        of these channels (the others are skipped by their length, never parsed: a replay
+        reading two topics of a chunk of twenty)."""
         try:
             self._f.seek(offset)
             opcode, length = _RECORD_HEAD.unpack(self._f.read(_RECORD_HEAD.size))
@@ -245,19 +249,36 @@ class LogReader:
             if len(body) != length:
                 raise McapError("chunk cut short")
             chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
-            records = breakup_chunk(chunk, validate_crc=True)
+            stream, n = get_chunk_data_stream(chunk, validate_crc=True)
+            data = stream.read(n)
+            out: list[Message] = []
+            pos = 0
+            while pos < n:
+                op, rlen = _RECORD_HEAD.unpack_from(data, pos)
+                start = pos + _RECORD_HEAD.size
+                pos = start + rlen
+                if pos > n:
+                    raise McapError(f"record at byte {start} of a chunk runs past its end")
+                if op == Opcode.MESSAGE:
+                    if rlen < _MESSAGE_HEAD.size:
+                        raise McapError(f"message record of {rlen} bytes")
+                    cid, seq, log_time, pub_time = _MESSAGE_HEAD.unpack_from(data, start)
+                    if channel_ids is None or cid in channel_ids:
+                        out.append(Message(channel_id=cid, sequence=seq, log_time=log_time,
+                                           publish_time=pub_time,
+                                           data=data[start + _MESSAGE_HEAD.size:pos]))
+                elif learn and op in (Opcode.SCHEMA, Opcode.CHANNEL):
+                    rec = ReadDataStream(io.BytesIO(data[start:pos]))
+                    if op == Opcode.SCHEMA:
+                        sc = Schema.read(rec)
+                        self._schemas[sc.id] = sc
+                    else:
+                        ch = Channel.read(rec)
+                        self._channels[ch.id] = ch
         except _CHUNK_ERRORS as e:
             self._corrupt += 1
             log.warning("%s: skipping damaged chunk at byte %d: %s", self.path, offset, e)
             return None
-        out: list[Message] = []
-        for r in records:
-            if isinstance(r, Message):
-                out.append(r)
-            elif learn and isinstance(r, Schema):
-                self._schemas[r.id] = r
-            elif learn and isinstance(r, Channel):
-                self._channels[r.id] = r
         return out
 
     def _walk(self, counts: dict[int, list[int]]) -> None:
@@ -360,6 +381,8 @@ class LogReader:
         """Messages in log-time order (ties: file order), optionally only ``topics`` and
         ``start_ns <= log_time < end_ns``. ``decode=False`` skips JSON and image decoding."""
         wanted = None if topics is None else set(topics)
+        ids = None if wanted is None else frozenset(
+            cid for cid, ch in self._channels.items() if ch.topic in wanted)
         heap: list[tuple[int, int, int, Any]] = []
         for ref in self._chunks:
             if end_ns is not None and ref.start_ns >= end_ns:
@@ -372,7 +395,7 @@ class LogReader:
         while heap:
             item = heapq.heappop(heap)[3]
             if isinstance(item, _ChunkRef):
-                msgs = self._read_chunk(item.offset, learn=False) or []
+                msgs = self._read_chunk(item.offset, learn=False, channel_ids=ids) or []
                 for i, m in enumerate(msgs):
                     heapq.heappush(heap, (m.log_time, item.offset, i, m))
                 continue

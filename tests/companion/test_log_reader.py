@@ -281,3 +281,20 @@ def test_magic_only_file_is_empty_not_an_error(tmp_path: Path) -> None:
     p.write_bytes(b"\x89MCAP0\r\n")
     rec, msgs = read_log(p)
     assert rec.truncated and rec.messages == 0 and msgs == []
+
+
+def test_reading_some_topics_gives_the_same_messages_as_filtering_all(
+    reference: Path, tmp_path: Path
+) -> None:
+    """A topic filter skips the other channels' records unparsed: the messages, their order
+    and payloads are those of the whole stream filtered afterwards; so on a salvaged file."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(reference.read_bytes()[: reference.stat().st_size * 2 // 3])
+    for path in (reference, cut):
+        with LogReader(path) as r:
+            everything = [(m.topic, m.log_time_ns, m.raw) for m in r.messages(decode=False)]
+            for topics in (["/a"], ["/b"], ["/a", "/b"], ["/nope"]):
+                some = [(m.topic, m.log_time_ns, m.raw)
+                        for m in r.messages(topics=topics, decode=False)]
+                assert some == [m for m in everything if m[0] in topics]
+        assert {t for t, _, _ in everything} == {"/a", "/b"}

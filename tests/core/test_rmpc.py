@@ -10,6 +10,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +62,7 @@ def design(cfg: Config) -> TerminalDesign:
 
 @pytest.fixture(scope="module")
 def mpc(cfg: Config, design: TerminalDesign) -> Rmpc:
-    return Rmpc(cfg.rmpc, cfg.camera, design)
+    return Rmpc(cfg.rmpc, cfg.camera, design, clock=time.perf_counter)
 
 
 @pytest.fixture()
