@@ -92,7 +92,13 @@ def run_signing(out: Path, duration_s: float = 30.0, n_unsigned: int = 200,
     load0 = load_avg()
     with flight(out, duration_s=duration_s, overrides=overrides, sim_config=sim_cfg) as f:
         def attack() -> None:
-            time.sleep(max(0.0, f.t_start + attack_at_s - time.monotonic()))
+            # during the flight: once OFFBOARD is active (both ends up and talking; a fixed wall
+            # time after the start sent the emulator's share to an unbound port under load)
+            while f.comp.poll() is None and f.sim.poll() is None:
+                if "-> active" in (out / "companion.log").read_text():
+                    break
+                time.sleep(0.05)
+            time.sleep(attack_at_s)
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
             comp = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
