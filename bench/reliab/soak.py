@@ -28,7 +28,7 @@ from bench.reliab.common import (
 )
 from companion.log.reader import LogReader
 
-# The default log (perception crops, a 5 Hz JPEG preview): a few hundred MB per hour.
+# The default log (lossless perception crops, a 5 Hz JPEG preview): ~3 GB per simulated hour.
 SOAK_OVERRIDES: list[str] = []
 
 
