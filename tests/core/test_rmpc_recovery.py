@@ -9,8 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.config import Config, load_config
-from companion.core.design import design_terminal
+from companion.config import Config
 from companion.core.rmpc import (
     Rmpc,
     TargetMotion,
@@ -19,16 +18,6 @@ from companion.core.rmpc import (
     velocity_box_return,
 )
 from companion.core.terminal import TerminalDesign
-
-
-@pytest.fixture(scope="module")
-def cfg() -> Config:
-    return load_config()
-
-
-@pytest.fixture(scope="module")
-def design(cfg: Config) -> TerminalDesign:
-    return design_terminal(cfg.rmpc, cfg.camera)
 
 
 @pytest.fixture(scope="module")

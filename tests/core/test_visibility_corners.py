@@ -11,7 +11,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.config import Config, load_config
-from companion.core.design import design_terminal
 from companion.core.geometry import (
     project_points,
     rectangle_corners_m,
@@ -24,16 +23,6 @@ from companion.core.prediction import predict_target_motion
 from companion.core.rmpc import Rmpc, RmpcResult, TargetMotion, check_solution, planned_motion
 from companion.core.rmpc_problem import corner_gain, corner_points, stage_motion, tube_matrix
 from companion.core.terminal import TerminalDesign
-
-
-@pytest.fixture(scope="module")
-def cfg() -> Config:
-    return load_config()
-
-
-@pytest.fixture(scope="module")
-def design(cfg: Config) -> TerminalDesign:
-    return design_terminal(cfg.rmpc, cfg.camera)
 
 
 def _params(cfg: Config, **kw: object) -> RmpcParams:
