@@ -68,11 +68,7 @@ def run_soak(out: Path, duration_s: float, sample_s: float = 5.0,
         probe="soak (lockstep, 20 Hz)",
         inputs=f"{figs['sim_s'] / 3600:.2f} h simulated, {figs['steps']} steps, "
                f"{len(samples)} RSS samples",
-        result=(f"RSS {figs['rss_start_mb']:.0f} -> {figs['rss_end_mb']:.0f} MB, "
-                f"growth {figs['growth_mb_per_sim_h']:+.1f} MB/h simulated "
-                f"({figs['growth_mb_per_wall_h']:+.1f} MB/h wall); commands per 10 s "
-                f"min {figs['cmd_per_10s_min']} max {figs['cmd_per_10s_max']}; "
-                f"{figs['real_time_factor']:.1f}x real time"),
+        result=_result(figs),
         passed=ok,
         data_lost=f"{figs['steps'] - figs['sent']} steps without a command",
         bad_commands=figs["bad_commands"],
@@ -93,14 +89,19 @@ def soak_partial(out: Path, warmup_s: float = 600.0) -> ProbeResult:
         probe="soak (lockstep, 20 Hz) - PARTIAL, flight still running",
         inputs=f"{figs['sim_s'] / 3600:.2f} h simulated so far, {figs['steps']} steps, "
                f"{len(samples)} RSS samples",
-        result=(f"RSS {figs['rss_start_mb']:.0f} -> {figs['rss_end_mb']:.0f} MB, "
-                f"growth {figs['growth_mb_per_sim_h']:+.1f} MB/h simulated "
-                f"({figs['growth_mb_per_wall_h']:+.1f} MB/h wall); commands per 10 s "
-                f"min {figs['cmd_per_10s_min']} max {figs['cmd_per_10s_max']}; "
-                f"{figs['real_time_factor']:.1f}x real time"),
+        result=_result(figs),
         passed=figs["bad_commands"] == 0 and figs["steps"] == figs["sent"],
         data_lost=f"{figs['steps'] - figs['sent']} steps without a command",
         bad_commands=figs["bad_commands"], figures=figs)
+
+
+def _result(figs: dict[str, Any]) -> str:
+    """The probe's one-line result from :func:`soak_figures`."""
+    return (f"RSS {figs['rss_start_mb']:.0f} -> {figs['rss_end_mb']:.0f} MB, "
+            f"growth {figs['growth_mb_per_sim_h']:+.1f} MB/h simulated "
+            f"({figs['growth_mb_per_wall_h']:+.1f} MB/h wall); commands per 10 s "
+            f"min {figs['cmd_per_10s_min']} max {figs['cmd_per_10s_max']}; "
+            f"{figs['real_time_factor']:.1f}x real time")
 
 
 def soak_figures(log: Path, samples: list[tuple[int, float, float | None]],
