@@ -85,7 +85,11 @@ def metrics_row(report: Mapping[str, Any]) -> dict[str, Any]:
     ``corners_in_view`` / ``centroid_in_view``: no frame with a corner / the centroid outside
     the visible bound from 1 s after OFFBOARD engaged on (ground truth); ``target_kept``: the
     companion detected the target on every step from then on. ``first_feasible``: the first
-    RMPC problem was the hard one (mode ``optimal``); ``None`` for a controller without one."""
+    RMPC problem was the hard one (mode ``optimal``); ``None`` for a controller without one.
+    ``first_feasible_engaged``: the same for the first problem solved in OFFBOARD, the first
+    whose input is applied (the first problem of the flight is solved during the pre-flight
+    setpoint stream, ~1 s earlier, and never applied; recursive feasibility starts at the first
+    applied solve)."""
     vis = report.get("visibility") or {}
     eng = report.get("engagement") or {}
     sol = report.get("solver") or {}
@@ -112,6 +116,9 @@ def metrics_row(report: Mapping[str, Any]) -> dict[str, Any]:
         "first_solve_mode": first,
         # only an MPC has a first problem (the IBVS law logs mode "law")
         "first_feasible": (first == "optimal") if first in _MPC_MODES else None,
+        "first_solve_mode_engaged": engd.get("first_solve_mode"),
+        "first_feasible_engaged": (engd.get("first_solve_mode") == "optimal")
+        if engd.get("first_solve_mode") in _MPC_MODES else None,
         "controller_kind": report.get("controller"),
         "corner_max_px": corner_max,
         "corner_max_after_grace_px": _num(engd.get("corner_max_px")),

@@ -114,10 +114,12 @@ def write_summary(rows: Sequence[Mapping[str, Any]], path: Path, title: str,
               "every step.", "", *notes, "", "## Per controller", "",
               "| controller | runs | errors | every corner in view | centroid in view | "
               "target kept | first problem feasible | every corner in view, first problem "
-              "feasible | worst corner (median / max px) | "
-              "recovery steps (mean) | runs with a fallback | solve median / p95 (ms) | "
+              "feasible | first problem in OFFBOARD feasible | every corner in view, first "
+              "problem in OFFBOARD feasible | worst corner (median / max px) | "
+              "recovery steps (mean) | recovery steps in OFFBOARD (mean) | "
+              "runs with a fallback | solve median / p95 (ms) | "
               "RMS horizontal / height error (m, median) |",
-              "| --- | " + "--- | " * 12]
+              "| --- | " + "--- | " * 15]
     for c in ctrls:
         rc = [r for r in rows if str(r.get("controller")) == c]
         ok_c = _ok(rc)
@@ -130,13 +132,17 @@ def write_summary(rows: Sequence[Mapping[str, Any]], path: Path, title: str,
 
         cm = _vals(ok_c, "corner_max_px")
         rf = _vals(ok_c, "recovery_fraction")
+        rfe = _vals(ok_c, "recovery_fraction_engaged")
+        first_eng = [r for r in ok_c if r.get("first_feasible_engaged") is True]
         fb = sum(1 for r in ok_c if (r.get("fallbacks") or 0) > 0)
         lines.append(
             f"| {c} | {len(rc)} | {len(rc) - n} | {rate('corners_in_view')} | "
             f"{rate('centroid_in_view')} | {rate('target_kept')} | {rate('first_feasible')} | "
             f"{rate('corners_in_view', [r for r in ok_c if r.get('first_feasible') is True])} | "
+            f"{rate('first_feasible_engaged')} | {rate('corners_in_view', first_eng)} | "
             f"{_fmt(_median(cm))} / {_fmt(float(cm.max()) if cm.size else None)} | "
-            f"{_fmt(100 * float(rf.mean()) if rf.size else None, 1)} % | {fb} | "
+            f"{_fmt(100 * float(rf.mean()) if rf.size else None, 1)} % | "
+            f"{_fmt(100 * float(rfe.mean()) if rfe.size else None, 1)} % | {fb} | "
             f"{_fmt(_median(_vals(ok_c, 'solve_median_ms')), 2)} / "
             f"{_fmt(_median(_vals(ok_c, 'solve_p95_ms')), 2)} | "
             f"{_fmt(_median(_vals(ok_c, 'rms_horizontal_error_m')), 3)} / "

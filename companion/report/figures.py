@@ -92,7 +92,10 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
 
     ``corner_max_px``: the largest ``|u_px|, |n_px|`` of any true corner (paper pixels);
     ``frames_outside_bound``: frames with a corner outside the visible area;
-    ``recovery_fraction``: recovery solves / solves over the active steps; ``fallbacks``."""
+    ``recovery_fraction``: recovery solves / solves over the active steps; ``fallbacks``;
+    ``first_solve_mode``: the mode of the first solve in OFFBOARD, the first one whose input
+    is applied (``optimal`` = its hard problem was feasible: where the certificate's recursive
+    feasibility starts; the solves of the pre-flight stream before it are never applied)."""
     # the autopilot's own mode (ground truth) when recorded; else the companion's view, which
     # lags by up to a HEARTBEAT period
     # Truth records are in simulated time, steps in the companion's (autopilot) time: the
@@ -131,6 +134,7 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
         "solves": n,
         "recovery_fraction": modes.count("recovery") / n if n else None,
         "fallbacks": modes.count("fallback"),
+        "first_solve_mode": modes[0] if modes else None,
     }
 
 
