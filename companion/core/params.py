@@ -136,7 +136,8 @@ class RmpcParams:
     # yaw, vdot_a with the planned yaw rate: exact for the constant-turn target model).
     target_motion: str = "nominal"
     # L1 weight of the tube and terminal rows' slacks in the soft (recovery) copy; the
-    # visibility rows keep recovery_penalty (docs/visibility.md: keep the two equal).
+    # visibility rows keep recovery_penalty (equal by default; config/paper.toml puts the
+    # tube 30x above visibility: docs/visibility.md section 5).
     recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
     # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
     # key: companion.config fills it from [target] (used by visibility = "corners").

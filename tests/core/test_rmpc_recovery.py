@@ -6,10 +6,13 @@ target. These tests fail on that behaviour."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from companion.config import Config
+from companion.core.prediction import predict_target_motion
 from companion.core.rmpc import (
     Rmpc,
     TargetMotion,
@@ -17,6 +20,7 @@ from companion.core.rmpc import (
     state_lower,
     velocity_box_return,
 )
+from companion.core.rmpc_problem import tube_matrix
 from companion.core.terminal import TerminalDesign
 
 
@@ -93,3 +97,39 @@ def test_recovery_from_above_the_velocity_box_plans_back_into_it_instead_of_fall
     # the box is violated only where the return law allows it
     assert {v.stage for v in bad if v.constraint == "state"} <= set(
         int(k) for k in np.nonzero(bound > 1.0)[0])
+
+
+def _p_norms(res_eta: np.ndarray, cfg: Config, design: TerminalDesign) -> np.ndarray:
+    p = tube_matrix(cfg.rmpc, np.asarray(design.p, dtype=float))
+    return np.sqrt(np.einsum("ni,ij,nj->n", res_eta, p, res_eta))
+
+
+def test_recovery_closes_on_a_target_at_the_edge_of_the_view(
+    cfg: Config, design: TerminalDesign
+) -> None:
+    """A logged state of a campaign flight (circle-2x seed 1, 1.4 s after OFFBOARD): the target
+    1.4 m ahead and 1 m to the side at the edge of the visible area, moving at 0.6 m/s on a
+    circle, the vehicle matching its velocity 1.6 m too high. The hard problem is infeasible
+    (Omega is out of reach in N delta). With the configured recovery weights (tube/terminal
+    above visibility) the soft copy must plan to close on the target: accelerate towards it
+    and shrink the tube norm over the horizon. With equal weights it did not (the plan's
+    |eta(N)|_P grew, the vehicle sat at the edge of the view for ~2.5 s while the target ran
+    away, and the corners left the view anyway: docs/visibility.md section 5)."""
+    eta0 = np.array([0.709, -0.512, 0.783, -0.024, -0.013, 0.043, -0.569])
+    target = predict_target_motion(np.array([0.527, 0.288, 0.0]), np.array([-0.058, 0.105, 0.0]),
+                                   0.2, 0.521, cfg.rmpc.horizon, cfg.rmpc.dt_s)
+    mpc = Rmpc(dataclasses.replace(cfg.rmpc, jit=False), cfg.camera, design)
+    res = mpc.solve(eta0, target)
+    assert res.mode == "recovery", (res.mode, res.status, res.hard_status)
+    norms = _p_norms(res.eta_pred, cfg, design)
+    assert norms[-1] < 0.75 * norms[0], norms
+    assert res.u0[0] > 0.5  # towards the target (se1 > 0: it is ahead)
+    bad = check_solution(res, cfg.rmpc, cfg.camera, design)
+    assert [v for v in bad if v.constraint in ("dynamics", "input")] == []
+    # the same state with equal weights: the plan does not close (why the weights differ)
+    equal = Rmpc(dataclasses.replace(cfg.rmpc, jit=False,
+                                     recovery_tube_penalty=cfg.rmpc.recovery_penalty),
+                 cfg.camera, design)
+    res_eq = equal.solve(eta0, target)
+    assert res_eq.mode == "recovery"
+    assert _p_norms(res_eq.eta_pred, cfg, design)[-1] > 0.95 * norms[0]
