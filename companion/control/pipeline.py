@@ -250,7 +250,8 @@ class ControlPipeline:
             motion = predict_target_motion(
                 vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
                 cfg.rmpc.horizon, cfg.rmpc.dt_s,
-                None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2))
+                None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2),
+                cfg.rmpc.eta_max[4] if cfg.rmpc.target_speed_extrapolation == "box" else None)
             eta0 = es.eta_e
             if lat.enabled:
                 v_a, vdot_a, psidot_a = motion.stage(0)

@@ -139,6 +139,11 @@ class RmpcParams:
     # visibility rows keep recovery_penalty (equal by default; config/paper.toml puts the
     # tube 30x above visibility: docs/visibility.md section 5).
     recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
+    # How far the target's along-track acceleration is extrapolated over the horizon:
+    # "linear" (held for the whole horizon) or "box" (held until the predicted speed reaches
+    # the vehicle's velocity bound eta_max[4], or the current speed if that is higher; then
+    # constant speed). docs/visibility.md section 5.
+    target_speed_extrapolation: str = "linear"
     # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
     # key: companion.config fills it from [target] (used by visibility = "corners").
     target_corners_m: tuple[tuple[float, float], ...] = ()
@@ -152,6 +157,8 @@ class RmpcParams:
             ("visibility", self.visibility, ("centroid", "corners")),
             ("heading", self.heading, ("tube", "cost")),
             ("target_motion", self.target_motion, ("nominal", "planned_yaw")),
+            ("target_speed_extrapolation", self.target_speed_extrapolation,
+             ("linear", "box")),
         ):
             if value not in allowed:
                 raise ParamError(

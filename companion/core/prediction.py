@@ -22,6 +22,7 @@ def predict_target_motion(
     horizon: int,
     dt_s: float,
     d_ned_m_s2: np.ndarray | None = None,
+    speed_cap_m_s: float | None = None,
 ) -> TargetMotion:
     """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
 
@@ -30,6 +31,12 @@ def predict_target_motion(
     The along-track acceleration (projection of ``a`` on ``v``) is kept constant; the
     cross-track part is carried by the turn rate. ``d_ned_m_s2`` (3,): the estimated
     disturbance acceleration (NED, held constant), expressed in each stage's virtual frame.
+    ``speed_cap_m_s``: a positive along-track acceleration is held only until the predicted
+    speed reaches ``max(speed now, speed_cap_m_s)``, then the speed is held (``None``: held for
+    the whole horizon). With the vehicle's velocity bound as the cap, a target accelerating
+    towards a cruise speed at that bound is not predicted to outrun it (which would make the
+    terminal set, ``v_q = v_a`` inside the box, unreachable whatever the state); a target
+    already faster than the bound keeps its measured speed.
     """
     v0 = np.asarray(v_a_ned_m_s, dtype=float)[:2]
     a0 = np.asarray(a_a_ned_m_s2, dtype=float)[:2]
@@ -42,10 +49,15 @@ def predict_target_motion(
     t = np.arange(horizon) * dt_s
     if speed > 1e-6:
         sp = np.maximum(0.0, speed + a_along * t)
+        acc = np.full_like(t, a_along)
+        if speed_cap_m_s is not None and a_along > 0.0:
+            top = max(speed, float(speed_cap_m_s))
+            acc = np.where(sp >= top, 0.0, acc)
+            sp = np.minimum(sp, top)
         hd = heading + w * t
         ch, sh = np.cos(hd), np.sin(hd)
         v_ned = np.column_stack([sp * ch, sp * sh])
-        a_ned = np.column_stack([a_along * ch - sp * w * sh, a_along * sh + sp * w * ch])
+        a_ned = np.column_stack([acc * ch - sp * w * sh, acc * sh + sp * w * ch])
     else:
         v_ned = v0[None, :] + a0[None, :] * t[:, None]
         a_ned = np.tile(a0, (horizon, 1))

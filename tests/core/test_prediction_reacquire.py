@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -61,3 +62,29 @@ def test_reacquire_refuses_non_finite() -> None:
     with pytest.raises(ValueError):
         reacquire_input(np.array([np.nan, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3),
                         0.0, 0.0, 2.0, 0.3, 4.0, U_MAX)
+
+
+def test_speed_cap_holds_the_acceleration_only_up_to_the_bound() -> None:
+    """``speed_cap_m_s``: the along-track acceleration is held until the predicted speed
+    reaches max(now, cap), then the speed is held (and the predicted acceleration is zero);
+    without a cap, or below it, the prediction is unchanged."""
+    n, dt = 16, 0.05
+    v, a = np.array([0.8, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    free = predict_target_motion(v, a, 0.0, 0.0, n, dt)
+    capped = predict_target_motion(v, a, 0.0, 0.0, n, dt, speed_cap_m_s=1.0)
+    sp = np.hypot(*capped.v_a_m_s.T)
+    assert np.hypot(*free.v_a_m_s[-1]) == pytest.approx(0.8 + 15 * dt * 1.0)
+    assert np.all(sp <= 1.0 + 1e-12) and sp[-1] == pytest.approx(1.0)
+    reached = sp >= 1.0
+    assert np.allclose(capped.vdot_a_m_s2[reached], 0.0)  # speed held: no acceleration
+    assert np.allclose(capped.vdot_a_m_s2[~reached, 0], 1.0)  # accelerating before
+    assert np.allclose(capped.v_a_m_s[~reached], free.v_a_m_s[~reached])
+    # never below the measured speed: a target already faster keeps its speed
+    fast = predict_target_motion(np.array([1.3, 0.0, 0.0]), a, 0.0, 0.0, n, dt,
+                                 speed_cap_m_s=1.0)
+    assert np.allclose(np.hypot(*fast.v_a_m_s.T), 1.3)
+    # a cap the prediction never reaches, or a braking target: unchanged
+    for vv, aa in ((np.array([0.2, 0.0, 0.0]), a), (v, -a)):
+        assert np.allclose(predict_target_motion(vv, aa, 0.2, 0.1, n, dt,
+                                                 speed_cap_m_s=1.0).v_a_m_s,
+                           predict_target_motion(vv, aa, 0.2, 0.1, n, dt).v_a_m_s)

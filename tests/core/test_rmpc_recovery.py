@@ -133,3 +133,26 @@ def test_recovery_closes_on_a_target_at_the_edge_of_the_view(
     res_eq = equal.solve(eta0, target)
     assert res_eq.mode == "recovery"
     assert _p_norms(res_eq.eta_pred, cfg, design)[-1] > 0.95 * norms[0]
+
+
+def test_a_target_accelerating_to_the_velocity_bound_keeps_the_hard_problem_feasible(
+    cfg: Config, design: TerminalDesign
+) -> None:
+    """A logged state of a campaign flight (stop-and-go-2x seed 1, 6 s after OFFBOARD): the
+    vehicle tracks well (|eta0| small) while the AGV accelerates at 0.7 m/s^2 from 0.73 m/s
+    to its 1.0 m/s cruise speed. Extrapolated linearly over 0.8 s the target reaches 1.27 m/s,
+    beyond the 1 m/s velocity box, so the terminal set is out of reach and the hard problem is
+    infeasible although nothing is wrong with the state; with the extrapolation held at the
+    bound ("box") it is feasible."""
+    eta0 = np.array([0.053, 0.024, 0.061, 0.084, -0.073, 0.023, 0.057])
+    args = (np.array([0.727, 0.129, 0.0]), np.array([0.7, 0.115, 0.0]), -0.013, 0.092,
+            cfg.rmpc.horizon, cfg.rmpc.dt_s)
+    mpc = Rmpc(dataclasses.replace(cfg.rmpc, jit=False), cfg.camera, design)
+    linear = predict_target_motion(*args)
+    assert np.hypot(*linear.v_a_m_s[-1]) > 1.2
+    assert mpc.solve(eta0, linear).mode == "recovery"
+    mpc.reset()
+    boxed = predict_target_motion(*args, speed_cap_m_s=cfg.rmpc.eta_max[4])
+    assert np.hypot(*boxed.v_a_m_s[-1]) == pytest.approx(1.0, abs=1e-9)
+    res = mpc.solve(eta0, boxed)
+    assert res.mode == "optimal", (res.status, res.hard_status)
