@@ -137,7 +137,7 @@ class RmpcParams:
     target_motion: str = "nominal"
     # L1 weight of the tube and terminal rows' slacks in the soft (recovery) copy; the
     # visibility rows keep recovery_penalty (equal by default; config/paper.toml puts the
-    # tube 30x above visibility: docs/visibility.md section 5).
+    # tube 10x above visibility: docs/visibility.md section 5).
     recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
     # How far the target's along-track acceleration is extrapolated over the horizon:
     # "linear" (held for the whole horizon) or "box" (held until the predicted speed reaches
