@@ -85,6 +85,12 @@ ENGAGE_GRACE_S = 1.0
 acceptance: every corner inside "after the first second of offboard")."""
 
 
+_T_TOL_S = 1e-6
+"""Time comparisons at the engagement boundaries allow one microsecond (the records' clock):
+a frame exactly at OFFBOARD + grace counts as after it in every section, whichever of the
+float sums ``t_eng + grace``, ``t_us * 1e-6`` and ``sim_t_s`` rounds up."""
+
+
 def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
              st: ReportSettings) -> dict[str, Any]:
     """Figures over the part of the flight the controller flew: from the first frame in
@@ -110,7 +116,7 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
     if t_eng is None:
         return {"t_engaged_s": None}
     t0 = t_eng + ENGAGE_GRACE_S
-    late = [r for r in truth if _sim_t(r) >= t0]
+    late = [r for r in truth if _sim_t(r) >= t0 - _T_TOL_S]
     vis = _visibility(late, [], st)
     seq_t = {r["frame_seq"]: _sim_t(r) for r in truth if r.get("frame_seq") is not None}
 
@@ -118,7 +124,7 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
         t = seq_t.get(s.get("frame_seq"))
         return float(s["t_s"]) if t is None else t
 
-    active = [s for s in steps if step_t(s) >= t_eng and s.get("rmpc")]
+    active = [s for s in steps if step_t(s) >= t_eng - _T_TOL_S and s.get("rmpc")]
     modes = [s["rmpc"]["mode"] for s in active]
     n = len(modes)
     return {
@@ -129,7 +135,7 @@ def _engaged(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
         "frames": vis["frames"],
         "frames_outside_bound": vis["frames_outside_bound"],
         "frames_target_lost": sum(
-            1 for s in steps if step_t(s) >= t0
+            1 for s in steps if step_t(s) >= t0 - _T_TOL_S
             and (s.get("perception") or {}).get("status") != "ok"),
         "solves": n,
         "recovery_fraction": modes.count("recovery") / n if n else None,
@@ -171,7 +177,7 @@ def _engagement(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
             continue
         corner_all += o[0]
         centroid_all += o[1]
-        if t_from is not None and r["t_us"] * 1e-6 >= t_from:
+        if t_from is not None and r["t_us"] * 1e-6 >= t_from - _T_TOL_S:
             judged += 1
             corner_after += o[0]
             centroid_after += o[1]
@@ -180,7 +186,7 @@ def _engagement(truth: list[Mapping[str, Any]], steps: list[Mapping[str, Any]],
     out["frames_corner_outside_after_grace"] = corner_after
     out["frames_centroid_outside_after_grace"] = centroid_after
     out["frames_target_lost_after_grace"] = None if t_from is None else sum(
-        1 for s in steps if s.get("t_s", -math.inf) >= t_from
+        1 for s in steps if s.get("t_s", -math.inf) >= t_from - _T_TOL_S
         and (s.get("perception") or {}).get("status") != "ok")
     return out
 

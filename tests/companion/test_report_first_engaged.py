@@ -52,3 +52,20 @@ def test_a_flight_never_in_offboard_has_no_first_engaged_problem() -> None:
     row = metrics_row(rep)
     assert row["first_feasible"] is True
     assert row["first_feasible_engaged"] is None
+
+
+def test_a_frame_exactly_one_second_after_offboard_counts_in_both_sections() -> None:
+    """The engagement section (autopilot clock ``t_us``) and the engaged section (``sim_t_s``)
+    judge the same frames: a corner out exactly at OFFBOARD + 1 s is counted by both, whatever
+    way the float sums round (a campaign run had 1 frame out in one and 0 in the other)."""
+    msgs = _flight(["optimal"] * 60, engaged_from=23)  # OFFBOARD at 1.15 s: 1.15 + 1.0 > 2.15
+    k = 43  # the frame at 2.15 s
+    for topic, _, rec in msgs:
+        if topic == "/truth" and rec["frame_seq"] == k:
+            rec["t_us"] = 2_150_000
+            rec["sim_t_s"] = 2.15
+            rec["corners_px"] = [[490.0, 490.0], [510.0, 490.0], [510.0, 800.0], [490.0, 510.0]]
+    rep = compute_report(msgs, ST)
+    assert rep["engagement"]["frames_corner_outside_after_grace"] == 1
+    assert rep["engaged"]["frames_outside_bound"] == 1
+    assert rep["engaged"]["corner_max_px"] > ST.visible_bound_report_px
