@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion import CompanionError
+from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, load_config, with_overrides
 from companion.control.recording import TOPIC_INPUT
 from companion.control.runtime import (
@@ -75,6 +75,7 @@ class ReplayResult:
     recovery: dict[str, Any] = field(default_factory=dict)
     config_source: str = ""
     perception: str = ""  # "crop", "frames" (old full-frame log) or "detections"
+    input_encoding: str = ""  # of the logged crops: "png" / "raw" (lossless) or "jpeg"
     commands_changed: int = 0
     modes: dict[str, int] = field(default_factory=dict)
     solve_ms: list[float] = field(default_factory=list, repr=False)
@@ -98,6 +99,7 @@ class ReplayResult:
             "frames_missing": self.frames_missing,
             "perception": self.perception,
             "perception_outside_crop": self.outside_crop,
+            "input_encoding": self.input_encoding,
             "recorded_wire_commands": self.recorded_wire_commands,
             "solver_modes": dict(self.modes),
             "solve_ms_median": float(np.median(solve)) if solve.size else None,
@@ -202,6 +204,11 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
                               "replay; --from-detections replays the controller from the "
                               "recorded detections")
     res = ReplayResult(config_source=cfg.source, perception=mode)
+    if mode == "crop":
+        try:  # how the flight logged what perception read (a JPEG crop replays approximately)
+            res.input_encoding = replay_config(reader, None, []).logging.image_encoding
+        except (ReplayError, ConfigError):
+            res.input_encoding = ""
     rec = reader.recovery
     res.recovery = {"truncated": rec.truncated, "messages_recovered": rec.messages,
                     "salvaged": rec.salvaged, "bytes_used": rec.bytes_used,

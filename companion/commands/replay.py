@@ -148,6 +148,9 @@ def _print_single(s: dict[str, Any], out: Path) -> None:
           f"{s['max_quat_diff']:.3g}, max |dthrust| {s['max_thrust_diff']:.3g}, tolerance 1e-6)")
     if s["first_difference_t_s"] is not None:
         print(f"first difference at t = {s['first_difference_t_s']:.2f} s")
+    if not s["identical"] and s.get("input_encoding") == "jpeg":
+        print('the flight logged its perception input as JPEG (logging.image_encoding = "jpeg"):'
+              ' lossy, so replay only approximates; record with "png" or "raw" for exact replay')
     if s["perception_outside_crop"]:
         print(f"perception read outside the logged crop in {s['perception_outside_crop']} "
               "steps: not exact there")

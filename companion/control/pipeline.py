@@ -318,8 +318,12 @@ class ControlPipeline:
             t_eff = t_now + lat.actuation_delay_s
             if self._commands and t_eff < self._commands[-1][0]:
                 t_eff = self._commands[-1][0]  # keep the history in time order
+            # what the vehicle will fly: before OFFBOARD (in_control False) PX4 holds with its
+            # own controller and ignores the stream, so the latency prediction must integrate
+            # zero acceleration there, not the inputs we streamed
+            flown = u is not None and in_control is not False
             self._commands.append((t_eff,
-                                   np.zeros(4) if u is None else np.array(u, dtype=float),
+                                   np.array(u, dtype=float) if flown else np.zeros(4),
                                    sp.thrust_norm))
         self._yaw_sp = sp.yaw_rad if sp is not None else None
         if clock:

@@ -24,7 +24,8 @@ import math
 import resource
 import signal
 import time
-from collections.abc import Mapping
+from collections import deque
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,6 +60,8 @@ TOPIC_STEP = "/control/step"
 TOPIC_SAFETY = "/control/safety"
 TOPIC_OFFBOARD = "/control/offboard"
 TOPIC_TRUTH = "/truth"
+# records held until the source log clock has its first stamp (a few seconds of traffic)
+EARLY_RECORDS_MAX = 4096
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 TOPIC_STATS = "/mavlink/stats"
@@ -264,6 +267,10 @@ class CompanionApp:
         self._elapsed_s = 0.0  # since the first frame, on the frames' clock
         self._config_logged = False
         self._streaming = True
+        # source log times: records made before the first autopilot stamp have no time yet;
+        # they wait here and are written at that first stamp (see _log_at)
+        self._early: deque[Callable[[int], object]] = deque(maxlen=EARLY_RECORDS_MAX)
+        self.early_dropped = 0
 
     # -- wiring -----------------------------------------------------------------------------
 
@@ -286,8 +293,9 @@ class CompanionApp:
                 link = MavlinkLink.from_config(
                     dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
                     on_rx=self._on_rx,
-                    on_tx=lambda s: logger.log_mavlink("out", s, self._tx_log_ns(s)),
-                    on_reject=logger.log_rejected,
+                    on_tx=lambda s: self._log_at(
+                        self._tx_log_ns(s), lambda t: logger.log_mavlink("out", s, t)),
+                    on_reject=self._on_reject,
                 )
                 self._link = link
                 async with link, open_camera(self.camera_url) as camera:
@@ -311,6 +319,7 @@ class CompanionApp:
                             t.cancel()
                     self.log_stats(link)
                     log.info("companion: link counters %s", dict(link.counters))
+                    self._flush_early(self.clock.now_ns())  # never any stamp: at time 0
         finally:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
@@ -339,12 +348,37 @@ class CompanionApp:
             tmp.replace(self.progress_file)
 
     def _log_config(self) -> None:
-        """``/config``, once: at start, or (source log times) at the first stamp seen."""
+        """``/config``, once: at start, or (source log times) at the first stamp seen, followed
+        by the records that waited for that stamp."""
         if self._config_logged or not self.clock.started or self._logger is None:
             return
         self._config_logged = True
         self._logger.log_config(self.clock.now_ns(), self.config_text, dict(self.cfg.raw),
                                 self.cfg.source)
+        self._flush_early(self.clock.now_ns())
+
+    def _log_at(self, t_ns: int, write: Callable[[int], object]) -> None:
+        """``write(t_ns)`` now, or (source log times, no autopilot stamp seen yet: the time
+        base is unknown, and a 0 would put the record hours before the flight in Foxglove)
+        at the first stamp. At most ``EARLY_RECORDS_MAX`` wait; beyond, the oldest are
+        dropped and counted in ``early_dropped``."""
+        if self.clock.started and self._config_logged:
+            write(t_ns)
+            return
+        if len(self._early) == self._early.maxlen:
+            self.early_dropped += 1
+        self._early.append(write)
+
+    def _flush_early(self, t_ns: int) -> None:
+        while self._early:
+            self._early.popleft()(t_ns)
+
+    def _on_reject(self, reason: str, raw: bytes, t_rx_ns: int) -> None:
+        """A rejected frame, on the log's time base (receipt time, or the source clock)."""
+        assert self._logger is not None
+        logger = self._logger
+        t_log = int(t_rx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
+        self._log_at(t_log, lambda t: logger.log_rejected(reason, raw, t_rx_ns, log_time_ns=t))
 
     def _tx_log_ns(self, sent: Any) -> int:
         return int(sent.t_tx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
@@ -353,9 +387,11 @@ class CompanionApp:
 
     def _on_rx(self, rx: Received) -> None:
         assert self._logger is not None
+        logger = self._logger
         fields = rx.msg.to_dict()
-        self._logger.log_mavlink("in", rx, self.clock.message_ns(rx.name, fields, rx.t_rx_ns))
+        t_log = self.clock.message_ns(rx.name, fields, rx.t_rx_ns)
         self._log_config()
+        self._log_at(t_log, lambda t: logger.log_mavlink("in", rx, t))
         t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
         self.store.ingest(rx.name, fields, t_s, rx.src_sysid)
         self.rx_count += 1
@@ -378,12 +414,11 @@ class CompanionApp:
                 refused = self.offboard.request_rejected
                 self.offboard.on_command_ack(int(fields.get("command", -1)),
                                              int(fields.get("result", -1)), t_s)
-                if self.offboard.request_rejected and not refused and self._logger is not None:
-                    self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
-                                          f"OFFBOARD request refused (result "
-                                          f"{fields.get('result')}): retried in "
-                                          f"{self.cfg.offboard.mode_retry_s} s",
-                                          level="WARNING", name="offboard")
+                if self.offboard.request_rejected and not refused:
+                    text = (f"OFFBOARD request refused (result {fields.get('result')}): "
+                            f"retried in {self.cfg.offboard.mode_retry_s} s")
+                    self._log_at(self.clock.now_ns(), lambda t: logger.log_text(
+                        TOPIC_OFFBOARD, t, text, level="WARNING", name="offboard"))
 
     async def _drain(self, link: MavlinkLink) -> None:
         async for _rx in link:  # the callback did the work; keep the queue empty
@@ -409,11 +444,14 @@ class CompanionApp:
         counters = dict(link.counters)
         counters.update({f"guard_{k}": v for k, v in link.guard.counters.items()})
         t_ns = time.monotonic_ns() if self.clock.mode == "receipt" else self.clock.now_ns()
-        self._logger.log(TOPIC_STATS, t_ns, {
+        logger = self._logger
+        payload = {
             "counters": counters, "pinned": pinned,
             "stale_dropped": self.stale_frames, "stale_inputs": self.timebase.stale_count,
-            "log_dropped": self._logger.stats.dropped,
-        }, schema=sch.MAVLINK_STATS)
+            "log_dropped": logger.stats.dropped + self.early_dropped,
+        }
+        self._log_at(t_ns, lambda t: logger.log(TOPIC_STATS, t, payload,
+                                                schema=sch.MAVLINK_STATS))
 
     async def _timesync(self, link: MavlinkLink) -> None:
         """TIMESYNC requests at 10 Hz, like PX4's onboard link (the replies feed
@@ -455,6 +493,7 @@ class CompanionApp:
         assert self._logger is not None
         logger = self._logger
         clock = self.clock
+        log_at = self._log_at
         loop = asyncio.get_running_loop()
 
         class _Proto(asyncio.DatagramProtocol):
@@ -463,7 +502,7 @@ class CompanionApp:
                     rec = json.loads(data)
                 except ValueError:
                     return
-                logger.log(TOPIC_TRUTH, clock.now_ns(), rec, schema=sch.JSON)
+                log_at(clock.now_ns(), lambda t: logger.log(TOPIC_TRUTH, t, rec, schema=sch.JSON))
 
         transport, _ = await loop.create_datagram_endpoint(
             _Proto, local_addr=("127.0.0.1", port))
@@ -632,7 +671,8 @@ class CompanionApp:
         if self.offboard.phase is not before and self._logger is not None:
             _, phase, reason = self.offboard.transitions[-1]
             log.info("offboard %s -> %s: %s", before.value, phase.value, reason)
-            self._logger.log_text(TOPIC_OFFBOARD, self.clock.now_ns(),
-                                  f"{before.value} -> {phase.value}: {reason}",
-                                  level="INFO", name="offboard")
+            logger = self._logger
+            text = f"{before.value} -> {phase.value}: {reason}"
+            self._log_at(self.clock.now_ns(), lambda t: logger.log_text(
+                TOPIC_OFFBOARD, t, text, level="INFO", name="offboard"))
 

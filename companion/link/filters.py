@@ -65,6 +65,7 @@ AUTOPILOT_TELEMETRY: frozenset[str] = frozenset(
         "HOME_POSITION",
         "AUTOPILOT_VERSION",
         "TIMESYNC",
+        "SYSTEM_TIME",  # its Unix time anchors `companion log export --tlog`
     }
 )
 

@@ -7,7 +7,9 @@ pymavlink is used only as the codec (``pymavlink.dialects.v20.common``).
 
 Receive path, in order (each rejection increments ``counters[reason]``):
 ``bad_data`` / ``unknown_msgid`` (robust parser pseudo-messages), ``incomplete`` (bytes left in a
-datagram), ``mavlink1`` (MAVLink 2 only), ``not_whitelisted`` (see :class:`AllowRule`), signing
+datagram), ``mavlink1`` (MAVLink 2 only), ``unused`` (a message a known source may send but we
+do not use, e.g. PX4's other streams: counted, not passed to ``on_reject``), ``not_whitelisted``
+(any other source; see :class:`AllowRule`), signing
 (``unsigned``, ``bad_signature``, ``old_timestamp``, ``stale_stream``), ``duplicate`` (same bytes
 as one of the last frames of that source), values (``non_finite``, ``quaternion_norm``,
 ``speed``, ``angular_rate``). Accepted frames become :class:`Received` objects in a bounded queue
@@ -513,6 +515,10 @@ class MavlinkLink:
         self._reject_tokens -= 1.0
         self._on_reject(reason, raw[:512], t_ns)
 
+    def _from_known_system(self, sysid: int, compid: int) -> bool:
+        """The frame names a source some rule accepts messages from (the autopilot, the AGV)."""
+        return any(s == sysid and (c is None or c == compid) for s, c, _ in self._rules)
+
     def _allowed(self, sysid: int, compid: int, msgid: int) -> bool:
         for s, c, ids in self._rules:
             if s == sysid and (c is None or c == compid) and (ids is None or msgid in ids):
@@ -533,6 +539,11 @@ class MavlinkLink:
             return
         sysid, compid, msgid = m.get_srcSystem(), m.get_srcComponent(), m.get_msgId()
         if not self._allowed(sysid, compid, msgid):
+            if self._from_known_system(sysid, compid):
+                # PX4's own streams we do not use (an onboard link carries dozens: HIGHRES_IMU,
+                # ODOMETRY, VFR_HUD, ...): counted, never delivered, not logged as an attack
+                self._count("unused")
+                return
             self._reject("not_whitelisted", raw, t_ns)
             return
         if not self.guard.frame_source_ok(sysid, compid, addr, t_ns):

@@ -428,11 +428,14 @@ class McapLogger:
         t = int(t_link if log_time_ns is None else log_time_ns)
         return self._put(("mavlink", topic, t, None, (direction, item)))
 
-    def log_rejected(self, reason: str, raw: bytes, t_rx_ns: int) -> bool:
+    def log_rejected(self, reason: str, raw: bytes, t_rx_ns: int,
+                     log_time_ns: int | None = None) -> bool:
         """A frame the MAVLink link rejected (its ``on_reject`` callback) on
-        ``/mavlink/rejected``: reason, bytes (base64), link receive time."""
+        ``/mavlink/rejected``: reason, bytes (base64), link receive time. ``log_time_ns``: the
+        log's time base when it is not the receipt clock (default ``t_rx_ns``)."""
         payload = {"reason": reason, "raw_b64": raw, "t_rx_ns": int(t_rx_ns)}
-        return self.log("/mavlink/rejected", int(t_rx_ns), payload, schema=sch.MAVLINK_REJECTED)
+        t = int(t_rx_ns) if log_time_ns is None else int(log_time_ns)
+        return self.log("/mavlink/rejected", t, payload, schema=sch.MAVLINK_REJECTED)
 
     def log_config(
         self, log_time_ns: int, toml_text: str, parsed: Mapping[str, Any], source: str = ""

@@ -181,7 +181,7 @@ def test_hostile_udp_input_delivers_exactly_the_good_whitelisted_frames() -> Non
     datagrams: list[bytes] = []
     good_t: list[int] = []
     expect = dict(
-        mavlink1=0, not_whitelisted=0, non_finite=0, quaternion_norm=0, duplicate=0,
+        mavlink1=0, not_whitelisted=0, unused=0, non_finite=0, quaternion_norm=0, duplicate=0,
         incomplete=0, angular_rate=0,
     )  # fmt: skip
     t = 0
@@ -218,9 +218,9 @@ def test_hostile_udp_input_delivers_exactly_the_good_whitelisted_frames() -> Non
             datagrams.append(ap.pack(ap.att(999_000 + i, rate=80.0)))
             expect["angular_rate"] += 1
         else:
-            # a message the autopilot may not send us (not in the telemetry whitelist)
+            # a message of the autopilot's we do not use (not in the telemetry whitelist)
             datagrams.append(ap.pack(ap.mav.gps_raw_int_encode(0, 3, 0, 0, 0, 0, 0, 0, 0, 9)))
-            expect["not_whitelisted"] += 1
+            expect["unused"] += 1
     # two good frames in one datagram, and garbage followed by a good frame: both still decode
     t += 1
     two = ap.pack(ap.att(t)) + ap.pack(ap.att(t + 1))
@@ -229,7 +229,7 @@ def test_hostile_udp_input_delivers_exactly_the_good_whitelisted_frames() -> Non
     t += 2
     datagrams.append(b"\x01\x02\x03garbage" + ap.pack(ap.att(t)))
     good_t.append(t)
-    # FOLLOW_TARGET: from the AGV it passes, from the autopilot's sysid it is not whitelisted
+    # FOLLOW_TARGET: from the AGV it passes, from the autopilot's sysid it is not used
     ft = dict(
         timestamp=1, est_capabilities=0b0011, lat=0, lon=0, alt=1.0, vel=[1.0, 0.0, 0.0],
         acc=[math.nan] * 3, attitude_q=[math.nan] * 4, rates=[math.nan] * 3,
@@ -237,7 +237,7 @@ def test_hostile_udp_input_delivers_exactly_the_good_whitelisted_frames() -> Non
     )  # fmt: skip
     datagrams.append(agv.pack(agv.mav.follow_target_encode(**ft)))
     datagrams.append(ap.pack(ap.mav.follow_target_encode(**ft)))
-    expect["not_whitelisted"] += 1
+    expect["unused"] += 1
     ft_bad = dict(ft, est_capabilities=0b0111)  # claims acc, which is NaN
     datagrams.append(agv.pack(agv.mav.follow_target_encode(**ft_bad)))
     expect["non_finite"] += 1
@@ -280,6 +280,9 @@ def test_hostile_udp_input_delivers_exactly_the_good_whitelisted_frames() -> Non
     assert all(math.isfinite(rx.msg.q1) for rx in att)
     assert observed == got  # the observer sees exactly what the iterator yields
     assert rejected.count("duplicate") == expect["duplicate"]
+    # a stranger's frames are logged as rejected; the autopilot's unused streams are not
+    assert rejected.count("not_whitelisted") == expect["not_whitelisted"] > 0
+    assert "unused" not in rejected
     for p in (ap, agv, stranger):
         p.close()
 
@@ -670,7 +673,8 @@ def test_from_config_whitelists_autopilot_telemetry_and_the_agv(tmp_path: Path) 
                 await asyncio.sleep(0.005)
             ap.sock.sendto(ap.pack(ap.att(3)), addr)
             got = [(await link.recv(2.0)).name for _ in range(2)]
-            assert link.counters["not_whitelisted"] == 2  # sysid 99, and FOLLOW_TARGET from PX4
+            assert link.counters["not_whitelisted"] == 1  # sysid 99
+            assert link.counters["unused"] == 1  # FOLLOW_TARGET from PX4
             return got
 
     assert run(main()) == ["FOLLOW_TARGET", "ATTITUDE_QUATERNION"]

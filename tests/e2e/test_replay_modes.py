@@ -71,7 +71,7 @@ def test_crops_are_what_perception_read_and_replay_exactly(crop_flight: Path,
     res = replay(crop_flight, tmp_path / "replay.mcap")
     s = res.summary()
     assert s["perception"] == "crop" and s["perception_outside_crop"] == 0
-    assert s["frames_missing"] == 0
+    assert s["frames_missing"] == 0 and s["input_encoding"] == "png"
     assert s["commands_compared"] == len(steps) and s["identical"], s
 
 
@@ -205,3 +205,13 @@ def test_a_log_without_perception_input_names_the_way_out(tmp_path: Path) -> Non
         replay(out / "flight.mcap", None)
     s = replay(out / "flight.mcap", None, from_detections=True).summary()
     assert s["identical"], s
+
+
+def test_a_jpeg_logged_flight_says_its_replay_is_approximate(tmp_path: Path) -> None:
+    out = tmp_path / "jpeg"
+    run_demo(DEFAULT_CONFIG, "paper", 2.0, out, ['logging.image_encoding="jpeg"'], [],
+             plots=False)
+    s = replay(out / "flight.mcap", None).summary()
+    assert s["input_encoding"] == "jpeg" and s["commands_compared"] > 0
+    # lossy crops: close to the flight, not bit-exact by construction
+    assert s["max_quat_diff"] < 1e-2 and s["max_thrust_diff"] < 1e-2, s
