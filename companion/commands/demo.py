@@ -54,9 +54,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_ports(1, kind)[0]
+
+
+def free_ports(n: int, kind: int = socket.SOCK_DGRAM) -> list[int]:
+    """``n`` distinct free loopback ports: every socket stays bound until all are chosen (the
+    kernel picks ephemeral ports at random and may hand a just-closed one out again: picked one
+    at a time, two of a flight's six ports coincide in ~1 flight of 2,000 (15 pairs of ~28,000
+    ports), a campaign-sized risk).
+    Another process may still take one before the flight binds it."""
+    socks = [socket.socket(socket.AF_INET, kind) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
@@ -65,7 +79,7 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
     """The two command lines (emulator, companion) of a lockstep flight on free ports, both
     reading ``config`` (the merged file); ``overrides`` go to the companion only (the demo's
     own lockstep settings)."""
-    p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = (free_port() for _ in range(6))
+    p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = free_ports(6)
     p_frame = free_port(socket.SOCK_STREAM)
     sim = [
         sys.executable, "-m", "sim_bridge", "--config", str(config), "--scenario", scenario,
