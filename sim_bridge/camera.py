@@ -895,7 +895,10 @@ def _coverage(poly: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
     sign = 1.0 if area2 > 0 else -1.0
     cols = np.arange(x0, x1, dtype=np.float32)[None, :]
     rows = np.arange(y0, y1, dtype=np.float32)[:, None]
+    # The ROI-sized arrays are written in place (out=): the same operations in the same order,
+    # without allocating (and page-faulting) two fresh ROI arrays per edge.
     cov: np.ndarray | None = None
+    d = np.empty((y1 - y0, x1 - x0), np.float32)
     n = len(p)
     for i in range(n):
         a, b = p[i], p[(i + 1) % n]
@@ -906,8 +909,12 @@ def _coverage(poly: np.ndarray, roi: tuple[int, int, int, int]) -> np.ndarray:
         # Inward unit normal (left of the edge for a counter-clockwise polygon in (col, row)).
         nx, ny = -sign * e[1] / length, sign * e[0] / length
         c0 = 0.5 - (nx * a[0] + ny * a[1])
-        d = (np.float32(nx) * cols + np.float32(ny) * rows) + np.float32(c0)
-        cov = d if cov is None else np.minimum(cov, d)
+        np.add(np.float32(nx) * cols, np.float32(ny) * rows, out=d)
+        np.add(d, np.float32(c0), out=d)
+        if cov is None:
+            cov, d = d, np.empty_like(d)
+        else:
+            np.minimum(cov, d, out=cov)
     if cov is None:
         return np.zeros((y1 - y0, x1 - x0), np.float32)
-    return np.asarray(np.clip(cov, 0.0, 1.0), dtype=np.float32)
+    return np.asarray(np.clip(cov, 0.0, 1.0, out=cov), dtype=np.float32)

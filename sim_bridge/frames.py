@@ -13,12 +13,12 @@ import asyncio
 import contextlib
 import logging
 import struct
-import zlib
 from dataclasses import dataclass
 from types import TracebackType
 
 import cv2
 import numpy as np
+from fastcrc.crc32 import iso_hdlc as _crc32
 
 from sim_bridge import LinkError, SimBridgeError
 
@@ -33,6 +33,7 @@ __all__ = [
     "decode_header",
     "decode_payload",
     "encode_frame",
+    "encode_frame_parts",
     "read_frame",
 ]
 
@@ -78,28 +79,38 @@ def _encoding_code(encoding: str | int) -> int:
     return int(encoding)
 
 
-def encode_payload(image: np.ndarray, encoding: str | int = "mono8") -> bytes:
-    """The payload bytes of ``image`` (uint8 (H, W) for mono8, (H, W, 3) BGR for bgr8)."""
-    code = _encoding_code(encoding)
+def _payload(image: np.ndarray, code: int) -> bytes | memoryview:
+    """The payload of ``image``: for the raw encodings a read-only view of its own memory (no
+    copy when it is C-contiguous), else the compressed bytes."""
     if image.dtype != np.uint8:
         raise FrameError(f"image must be uint8, got {image.dtype}")
     if code == 0:
         if image.ndim != 2:
             raise FrameError(f"mono8 needs an (H, W) image, got shape {image.shape}")
-        return np.ascontiguousarray(image).tobytes()
+        return np.ascontiguousarray(image).reshape(-1).data.toreadonly()
     if code == 1:
         if image.ndim != 3 or image.shape[2] != 3:
             raise FrameError(f"bgr8 needs an (H, W, 3) image, got shape {image.shape}")
-        return np.ascontiguousarray(image).tobytes()
+        return np.ascontiguousarray(image).reshape(-1).data.toreadonly()
     ok, buf = cv2.imencode(".jpg" if code == 2 else ".png", image)
     if not ok:
         raise FrameError("cv2.imencode failed")
     return buf.tobytes()
 
 
-def encode_frame(seq: int, t_us: int, image: np.ndarray, encoding: str | int = "mono8") -> bytes:
-    """One record (header + payload) for ``image`` with sequence number ``seq`` (u32) and
-    capture time ``t_us`` (u64, microseconds since emulator boot)."""
+def encode_payload(image: np.ndarray, encoding: str | int = "mono8") -> bytes:
+    """The payload bytes of ``image`` (uint8 (H, W) for mono8, (H, W, 3) BGR for bgr8)."""
+    payload = _payload(image, _encoding_code(encoding))
+    return payload if isinstance(payload, bytes) else payload.tobytes()
+
+
+def encode_frame_parts(seq: int, t_us: int, image: np.ndarray, encoding: str | int = "mono8"
+                       ) -> tuple[bytes, bytes | memoryview]:
+    """One record as (header, payload), not joined: for mono8/bgr8 the payload is a view of
+    ``image``'s memory, so the image must not change until the record is written. The frame
+    server sends the two parts as they are: copying a 1 MB frame into bytes and joining it to
+    its header cost ~1 ms per frame (fresh 1 MB buffers fault their pages in), in series with
+    every lockstep step."""
     if not 0 <= seq <= 0xFFFFFFFF:
         raise FrameError(f"seq {seq} out of u32 range")
     if not 0 <= t_us <= 0xFFFFFFFFFFFFFFFF:
@@ -108,11 +119,19 @@ def encode_frame(seq: int, t_us: int, image: np.ndarray, encoding: str | int = "
     if not (0 < w <= 0xFFFF and 0 < h <= 0xFFFF):
         raise FrameError(f"image size {w} x {h} does not fit the u16 header fields")
     code = _encoding_code(encoding)
-    payload = encode_payload(image, code)
+    payload = _payload(image, code)
+    # fastcrc's CRC-32 (the same CRC-32/ISO-HDLC as zlib's, ~0.02 ms against zlib's ~0.23 ms on
+    # a 1 MB frame; both ends compute one per frame, in series in lockstep; pymavlink needs it)
     header = HEADER.pack(
-        MAGIC, VERSION, code, 0, seq, t_us, w, h, len(payload), zlib.crc32(payload)
+        MAGIC, VERSION, code, 0, seq, t_us, w, h, len(payload), _crc32(payload)
     )
-    return b"".join((header, payload))
+    return header, payload
+
+
+def encode_frame(seq: int, t_us: int, image: np.ndarray, encoding: str | int = "mono8") -> bytes:
+    """One record (header + payload) for ``image`` with sequence number ``seq`` (u32) and
+    capture time ``t_us`` (u64, microseconds since emulator boot)."""
+    return b"".join(encode_frame_parts(seq, t_us, image, encoding))
 
 
 def decode_header(data: bytes) -> FrameHeader:
@@ -136,7 +155,7 @@ def decode_payload(header: FrameHeader, payload: bytes) -> np.ndarray:
     """The image of a record: checks the CRC (:class:`FrameError` on mismatch) and decodes."""
     if len(payload) != header.payload_len:
         raise FrameError(f"payload has {len(payload)} bytes, header says {header.payload_len}")
-    if zlib.crc32(payload) != header.crc32:
+    if _crc32(payload) != header.crc32:
         raise FrameError(f"CRC mismatch in frame {header.seq}")
     if header.encoding == 0:
         return np.frombuffer(payload, np.uint8).reshape(header.height, header.width)
@@ -169,13 +188,13 @@ class _Client:
     def __init__(self, writer: asyncio.StreamWriter) -> None:
         self.writer = writer
         self.peer = writer.get_extra_info("peername")
-        self.slot: bytes | None = None
+        self.slot: tuple[bytes | memoryview, ...] | None = None
         self.wake = asyncio.Event()
         self.sent = 0
         self.dropped = 0
         self.task: asyncio.Task[object] | None = None
 
-    def offer(self, record: bytes) -> None:
+    def offer(self, record: tuple[bytes | memoryview, ...]) -> None:
         if self.slot is not None:
             self.dropped += 1
         self.slot = record
@@ -189,7 +208,8 @@ class _Client:
                 record, self.slot = self.slot, None
                 if record is None:
                     continue
-                self.writer.write(record)
+                for part in record:  # header, payload: written as they are (no join)
+                    self.writer.write(part)
                 await self.writer.drain()
                 self.sent += 1
         except (ConnectionError, OSError) as e:
@@ -299,9 +319,10 @@ class FrameServer:
         """Encode once and offer the record to every connected client (never blocks on them)."""
         if self._clients:
             if self.encoding in ("mono8", "bgr8"):
-                record = encode_frame(seq, t_us, image, self.encoding)
+                record = encode_frame_parts(seq, t_us, image, self.encoding)
             else:  # compression takes milliseconds: keep the event loop free
-                record = await asyncio.to_thread(encode_frame, seq, t_us, image, self.encoding)
+                record = await asyncio.to_thread(encode_frame_parts, seq, t_us, image,
+                                                 self.encoding)
             for c in list(self._clients):
                 c.offer(record)
         self.published += 1

@@ -21,9 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
-import cvxpy as cp
 import numpy as np
 import scipy.linalg
 import scipy.optimize
@@ -31,9 +29,6 @@ import scipy.optimize
 from companion.core.errors import CoreError
 from companion.core.params import RmpcParams
 from companion.core.terminal import TerminalDesign, linearised_model
-
-_bmat: Callable[..., Any] = cp.bmat  # type: ignore[attr-defined]
-_reshape: Callable[..., Any] = cp.reshape  # type: ignore[attr-defined]
 
 
 class CertificateError(CoreError):

@@ -94,7 +94,10 @@ class GeometryError(CoreError, ValueError):
 
 def _finite(name: str, *arrays: ArrayLike) -> None:
     for a in arrays:
-        if not np.all(np.isfinite(np.asarray(a, dtype=float))):
+        # scalars (most calls, once per control step) without numpy's per-call overhead
+        ok = (math.isfinite(a) if isinstance(a, float | int)
+              else bool(np.isfinite(np.asarray(a, dtype=float)).all()))
+        if not ok:
             raise GeometryError(f"{name}: non-finite input")
 
 

@@ -42,7 +42,7 @@ def _vec(x: ArrayLike, n: int, name: str) -> np.ndarray:
     v = np.asarray(x, dtype=float).reshape(-1)
     if v.shape != (n,):
         raise MeasurementError(f"{name}: expected {n} components, got shape {v.shape}")
-    if not np.all(np.isfinite(v)):
+    if not np.isfinite(v).all():
         raise MeasurementError(f"{name}: non-finite value")
     return v
 

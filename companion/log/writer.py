@@ -55,6 +55,7 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 _STOP = object()
+_MAX_HOLD_S = 0.05  # the longest a hold (McapLogger.hold) delays the writer per message
 _FSYNC_POLICIES = ("interval", "close", "never")
 
 
@@ -164,6 +165,10 @@ class McapLogger:
         self.queue_size = queue_size
         self.max_pending_image_bytes = max_pending_image_bytes
         self.block_on_backlog = block_on_backlog
+        # cleared while the control step runs: the writer thread then waits between messages
+        # (at most _MAX_HOLD_S) instead of taking the GIL from the step (hold / release)
+        self._may_write = threading.Event()
+        self._may_write.set()
         self._pending_image_bytes = 0
         self._images_dropped = 0
         self._last_image_warn = 0.0
@@ -454,6 +459,18 @@ class McapLogger:
             raise McapLogError(f"topic {topic!r} is new: give its schema name")
         self.register(topic, schema)
 
+    def hold(self) -> None:
+        """Keep the writer thread off the GIL until :meth:`release` (at most ``_MAX_HOLD_S``
+        per message): the control step holds it while it computes. The writer serialises
+        messages in Python; with CPython's 5 ms switch interval a step that wants the GIL back
+        from it can wait up to that long. Logging itself is unchanged (nothing is dropped; a
+        message waits in the queue), only when the writer works."""
+        self._may_write.clear()
+
+    def release(self) -> None:
+        """Let the writer thread work again (see :meth:`hold`)."""
+        self._may_write.set()
+
     def _put(self, item: tuple[Any, ...]) -> bool:
         if not isinstance(item[2], int) or item[2] < 0 or (item[3] is not None and item[3] < 0):
             raise McapLogError(f"log time must be a non-negative int (ns), got {item[2]!r}")
@@ -507,6 +524,7 @@ class McapLogger:
                 if item is _STOP:
                     break
                 if item is not None:
+                    self._may_write.wait(_MAX_HOLD_S)
                     self._write(writer, item, channels, schema_ids)
                 if time.monotonic() >= next_flush:
                     self._flush(writer, sink)

@@ -132,18 +132,17 @@ def _blur_half_px(r: float, width: float, settings: EdgeSettings) -> float:
 def _fit_points(pts: FloatArray, width: float, n_samples: int) -> EdgeFit:
     """Total-least-squares line through the edge points, with one outlier pass (texture or a
     side face can fool a few profiles)."""
-    fit = _tls_line(pts)
-    normal = np.array([-fit[1][1], fit[1][0]])
-    res = np.abs((pts - fit[0]) @ normal)
+    c, direction = _tls_line(pts)
+    res = np.abs((pts - c) @ np.array([-direction[1], direction[0]]))
     mad = _median(res) * 1.4826 + 0.05
     keep = res <= max(3.0 * mad, 0.3)
-    if keep.sum() >= 4 and not keep.all():
-        fit = _tls_line(pts[keep])
-        normal = np.array([-fit[1][1], fit[1][0]])
-        res = np.abs((pts[keep] - fit[0]) @ normal)
-    rms = float(np.sqrt(np.mean(res**2)))
-    valid = float(keep.sum()) / n_samples
-    return EdgeFit(fit[0], fit[1], rms, valid)
+    n_keep = int(np.count_nonzero(keep))
+    if n_keep >= 4 and n_keep < keep.shape[0]:
+        kept = pts[keep]
+        c, direction = _tls_line(kept)
+        res = np.abs((kept - c) @ np.array([-direction[1], direction[0]]))
+    rms = math.sqrt(float(np.dot(res, res)) / res.shape[0])
+    return EdgeFit(c, direction, rms, n_keep / n_samples)
 
 
 def _edge_points_batch(
@@ -165,93 +164,122 @@ def _edge_points_batch(
     r_max = max(rs)
     ks = np.arange(-r_max, r_max + 1e-9, step)
     n_k = len(ks)
+    # Per-edge scalars in plain Python; the rows of all edges are then built by whole-array
+    # operations (the same arithmetic per element as one edge at a time: bit-identical).
+    n_segs = len(segs)
+    a_all = np.array([a for a, _ in segs], dtype=np.float64).reshape(n_segs, 2)
+    d_all = np.array([b for _, b in segs], dtype=np.float64).reshape(n_segs, 2) - a_all
+    lengths = np.hypot(d_all[:, 0], d_all[:, 1]).tolist()
     bases: list[FloatArray | None] = []
     normals: list[FloatArray | None] = []
-    grids = []
-    row_r = []
-    for (a, b), r in zip(segs, rs, strict=True):
+    used: list[int] = []  # edges measured, in row order
+    counts: list[int] = []
+    margins: list[float] = []
+    spacings: list[float] = []
+    for i, r in enumerate(rs):
         margin = 1.5 * r + 1.0
-        d = b - a
-        length = float(np.hypot(d[0], d[1]))
+        length = lengths[i]
         if length < 2 * margin + 4:
+            continue
+        n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
+        used.append(i)
+        counts.append(n_samples)
+        margins.append(margin)
+        spacings.append((length - 2 * margin) / (n_samples - 1))
+    if not used:
+        return [None] * n_segs
+    seg_of_row = np.repeat(np.array(used), counts)
+    first_row = np.repeat(np.cumsum([0, *counts[:-1]]), counts)
+    n_rows = seg_of_row.shape[0]
+    rows = np.arange(n_rows)
+    along = (rows - first_row) * np.repeat(spacings, counts) + np.repeat(margins, counts)
+    t_all = d_all / np.array(lengths)[:, None]
+    t_rows = t_all[seg_of_row]
+    base_all = a_all[seg_of_row] + along[:, None] * t_rows
+    # outward normal (t_y, -t_x) for a clockwise-on-screen polygon
+    map_x = base_all[:, :1] + ks[None, :] * t_rows[:, 1:]
+    map_y = base_all[:, 1:] + ks[None, :] * -t_rows[:, :1]
+    row0 = 0
+    for i in range(n_segs):
+        if i in used:
+            n_samples = counts[used.index(i)]
+            bases.append(base_all[row0:row0 + n_samples])
+            normals.append(np.array([t_all[i, 1], -t_all[i, 0]]))
+            row0 += n_samples
+        else:
             bases.append(None)
             normals.append(None)
-            continue
-        t = d / length
-        normal_out = np.array([t[1], -t[0]])  # outward for a clockwise-on-screen polygon
-        n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
-        along = margin + np.arange(n_samples) * ((length - 2 * margin) / (n_samples - 1))
-        base = a[None, :] + along[:, None] * t[None, :]
-        grids.append(base[:, None, :] + ks[None, :, None] * normal_out[None, None, :])
-        bases.append(base)
-        normals.append(normal_out)
-        row_r.append(np.full(n_samples, r))
-    if not grids:
-        return [None] * len(segs)
-    grid = np.concatenate(grids, axis=0)
     prof = cv2.remap(
         gray,
-        grid[..., 0].astype(np.float32),
-        grid[..., 1].astype(np.float32),
+        map_x.astype(np.float32),
+        map_y.astype(np.float32),
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     ).astype(np.float64)
-    rr = np.concatenate(row_r)
-    n_rows = prof.shape[0]
+    rr = np.array(rs)[seg_of_row]
     mid = (ks[:-1] + ks[1:]) / 2
-    rows = np.arange(n_rows)
     # a row's own profile: |k| <= r (the same samples as a profile of half length r)
     first = np.rint((r_max - rr) / step).astype(np.intp)  # index of k = -r
-    last = n_k - 1 - first  # index of k = +r
+    last_1 = n_k - 2 - first  # index of k = +r, minus one
     own_seg = (np.abs(mid)[None, :] < rr[:, None])  # both ends of the segment in the profile
+    # Row-wise look-ups below index the flattened arrays (one 1-D take instead of a 2-D fancy
+    # index). csum: running sums, one leading zero per row.
     csum = np.zeros((n_rows, n_k + 1))
     np.cumsum(prof, axis=1, out=csum[:, 1:])
+    csum_f = csum.ravel()
     # rows padded by one column so that every range end is a valid index of the flat array
     flat = np.concatenate((prof, np.full((n_rows, 1), np.inf)), axis=1).ravel()
-    row_start = rows * (n_k + 1)
+    row_start = rows * (n_k + 1)  # row offsets in csum_f and flat (both n_k + 1 wide)
+    dist_start = rows * (n_k - 1)
     bounds = np.empty(2 * n_rows, dtype=np.intp)
+    in_lo_bound, out_hi_bound, width_hi = 1.0 - rr, rr - 1.0, 2.0 * rr
     e = np.zeros(n_rows)
     width = np.ones(n_rows)
     ok = np.zeros(n_rows, dtype=bool)
+    # np.clip(x, lo, hi) is np.minimum(np.maximum(x, lo), hi) (the same values; without its
+    # Python-level wrapper, which cost more than the arithmetic on these arrays).
     for _ in range(3):
         # plateau windows just beyond the transition, kept inside the sampled profile
         near = 0.5 + 0.9 * np.maximum(width, 1.0)
-        in_hi = np.clip(e - near, -rr + 1.0, 0.0)
-        out_lo = np.clip(e + near, 0.0, rr - 1.0)
+        in_hi = np.minimum(np.maximum(e - near, in_lo_bound), 0.0)
+        out_lo = np.minimum(np.maximum(e + near, 0.0), out_hi_bound)
         # window means as differences of running sums: index ranges of the uniform k grid
-        i0 = np.searchsorted(ks, in_hi - 1.0, side="left")
-        i1 = np.searchsorted(ks, in_hi, side="right")
-        inside = (csum[rows, i1] - csum[rows, i0]) / np.maximum(i1 - i0, 1)
+        i0 = ks.searchsorted(in_hi - 1.0, side="left")
+        i1 = ks.searchsorted(in_hi, side="right")
+        inside = (csum_f[row_start + i1] - csum_f[row_start + i0]) / np.maximum(i1 - i0, 1)
         if s.outside_level == "min":
             # darkest sample in [e + 0.5, out_lo + 1]: a range minimum per row (0 if empty)
-            j0 = np.searchsorted(ks, e + 0.5, side="left")
-            j1 = np.searchsorted(ks, out_lo + 1.0, side="right")
+            j0 = ks.searchsorted(e + 0.5, side="left")
+            j1 = ks.searchsorted(out_lo + 1.0, side="right")
             bounds[0::2] = row_start + j0
             bounds[1::2] = row_start + j1
             outside = np.minimum.reduceat(flat, bounds)[0::2]
             outside = np.where(j1 > j0, outside, 0.0)
         else:
-            o0 = np.searchsorted(ks, out_lo, side="left")
-            o1 = np.searchsorted(ks, out_lo + 1.0, side="right")
-            outside = (csum[rows, o1] - csum[rows, o0]) / np.maximum(o1 - o0, 1)
+            o0 = ks.searchsorted(out_lo, side="left")
+            o1 = ks.searchsorted(out_lo + 1.0, side="right")
+            outside = (csum_f[row_start + o1] - csum_f[row_start + o0]) / np.maximum(o1 - o0, 1)
         contrast = inside - outside
         level = 0.5 * (inside + outside)
         above = prof >= level[:, None]
-        cross = above[:, :-1] & ~above[:, 1:] & own_seg
-        dist = np.where(cross, np.abs(mid[None, :] - e[:, None]), np.inf)
-        idx = np.argmin(dist, axis=1)
-        ok = np.isfinite(dist[rows, idx]) & (contrast >= s.min_contrast)
-        v0, v1 = prof[rows, idx], prof[rows, idx + 1]
+        cross = above[:, :-1] > above[:, 1:]  # above, then not above (bools: a & ~b)
+        cross &= own_seg
+        gap = mid[None, :] - e[:, None]
+        np.abs(gap, out=gap)
+        dist = np.where(cross, gap, np.inf)
+        idx = dist.argmin(axis=1)
+        ok = np.isfinite(dist.ravel()[dist_start + idx]) & (contrast >= s.min_contrast)
+        at = row_start + idx
+        v0, v1 = flat[at], flat[at + 1]
         dv = np.where(v0 != v1, v0 - v1, 1.0)
-        frac = np.clip((v0 - level) / dv, 0.0, 1.0)
+        frac = np.minimum(np.maximum((v0 - level) / dv, 0.0), 1.0)
         e = np.where(ok, ks[idx] + frac * step, e)
         # transition width (px): contrast / steepest slope near the crossing
-        lo = np.clip(idx - 2, first, last - 1)
-        hi = np.clip(idx + 2, first, last - 1)
-        slopes = np.maximum(np.maximum(prof[rows, lo] - prof[rows, lo + 1], v0 - v1),
-                            prof[rows, hi] - prof[rows, hi + 1])
+        lo = row_start + np.minimum(np.maximum(idx - 2, first), last_1)
+        hi = row_start + np.minimum(np.maximum(idx + 2, first), last_1)
+        slopes = np.maximum(np.maximum(flat[lo] - flat[lo + 1], v0 - v1), flat[hi] - flat[hi + 1])
         slope = np.maximum(slopes / step, 1e-6)
-        width = np.where(ok, np.clip(contrast / slope, 0.5, 2.0 * rr), width)
+        width = np.where(ok, np.minimum(np.maximum(contrast / slope, 0.5), width_hi), width)
     out: list[tuple[FloatArray, float, int] | None] = []
     row0 = 0
     for maybe_base, maybe_normal in zip(bases, normals, strict=True):
@@ -280,18 +308,31 @@ def _median(x: FloatArray) -> float:
 
 
 def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Total-least-squares line: (centroid, unit direction)."""
+    """Total-least-squares line: (centroid, unit direction).
+
+    The direction is the principal axis of the points' 2 x 2 scatter matrix, in closed form
+    (the angle ``atan2(2 sxy, sxx - syy) / 2``): the same line as the first right singular vector
+    of the centred points (an SVD per edge cost more than the rest of the fit; the two differ by
+    rounding, ~1e-13 px at the corners, and the direction's sign, which nothing uses)."""
     c = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
-    return c, vt[0]
+    d = points - c
+    (sxx, sxy), (_, syy) = (d.T @ d).tolist()
+    half = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
+    return c, np.array([math.cos(half), math.sin(half)])
 
 
 def _intersect(e1: EdgeFit, e2: EdgeFit) -> FloatArray | None:
-    m = np.column_stack([e1.direction, -e2.direction])
-    if abs(float(np.linalg.det(m))) < 1e-6:
+    """Intersection of two fitted lines (Cramer's rule on the 2 x 2 system
+    ``p1 + t1 d1 = p2 + t2 d2``), ``None`` if they are (nearly) parallel."""
+    d1x, d1y = e1.direction.tolist()
+    d2x, d2y = e2.direction.tolist()
+    det = d2x * d1y - d1x * d2y
+    if abs(det) < 1e-6:
         return None
-    ts = np.linalg.solve(m, e2.point - e1.point)
-    return np.asarray(e1.point + ts[0] * e1.direction, dtype=np.float64)
+    rx, ry = (e2.point - e1.point).tolist()
+    t1 = (d2x * ry - rx * d2y) / det
+    p1x, p1y = e1.point.tolist()
+    return np.array([p1x + t1 * d1x, p1y + t1 * d1y])
 
 
 __all__ = ["EdgeFit", "EdgeSettings", "fit_edge", "refine_quad"]

@@ -52,62 +52,89 @@ class QuadLimits:
             raise PerceptionError("min_corner_angle_rad: must be in (0, pi/2)")
 
 
+# These run a few times per frame on 4-corner arrays, where numpy's per-call overhead is most
+# of the cost: the corners are read into Python floats and the arithmetic done on scalars (the
+# same IEEE operations in the same order as the array versions these replace).
+
+
+def _pts(corners: npt.ArrayLike) -> list[tuple[float, float]]:
+    c = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    return [(x, y) for x, y in c.tolist()]
+
+
 def _rot(a: FloatArray, k: int) -> FloatArray:
     """``np.roll(a, -k, axis=0)`` without its overhead (these run on 4-corner arrays)."""
     k %= a.shape[0]
     return np.concatenate((a[k:], a[:k]))
 
 
-def _nxt(a: FloatArray) -> FloatArray:
-    return _rot(a, 1)
-
-
-def _prv(a: FloatArray) -> FloatArray:
-    return _rot(a, -1)
+def _signed_area(p: list[tuple[float, float]]) -> float:
+    acc = 0.0
+    for (x0, y0), (x1, y1) in zip(p, p[1:] + p[:1], strict=True):
+        acc += x0 * y1 - x1 * y0
+    return 0.5 * acc
 
 
 def signed_area(corners: npt.ArrayLike) -> float:
     """Shoelace area of a polygon (N, 2) ``(col, row)``: > 0 clockwise on screen (px^2)."""
-    c = np.asarray(corners, dtype=np.float64)
-    x, y = c[:, 0], c[:, 1]
-    return 0.5 * float(np.sum(x * _nxt(y) - _nxt(x) * y))
+    return _signed_area(_pts(corners))
+
+
+def _is_convex(p: list[tuple[float, float]]) -> bool:
+    e = [(x1 - x0, y1 - y0) for (x0, y0), (x1, y1) in zip(p, p[1:] + p[:1], strict=True)]
+    nxt = e[1:] + e[:1]
+    cross = [ax * by - ay * bx for (ax, ay), (bx, by) in zip(e, nxt, strict=True)]
+    if any(abs(c) < 1e-12 for c in cross):
+        return False
+    if not (all(c > 0 for c in cross) or all(c < 0 for c in cross)):
+        return False
+    # turning number 1 (a pentagram has all-positive cross products but turns twice)
+    ang = [math.atan2(ey, ex) for ex, ey in e]
+    turn = 0.0
+    for a0, a1 in zip(ang, ang[1:] + ang[:1], strict=True):
+        d = a1 - a0
+        turn += math.atan2(math.sin(d), math.cos(d))  # the turn wrapped to (-pi, pi]
+    return abs(abs(turn) - 2 * math.pi) < 1e-6
 
 
 def is_convex(corners: npt.ArrayLike) -> bool:
     """True for a strictly convex, non-self-intersecting polygon (N >= 3)."""
-    c = np.asarray(corners, dtype=np.float64)
-    e = _nxt(c) - c
-    cross = e[:, 0] * _nxt(e)[:, 1] - e[:, 1] * _nxt(e)[:, 0]
-    if np.any(np.abs(cross) < 1e-12):
-        return False
-    if not (np.all(cross > 0) or np.all(cross < 0)):
-        return False
-    # turning number 1 (a pentagram has all-positive cross products but turns twice)
-    ang = np.arctan2(e[:, 1], e[:, 0])
-    turn = np.sum(np.angle(np.exp(1j * (_nxt(ang) - ang))))
-    return bool(abs(abs(turn) - 2 * math.pi) < 1e-6)
+    return _is_convex(_pts(corners))
+
+
+def _interior_angles(p: list[tuple[float, float]]) -> list[float]:
+    out = []
+    for (px, py), (cx, cy), (nx, ny) in zip(p[-1:] + p[:-1], p, p[1:] + p[:1], strict=True):
+        ax, ay, bx, by = px - cx, py - cy, nx - cx, ny - cy
+        cosang = (ax * bx + ay * by) / (math.sqrt(ax * ax + ay * ay) * math.sqrt(bx * bx + by * by))
+        out.append(math.acos(min(max(cosang, -1.0), 1.0)))
+    return out
 
 
 def interior_angles(corners: npt.ArrayLike) -> FloatArray:
     """Interior angle at each vertex of a convex polygon (rad)."""
-    c = np.asarray(corners, dtype=np.float64)
-    a = _prv(c) - c
-    b = _nxt(c) - c
-    cosang = np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
-    return np.asarray(np.arccos(np.clip(cosang, -1.0, 1.0)), dtype=np.float64)
+    return np.array(_interior_angles(_pts(corners)), dtype=np.float64)
+
+
+def _edge_lengths(p: list[tuple[float, float]]) -> list[float]:
+    return [math.sqrt((x1 - x0) * (x1 - x0) + (y1 - y0) * (y1 - y0))
+            for (x0, y0), (x1, y1) in zip(p, p[1:] + p[:1], strict=True)]
 
 
 def edge_lengths(corners: npt.ArrayLike) -> FloatArray:
     """Length of edge i (corner i -> corner i+1), px."""
-    c = np.asarray(corners, dtype=np.float64)
-    return np.asarray(np.linalg.norm(_nxt(c) - c, axis=1), dtype=np.float64)
+    return np.array(_edge_lengths(_pts(corners)), dtype=np.float64)
+
+
+def _aspect_ratio(p: list[tuple[float, float]]) -> float:
+    e = _edge_lengths(p)
+    a, b = e[0] + e[2], e[1] + e[3]
+    return max(a, b) / max(min(a, b), 1e-12)
 
 
 def aspect_ratio(corners: npt.ArrayLike) -> float:
     """Ratio of the longer to the shorter pair of opposite edges' summed lengths (>= 1)."""
-    e = edge_lengths(corners)
-    a, b = e[0] + e[2], e[1] + e[3]
-    return float(max(a, b) / max(min(a, b), 1e-12))
+    return _aspect_ratio(_pts(corners))
 
 
 def order_clockwise(corners: npt.ArrayLike) -> FloatArray:
@@ -130,22 +157,27 @@ def order_target_corners(
     higher in the image (smaller row = forward for a downward camera with forward up).
     """
     c = order_clockwise(corners)
-    e = edge_lengths(c)
+    e = _edge_lengths(_pts(c))
     pair02_short = (e[0] + e[2]) <= (e[1] + e[3])
     start = 0 if pair02_short == first_edge_short else 1
     options = [_rot(c, start), _rot(c, start + 2)]
     if hint is not None:
-        h = np.asarray(hint, dtype=np.float64)
-        cost = [float(np.sum(np.linalg.norm(o - h, axis=1))) for o in options]
-        return options[int(np.argmin(cost))]
+        h = _pts(hint)
+        cost = [sum(math.sqrt((x - hx) * (x - hx) + (y - hy) * (y - hy))
+                          for (x, y), (hx, hy) in zip(_pts(o), h, strict=True))
+                for o in options]
+        return options[0 if cost[0] <= cost[1] else 1]
     rows = [float(o[0, 1] + o[1, 1]) for o in options]
-    return options[int(np.argmin(rows))]
+    return options[0 if rows[0] <= rows[1] else 1]
 
 
 def touches_border(points: npt.ArrayLike, width: int, height: int, margin_px: float) -> bool:
     """True if any point lies within ``margin_px`` of the image border (pixel centres)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     lo = margin_px
+    if p.shape[0] <= 8:  # a quad: scalar comparisons (numpy's per-call cost dominates)
+        hx, hy = width - 1 - lo, height - 1 - lo
+        return any(x <= lo or y <= lo or x >= hx or y >= hy for x, y in p.tolist())
     return bool(
         np.any(p[:, 0] <= lo)
         or np.any(p[:, 1] <= lo)
@@ -159,17 +191,18 @@ def check_quad(corners: npt.ArrayLike, width: int, height: int, limits: QuadLimi
     c = np.asarray(corners, dtype=np.float64)
     if c.shape != (4, 2) or not np.all(np.isfinite(c)):
         return "corners not finite (4, 2)"
-    if not is_convex(c):
+    p = _pts(c)
+    if not _is_convex(p):
         return "not a convex quadrilateral"
-    area = abs(signed_area(c))
+    area = abs(_signed_area(p))
     if area < limits.min_area_px:
         return f"too small: area {area:.0f} px^2 < {limits.min_area_px:.0f}"
     if area > limits.max_area_fraction * width * height:
         return f"too large: area {area:.0f} px^2 > {limits.max_area_fraction:g} of the image"
-    ang = interior_angles(c)
-    if float(np.min(ang)) < limits.min_corner_angle_rad:
-        return f"implausible perspective: corner angle {float(np.min(ang)):.2f} rad"
-    ratio = aspect_ratio(c)
+    min_ang = min(_interior_angles(p))
+    if min_ang < limits.min_corner_angle_rad:
+        return f"implausible perspective: corner angle {min_ang:.2f} rad"
+    ratio = _aspect_ratio(p)
     lo = max(1.0, limits.expected_aspect / limits.max_aspect_distortion)
     hi = limits.expected_aspect * limits.max_aspect_distortion
     if not lo <= ratio <= hi:

@@ -351,3 +351,36 @@ def test_chunk_compression_from_config(tmp_path: Path, compression: str) -> None
     rec, msgs = read_log(path)
     assert rec.messages == 10 and not rec.salvaged
     assert all(np.array_equal(m.image, gray) for m in msgs if m.topic == "/camera/image")
+
+
+def test_a_held_writer_waits_for_release_and_loses_nothing(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The control step holds the writer thread off the GIL (McapLogger.hold); messages logged
+    meanwhile wait in the queue and are all written once released, in order; a hold never
+    outlives its cap (close does not hang on a logger left held)."""
+    import companion.log.writer as writer_mod
+
+    monkeypatch.setattr(writer_mod, "_MAX_HOLD_S", 30.0)
+    path = tmp_path / "held.mcap"
+    with McapLogger(path, chunk_size=1 << 20, flush_interval_s=0.05) as lg:
+        lg.hold()
+        for i in range(20):
+            lg.log("/seq", i, {"i": i}, schema=sch.JSON)
+        time.sleep(0.2)
+        assert lg.stats.written == 0  # held: nothing written (the cap is 30 s here)
+        lg.release()
+        deadline = time.monotonic() + 5.0
+        while lg.stats.written < 20 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert lg.stats.written == 20
+    with LogReader(path) as r:
+        assert [m.data["i"] for m in r.messages() if m.data is not None] == list(range(20))
+
+    monkeypatch.setattr(writer_mod, "_MAX_HOLD_S", 0.01)
+    path2 = tmp_path / "left-held.mcap"
+    with McapLogger(path2, chunk_size=1 << 20, flush_interval_s=0.05) as lg:
+        lg.hold()  # never released: each message waits at most the cap
+        for i in range(5):
+            lg.log("/seq", i, {"i": i}, schema=sch.JSON)
+    with LogReader(path2) as r:
+        assert [m.data["i"] for m in r.messages() if m.data is not None] == list(range(5))

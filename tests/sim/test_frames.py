@@ -245,3 +245,15 @@ def test_truth_to_nobody_never_raises() -> None:
         for k in range(20):
             pub.publish({"t_us": k})
         assert pub.sent + pub.errors == 20
+
+
+def test_record_parts_are_the_record_without_copying_the_image() -> None:
+    """The frame server writes (header, payload) as they are: the raw payload is the image's
+    own memory, read-only, and the two parts are exactly encode_frame's record."""
+    from sim_bridge.frames import encode_frame_parts
+
+    img = np.arange(48 * 64, dtype=np.uint8).reshape(48, 64)
+    header, payload = encode_frame_parts(7, 123, img)
+    assert header + bytes(payload) == encode_frame(7, 123, img)
+    view = np.frombuffer(payload, np.uint8)
+    assert np.shares_memory(view, img) and not view.flags.writeable
