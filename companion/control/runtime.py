@@ -60,8 +60,6 @@ TOPIC_STEP = "/control/step"
 TOPIC_SAFETY = "/control/safety"
 TOPIC_OFFBOARD = "/control/offboard"
 TOPIC_TRUTH = "/truth"
-# records held until the source log clock has its first stamp (a few seconds of traffic)
-EARLY_RECORDS_MAX = 4096
 TOPIC_POSE = "/vehicle/pose"
 TOPIC_TARGET_POSE = "/target/pose"
 TOPIC_STATS = "/mavlink/stats"
@@ -75,6 +73,9 @@ _STAMP_FIELDS = {
     "FOLLOW_TARGET": "timestamp",
 }
 STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
+
+# records held until the source log clock has its first stamp (a few seconds of traffic)
+EARLY_RECORDS_MAX = 4096
 
 
 class _StopRequested(Exception):
