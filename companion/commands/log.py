@@ -1,11 +1,14 @@
 """``companion log info LOG.mcap``: channels, counts, rates, duration (like ``mcap info``).
-``companion log export --tlog OUT.tlog LOG.mcap``: the MAVLink traffic as a telemetry log."""
+``companion log export --tlog OUT.tlog LOG.mcap``: the MAVLink traffic as a telemetry log.
+``companion log lag LOG.mcap``: the vehicle's tilt lag (``control.attitude_lag_s``) measured from
+the setpoints it flew (docs/attitude-lag.md)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from companion import CompanionError
 from companion.log.reader import LogReader, NotMcapError
 
 
@@ -23,6 +26,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                           "log: the log's own clock")
     exp.add_argument("log", type=Path)
     exp.set_defaults(func=_export)
+    lag = lsub.add_parser(
+        "lag", help="measure the vehicle's tilt lag (control.attitude_lag_s) from a flight")
+    lag.add_argument("log", type=Path)
+    lag.add_argument("--no-delay", action="store_true",
+                     help="fit the first-order lag alone (no pure delay)")
+    lag.add_argument("--max-delay", type=float, default=0.3, metavar="S",
+                     help="largest pure delay searched (s, default 0.3)")
+    lag.add_argument("--max-gap", type=float, default=0.5, metavar="S",
+                     help="a longer pause between setpoints ends a stretch (s, default 0.5)")
+    lag.add_argument("--json", action="store_true", help="print the result as JSON")
+    lag.set_defaults(func=_lag)
 
 
 def _export(args: argparse.Namespace) -> int:
@@ -63,4 +77,34 @@ def _info(args: argparse.Namespace) -> int:
     for c in chans:
         print(f"  {c.topic:<{w}}  {c.count:>7}  {c.rate_hz:>8.2f}  {c.schema_name} "
               f"[{c.message_encoding}]")
+    return 0
+
+
+def _lag(args: argparse.Namespace) -> int:
+    import json
+
+    from companion.log.lag import config_line, measure_lag
+
+    if not (0.0 <= args.max_delay <= 2.0) or not (0.0 < args.max_gap <= 10.0):
+        raise CompanionError("--max-delay must be in [0, 2] s and --max-gap in (0, 10] s")
+    res = measure_lag(args.log, fit_delay=not args.no_delay, max_delay_s=args.max_delay,
+                      max_gap_s=args.max_gap)
+    if args.json:
+        print(json.dumps(res.to_dict(), indent=2))
+        return 0
+    print(f"log:       {args.log}")
+    print(f"used:      {res.samples} attitude samples ({res.attitude_topic}), {res.setpoints} "
+          f"setpoints, {res.stretches} stretch(es), {res.offboard_s:.1f} s in OFFBOARD")
+    if res.dropped_nonfinite:
+        print(f"dropped:   {res.dropped_nonfinite} non-finite samples")
+    print(f"tau:       {res.tau_s:.3f} s  (roll {res.per_axis_tau_s[0]:.3f} s, pitch "
+          f"{res.per_axis_tau_s[1]:.3f} s; squared error within 10 % of the best for "
+          f"{res.tau_range_s[0]:.3f}..{res.tau_range_s[1]:.3f} s)")
+    if res.fit_delay:
+        print(f"delay:     {res.delay_s * 1e3:.0f} ms (setpoint sent -> autopilot acting on it)")
+    print(f"fit:       RMS residual {res.rms_deg:.3f} deg, variance explained "
+          f"{res.variance_explained * 100:.1f} %")
+    for w in res.at_bound:
+        print(f"warning:   {w}: not identified from this log")
+    print(f"suggested: {config_line(res.tau_s)}")
     return 0

@@ -147,8 +147,8 @@ def _forced(cmd_t: np.ndarray, cmd: np.ndarray, taus: np.ndarray) -> np.ndarray:
 def _g_at(t: np.ndarray, cmd_t: np.ndarray, cmd: np.ndarray, g: np.ndarray,
           taus: np.ndarray) -> np.ndarray:
     """G at times ``t`` (each >= cmd_t[0]): (len(t), n_tau, 2)."""
-    k = np.searchsorted(cmd_t, t, side="right") - 1
-    h = (t - cmd_t[k])[:, None, None]
+    k = np.clip(np.searchsorted(cmd_t, t, side="right") - 1, 0, None)
+    h = np.maximum(t - cmd_t[k], 0.0)[:, None, None]  # >= 0 up to rounding at cmd_t[0]
     u = cmd[k][:, None, :]
     return u + (g[k] - u) * np.exp(-h / taus[None, :, None])
 
