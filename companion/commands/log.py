@@ -31,8 +31,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     lag.add_argument("log", type=Path)
     lag.add_argument("--no-delay", action="store_true",
                      help="fit the first-order lag alone (no pure delay)")
-    lag.add_argument("--max-delay", type=float, default=0.3, metavar="S",
-                     help="largest pure delay searched (s, default 0.3)")
+    lag.add_argument("--max-delay", type=float, default=0.2, metavar="S",
+                     help="largest pure delay searched (s, default 0.2)")
     lag.add_argument("--max-gap", type=float, default=0.5, metavar="S",
                      help="a longer pause between setpoints ends a stretch (s, default 0.5)")
     lag.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -104,7 +104,7 @@ def _lag(args: argparse.Namespace) -> int:
         print(f"delay:     {res.delay_s * 1e3:.0f} ms (setpoint sent -> autopilot acting on it)")
     print(f"fit:       RMS residual {res.rms_deg:.3f} deg, variance explained "
           f"{res.variance_explained * 100:.1f} %")
-    for w in res.at_bound:
-        print(f"warning:   {w}: not identified from this log")
+    for w in res.warnings:
+        print(f"warning:   {w}")
     print(f"suggested: {config_line(res.tau_s)}")
     return 0

@@ -27,6 +27,7 @@ a setpoint (the link, the autopilot's loop) is the fitted ``delay``.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -53,12 +54,17 @@ MAV_AUTOPILOT_INVALID = 8
 #: fewest attitude samples the fit accepts (two seconds of PX4's slowest attitude stream)
 MIN_SAMPLES = 40
 #: smallest spread (std, rad) of the commanded tilt over the samples used: below it the
-#: commands hardly move and the lag cannot be seen (0.2 deg)
-MIN_EXCITATION_RAD = math.radians(0.2)
+#: commands do not move (a vehicle holding still); how well what moves pins tau down is
+#: reported (``tau_range_s``, ``variance_explained``) and warned about (:data:`WEAK_RANGE`)
+MIN_EXCITATION_RAD = math.radians(0.02)
 #: a backwards jump of time_boot_ms larger than this is a reboot: the stretch ends there
 REBOOT_JUMP_S = 1.0
 
 TAU_MIN_S, TAU_MAX_S = 0.005, 2.0
+#: warn when the taus within 10 % of the best squared error span more than this fraction of
+#: tau either way, or when less than WEAK_VARIANCE of the attitude's variance is explained
+WEAK_RANGE = 0.25
+WEAK_VARIANCE = 0.8
 
 
 class LagFitError(CompanionError):
@@ -83,8 +89,8 @@ class LagFit:
     ``variance_explained``: 1 - SSE / (sum of squared deviations of the measured roll and pitch
     from their means); ``per_axis_tau_s``: tau fitted to roll and to pitch alone at the joint
     delay; ``tau_range_s``: the taus whose squared error is within 10 % of the best (at the best
-    delay): how sharply the data pin tau down; ``at_bound``: the best tau or delay lies on the
-    edge of the searched range (not identified)."""
+    delay): how sharply the data pin tau down; ``warnings``: why the result may not be
+    trusted (a bound of the searched range reached, tau weakly identified, a poor fit)."""
 
     tau_s: float
     delay_s: float
@@ -93,7 +99,7 @@ class LagFit:
     samples: int
     per_axis_tau_s: tuple[float, float]
     tau_range_s: tuple[float, float]
-    at_bound: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
     stretches: int = 0
     setpoints: int = 0
     offboard_s: float = 0.0
@@ -107,7 +113,7 @@ class LagFit:
             "rms_deg": self.rms_deg, "variance_explained": self.variance_explained,
             "samples": self.samples, "per_axis_tau_s": {"roll": self.per_axis_tau_s[0],
                                                         "pitch": self.per_axis_tau_s[1]},
-            "tau_range_s": list(self.tau_range_s), "at_bound": self.at_bound,
+            "tau_range_s": list(self.tau_range_s), "warnings": self.warnings,
             "stretches": self.stretches, "setpoints": self.setpoints,
             "offboard_s": self.offboard_s, "dropped_nonfinite": self.dropped_nonfinite,
             "attitude_topic": self.attitude_topic,
@@ -150,7 +156,8 @@ def _g_at(t: np.ndarray, cmd_t: np.ndarray, cmd: np.ndarray, g: np.ndarray,
     k = np.clip(np.searchsorted(cmd_t, t, side="right") - 1, 0, None)
     h = np.maximum(t - cmd_t[k], 0.0)[:, None, None]  # >= 0 up to rounding at cmd_t[0]
     u = cmd[k][:, None, :]
-    return u + (g[k] - u) * np.exp(-h / taus[None, :, None])
+    out: np.ndarray = u + (g[k] - u) * np.exp(-h / taus[None, :, None])
+    return out
 
 
 def _simulate(s: Series, taus: np.ndarray, delay_s: float, t0: float,
@@ -161,7 +168,8 @@ def _simulate(s: Series, taus: np.ndarray, delay_s: float, t0: float,
     e = np.exp(-(s.att_t[1:] - t0)[:, None, None] / taus[None, :, None])
     gt = _g_at(s.att_t[1:] - delay_s, s.cmd_t, s.cmd, g, taus)
     g0 = _g_at(np.array([t0 - delay_s]), s.cmd_t, s.cmd, g, taus)
-    return y0 * e + gt - e * g0
+    out: np.ndarray = y0 * e + gt - e * g0
+    return out
 
 
 def _sse_grid(series: Sequence[Series], taus: np.ndarray, delays: np.ndarray
@@ -188,7 +196,7 @@ def _trim(series: Sequence[Series], max_delay_s: float) -> list[Series]:
     return out
 
 
-def fit_lag(series: Sequence[Series], *, fit_delay: bool = True, max_delay_s: float = 0.3,
+def fit_lag(series: Sequence[Series], *, fit_delay: bool = True, max_delay_s: float = 0.2,
             tau_bounds_s: tuple[float, float] = (TAU_MIN_S, TAU_MAX_S),
             min_samples: int = MIN_SAMPLES) -> LagFit:
     """Least-squares first-order lag (and delay) from the stretches ``series``."""
@@ -207,13 +215,13 @@ def fit_lag(series: Sequence[Series], *, fit_delay: bool = True, max_delay_s: fl
     if spread < MIN_EXCITATION_RAD:
         raise LagFitError(
             f"the commanded roll/pitch hardly move (std {math.degrees(spread):.3f} deg < "
-            f"{math.degrees(MIN_EXCITATION_RAD):.1f} deg): the lag cannot be seen; fly a "
+            f"{math.degrees(MIN_EXCITATION_RAD):.2f} deg): the lag cannot be seen; fly a "
             f"stretch with tilt changes (a moving target, or steps)")
     lo, hi = tau_bounds_s
     taus = np.geomspace(lo, hi, 64)
     delays = np.arange(0.0, max_delay_s + 1e-9, 0.005) if fit_delay else np.zeros(1)
     sse = _sse_grid(used, taus, delays).sum(axis=2)
-    i, j = np.unravel_index(int(np.argmin(sse)), sse.shape)
+    i, j = (int(v) for v in np.unravel_index(int(np.argmin(sse)), sse.shape))
     # refine: around the best grid point, one coarse step each way
     tau_f = np.linspace(taus[max(j - 1, 0)], taus[min(j + 1, taus.size - 1)], 41)
     if fit_delay:
@@ -223,26 +231,36 @@ def fit_lag(series: Sequence[Series], *, fit_delay: bool = True, max_delay_s: fl
         d_f = np.zeros(1)
     sse_f = _sse_grid(used, tau_f, d_f)
     tot = sse_f.sum(axis=2)
-    fi, fj = np.unravel_index(int(np.argmin(tot)), tot.shape)
+    fi, fj = (int(v) for v in np.unravel_index(int(np.argmin(tot)), tot.shape))
     tau, delay = float(tau_f[fj]), float(d_f[fi])
     best = float(tot[fi, fj])
-    at_bound = []
+    warnings = []
     if j == 0 or j == taus.size - 1:
-        at_bound.append(f"tau at the edge of the searched {lo:g}..{hi:g} s")
+        warnings.append(f"tau at the edge of the searched {lo:g}..{hi:g} s: not identified")
     if fit_delay and i == delays.size - 1:
-        at_bound.append(f"delay at the edge of the searched 0..{max_delay_s:g} s")
-    # per axis, and how sharply tau is pinned (coarse grid at the best delay, and the fine one)
-    per_axis = tuple(float(tau_f[int(np.argmin(sse_f[fi, :, a]))]) for a in range(2))
-    row = _sse_grid(used, taus, np.array([delay])).sum(axis=2)[0]
-    within = taus[row <= 1.1 * best]
-    rng = (float(within.min()), float(within.max())) if within.size else (tau, tau)
-    rng = (min(rng[0], tau), max(rng[1], tau))
+        warnings.append(f"delay at the edge of the searched 0..{max_delay_s:g} s: not "
+                        "identified (a longer delay? --max-delay)")
+    # per axis, and how sharply tau is pinned: a dense grid (3 % steps) at the best delay
+    dense = np.geomspace(lo, hi, 200)
+    rows = _sse_grid(used, dense, np.array([delay]))[0]
+    per_axis = (float(dense[int(np.argmin(rows[:, 0]))]),
+                float(dense[int(np.argmin(rows[:, 1]))]))
+    within = dense[rows.sum(axis=1) <= 1.1 * best]
+    rng = (min(float(within.min()), tau), max(float(within.max()), tau)) if within.size \
+        else (tau, tau)
     y = np.concatenate([s.att[1:] for s in used])
     sst = float(np.sum((y - y.mean(axis=0)) ** 2))
+    ve = 1.0 - best / sst if sst > 0 else math.nan
+    if rng[0] < tau * (1 - WEAK_RANGE) or rng[1] > tau * (1 + WEAK_RANGE):
+        warnings.append(f"tau weakly identified: {rng[0]:.3f}..{rng[1]:.3f} s fit within 10 % "
+                        "of the best; fly a stretch with more tilt changes")
+    if not ve >= WEAK_VARIANCE:
+        warnings.append(f"the model explains only {ve * 100:.0f} % of the attitude's variance: "
+                        "a first-order lag describes this vehicle poorly, or noise dominates")
     return LagFit(
         tau_s=tau, delay_s=delay, rms_deg=math.degrees(math.sqrt(best / (2 * n))),
-        variance_explained=1.0 - best / sst if sst > 0 else math.nan, samples=n,
-        per_axis_tau_s=(per_axis[0], per_axis[1]), tau_range_s=rng, at_bound=at_bound,
+        variance_explained=ve, samples=n,
+        per_axis_tau_s=per_axis, tau_range_s=rng, warnings=warnings,
         stretches=len(used), fit_delay=fit_delay)
 
 
@@ -303,9 +321,8 @@ def offboard_intervals(raw: _Raw, sysid: int, compid: int) -> tuple[list[tuple[f
     if not hbs:
         return [], 0
     # our accepted mode requests: (time of the ACK, whether it asked for OFFBOARD)
-    reqs = sorted((t * 1e-9, f) for t, f in raw.cmd_out
-                  if int(_num(f.get("command")) if math.isfinite(_num(f.get("command")))
-                         else -1) == MAV_CMD_DO_SET_MODE)
+    reqs = [(t * 1e-9, f) for t, f in sorted(raw.cmd_out, key=lambda r: r[0])
+            if f.get("command") == MAV_CMD_DO_SET_MODE]
     changes: list[tuple[float, bool]] = []
     for t, f in raw.ack:
         if f.get("command") != MAV_CMD_DO_SET_MODE or f.get("result") != MAV_RESULT_ACCEPTED:
@@ -319,7 +336,7 @@ def offboard_intervals(raw: _Raw, sysid: int, compid: int) -> tuple[list[tuple[f
     # timeline points: (time, offboard, kind)
     pts = sorted([(t, o, "hb") for t, o in hbs] + [(t, o, "ack") for t, o in changes])
     out: list[tuple[float, float]] = []
-    for (t_a, o_a, _), (t_b, o_b, k_b) in zip(pts, pts[1:], strict=False):
+    for (t_a, o_a, _), (t_b, o_b, k_b) in itertools.pairwise(pts):
         if o_a and (o_b or k_b == "ack"):
             out.append((t_a, t_b))  # held, or left exactly at our accepted request
     t_last, o_last, _ = pts[-1]
@@ -382,10 +399,10 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     if topic == TOPIC_ATTITUDE:
         att = np.array([[_num(f.get("roll")), _num(f.get("pitch"))] for _, f in rows])
     else:
-        qa = np.array([[_num(f.get(k)) for k in ("q1", "q2", "q3", "q4")] for _, f in rows])
-        att = np.full((qa.shape[0], 2), np.nan)
-        good = np.all(np.isfinite(qa), axis=1) & (np.linalg.norm(qa, axis=1) > 0.5)
-        att[good] = roll_pitch_from_quat(qa[good])
+        qs_m = np.array([[_num(f.get(k)) for k in ("q1", "q2", "q3", "q4")] for _, f in rows])
+        att = np.full((qs_m.shape[0], 2), np.nan)
+        good = np.all(np.isfinite(qs_m), axis=1) & (np.linalg.norm(qs_m, axis=1) > 0.5)
+        att[good] = roll_pitch_from_quat(qs_m[good])
     ok_a = np.all(np.isfinite(att), axis=1) & np.isfinite(att_boot)
     dropped += int(np.count_nonzero(~ok_a))
     att_log, att_boot, att = att_log[ok_a], att_boot[ok_a], att[ok_a]
@@ -401,8 +418,12 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     off_s = 0.0
     n_sp = 0
     for a, b in intervals:
-        # setpoint runs inside [a, b): split at gaps and at unusable setpoints
-        sel = np.nonzero((cmd_t >= a - max_gap_s) & (cmd_t < b))[0]
+        # setpoint runs inside (a, b), split at gaps and at unusable setpoints. A setpoint
+        # sent before the stretch began is left out even if it was still in force: PX4 takes
+        # attitude setpoints only while in OFFBOARD (mavlink_receiver), so on engaging it
+        # flies the first one received after the switch; before that, its previous mode's.
+        # The fit then starts max_delay_s after the first setpoint kept (_trim).
+        sel = np.nonzero((cmd_t > a) & (cmd_t < b))[0]
         runs: list[np.ndarray] = []
         cur: list[int] = []
         for k in sel:
@@ -435,7 +456,7 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
                 if np.count_nonzero(keep) < 2:
                     continue
                 series.append(Series(c_t, c, t_att[keep], y[keep]))
-            off_s += t_hi - t_lo
+            off_s += float(t_hi - t_lo)
             n_sp += int(np.count_nonzero((c_t >= t_lo) & (c_t < t_hi)))
     if not series:
         raise LagFitError(f"{path}: no stretch with both setpoints and attitude while the "
@@ -444,7 +465,7 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     return LogSeries(series, n_sp, off_s, dropped, topic)
 
 
-def measure_lag(path: str | Path, *, fit_delay: bool = True, max_delay_s: float = 0.3,
+def measure_lag(path: str | Path, *, fit_delay: bool = True, max_delay_s: float = 0.2,
                 max_gap_s: float = 0.5) -> LagFit:
     """Read ``path`` and fit the lag; raises :class:`LagFitError` with the reason when the log
     cannot give one."""

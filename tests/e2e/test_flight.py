@@ -210,6 +210,43 @@ def test_log_info_lists_channels(flight: tuple[Path, dict], tmp_path: Path) -> N
     assert "1 damaged chunk(s) skipped" in p.stdout and "/control/step" in p.stdout
 
 
+def test_log_lag_measures_the_emulators_attitude_time_constant(flight: tuple[Path, dict]
+                                                               ) -> None:
+    """``companion log lag`` on the flight's own MCAP recovers the emulator's first-order
+    ``sim.vehicle.attitude_tau_s``.
+
+    Tolerances from the physics, not from a result: the emulator's attitude model is the fitted
+    model itself (each roll/pitch a first-order lag, integrated exactly for the held setpoint
+    every physics step), its rate limit (3 rad/s) binds only for a setpoint more than
+    3 * 0.08 = 0.24 rad (14 deg) from the attitude, while the ideal paper world's setpoints
+    stay within 12 deg of level (|r| <= 1.5 m/s^2 per axis, nothing to reject) and would have
+    to reverse across level to be that far; and in lockstep the setpoint logged at a step's
+    autopilot time is the one the emulator applies from that time. What is left is the fit's
+    tau resolution (0.5 %, refined grid) and float32 attitudes: 2 % on tau; the delay within
+    one physics step (sim.physics_dt_s = 2.5 ms). The emulated PX4 cascade (~0.1 s and 50 ms
+    of delay) or a lag fitted outside OFFBOARD would fail both."""
+    out, _ = flight
+    sim = _sim_vehicle(out / "config.toml")
+    assert sim["attitude_model"] == "first-order"
+    tau = float(sim["attitude_tau_s"])
+    p = subprocess.run([sys.executable, "-m", "companion", "log", "lag", "--json",
+                        str(out / "flight.mcap")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout)
+    assert res["tau_s"] == pytest.approx(tau, rel=0.02)
+    assert 0.0 <= res["delay_s"] <= 0.0025
+    assert res["variance_explained"] > 0.99 and not res["warnings"]
+    # most of the OFFBOARD flight is used: from engagement (~1.1 s) to the end (DURATION_S)
+    assert res["offboard_s"] > DURATION_S - 2.0
+    assert res["config_line"] == f"control.attitude_lag_s = {res['tau_s']:.3f}"
+
+
+def _sim_vehicle(path: Path) -> dict:
+    import tomllib
+
+    return dict(tomllib.loads(path.read_text())["sim"]["vehicle"])
+
+
 def test_mcap_camera_source_yields_the_recorded_frames(flight: tuple[Path, dict]) -> None:
     import asyncio
 
