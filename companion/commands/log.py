@@ -107,4 +107,7 @@ def _lag(args: argparse.Namespace) -> int:
     for w in res.warnings:
         print(f"warning:   {w}")
     print(f"suggested: {config_line(res.tau_s)}")
+    if res.fit_delay:
+        print(f"with:      control.latency.actuation_delay_s = {res.delay_s:.3f} (the two "
+              "belong together; --no-delay for a lag alone)")
     return 0

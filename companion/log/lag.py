@@ -160,16 +160,22 @@ def _g_at(t: np.ndarray, cmd_t: np.ndarray, cmd: np.ndarray, g: np.ndarray,
     return out
 
 
-def _simulate(s: Series, taus: np.ndarray, delay_s: float, t0: float,
-              g: np.ndarray) -> np.ndarray:
-    """Simulated attitude at ``s.att_t`` (after the first sample, which starts it) for every
-    tau with the commands delayed by ``delay_s``: (m - 1, n_tau, 2)."""
-    y0 = s.att[0]
-    e = np.exp(-(s.att_t[1:] - t0)[:, None, None] / taus[None, :, None])
-    gt = _g_at(s.att_t[1:] - delay_s, s.cmd_t, s.cmd, g, taus)
+def _simulate(s: Series, taus: np.ndarray, delay_s: float, g: np.ndarray,
+              rows: slice) -> np.ndarray:
+    """Simulated attitude at ``s.att_t[rows]`` (rows after the first sample, which starts the
+    response at ``t0 = s.att_t[0]``) for every tau with the commands delayed by ``delay_s``:
+    (n_rows, n_tau, 2)."""
+    t0 = float(s.att_t[0])
+    t = s.att_t[rows]
+    e = np.exp(-(t - t0)[:, None, None] / taus[None, :, None])
+    gt = _g_at(t - delay_s, s.cmd_t, s.cmd, g, taus)
     g0 = _g_at(np.array([t0 - delay_s]), s.cmd_t, s.cmd, g, taus)
-    out: np.ndarray = y0 * e + gt - e * g0
+    out: np.ndarray = s.att[0] * e + gt - e * g0
     return out
+
+
+#: attitude samples simulated at once (bounds memory: rows x taus x 2 floats per array)
+_CHUNK = 2048
 
 
 def _sse_grid(series: Sequence[Series], taus: np.ndarray, delays: np.ndarray
@@ -178,10 +184,11 @@ def _sse_grid(series: Sequence[Series], taus: np.ndarray, delays: np.ndarray
     out = np.zeros((delays.size, taus.size, 2))
     for s in series:
         g = _forced(s.cmd_t, s.cmd, taus)
-        t0 = s.att_t[0]
-        for i, d in enumerate(delays):
-            r = _simulate(s, taus, float(d), t0, g) - s.att[1:, None, :]
-            out[i] += np.sum(r * r, axis=0)
+        for a in range(1, s.att_t.size, _CHUNK):
+            rows = slice(a, min(a + _CHUNK, s.att_t.size))
+            for i, d in enumerate(delays):
+                r = _simulate(s, taus, float(d), g, rows) - s.att[rows, None, :]
+                out[i] += np.sum(r * r, axis=0)
     return out
 
 
