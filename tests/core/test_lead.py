@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from companion import ConfigError
 from companion.config import load_config
 from companion.control.pipeline import ControlPipeline, StepResult
 from companion.control.runtime import new_store
@@ -96,7 +97,7 @@ def test_lead_params_are_checked(bad: dict[str, float]) -> None:
 
 
 def test_config_refuses_a_bad_lead_key() -> None:
-    with pytest.raises(Exception, match=r"control\.lead\.attitude_lag_s"):
+    with pytest.raises(ConfigError, match=r"control\.lead\.attitude_lag_s"):
         load_config(overrides=["control.lead.attitude_lag_s=-1"])
 
 
