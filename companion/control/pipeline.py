@@ -39,6 +39,7 @@ from companion.core.geometry import (
     wrap_pi,
 )
 from companion.core.latency import Prediction, predict_error_state
+from companion.core.lead import TiltLead
 from companion.core.moments import DegenerateTargetError, a_star, fold_s4
 from companion.core.prediction import predict_target_motion
 from companion.core.reacquire import reacquire_input
@@ -86,6 +87,8 @@ class StepResult:
     in_control: bool | None = None  # the runtime's view: our setpoints fly the vehicle
     #: ``(x0, y0, x1, y1)`` pixels (end exclusive) of the image perception read, when known
     input_region: tuple[int, int, int, int] | None = None
+    #: tilt-lag lead term added to the horizontal command (2,) NED m/s^2 (None: not led)
+    lead_m_s2: np.ndarray | None = None
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -122,6 +125,7 @@ class StepResult:
             "t_now_s": self.t_now_s,
             "in_control": self.in_control,
             "estimator": None if self.estimator is None else self.estimator.to_record(),
+            "lead_m_s2": _lst(self.lead_m_s2),
             "latency": None if self.prediction is None else {
                 "frame_age_s": self.prediction.t_to_s - self.prediction.t_from_s,
                 "horizon_s": self.prediction.horizon_s,
@@ -160,6 +164,8 @@ class ControlPipeline:
         # (t_effect_s, u: the vehicle's acceleration/yaw rate asked for (4,), thrust sent)
         self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)
         self._control_since: float | None = None  # since when our setpoints fly the vehicle
+        self._lead = TiltLead(cfg.control.lead)
+        self._lead_m_s2: np.ndarray | None = None
         self.force_solver_failure = False
         # Optional stage timing (seconds clock, e.g. time.perf_counter): measurement only,
         # it never changes a result, so replay stays exact with or without it.
@@ -298,11 +304,19 @@ class ControlPipeline:
         est = self._dist.estimate() if self._dist is not None else None
         if u is not None:
             try:
-                sp = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est)
+                # led only while our setpoints fly the vehicle: before OFFBOARD PX4 holds
+                # level with its own controller, so a difference of streamed commands is not
+                # a change of tilt the vehicle must catch up with
+                sp = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est,
+                                    None if in_control is False else t_now)
             except ValueError as exc:
                 notes.append(f"setpoint refused: {exc}")
+                self._lead.reset()
                 sp = None
                 level = SafetyLevel.HOVER
+        lead_m_s2 = self._lead_m_s2 if sp is not None else None
+        if sp is None:
+            self._lead.reset()
         if sp is None and level is not SafetyLevel.SILENT:
             u = None
             sp = None
@@ -336,17 +350,32 @@ class ControlPipeline:
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
             safety=decision, u=u, setpoint=sp, notes=tuple(notes), estimator=est,
             prediction=pred, t_now_s=t_now, in_control=in_control, input_region=region,
+            lead_m_s2=lead_m_s2,
         )
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,
-                  est: DisturbanceEstimate | None) -> AttitudeSetpoint:
+                  est: DisturbanceEstimate | None,
+                  lead_at_s: float | None = None) -> AttitudeSetpoint:
         """Spec 5 for the acceleration ``u``; with the estimator, the specific force that gives
-        ``u`` despite the disturbance, at the estimated hover thrust."""
+        ``u`` despite the disturbance, at the estimated hover thrust. ``lead_at_s``: the
+        controller's command at that time, led for the vehicle's tilt lag (companion/core/
+        lead.py); ``None``: a command that is not led (level hover), which restarts the lead."""
         c = self.cfg.control
         hover = c.hover_thrust
         if est is not None:
             u = compensated_input(u, est.d_ned_m_s2, self._last_yaw)
             hover = est.hover_thrust
+        self._lead_m_s2 = None
+        if lead_at_s is None:
+            self._lead.reset()
+        else:
+            cy, sy = math.cos(self._last_yaw), math.sin(self._last_yaw)
+            uu = np.array(u, dtype=float).reshape(4)
+            a_ned = np.array([cy * uu[0] - sy * uu[1], sy * uu[0] + cy * uu[1]])
+            led, lead = self._lead.apply(lead_at_s, a_ned)
+            uu[0], uu[1] = cy * led[0] + sy * led[1], -sy * led[0] + cy * led[1]
+            u = uu
+            self._lead_m_s2 = lead
         return attitude_setpoint(u, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
                                  hover_thrust=hover, thrust_min=c.thrust_min,
                                  thrust_max=c.thrust_max)

@@ -13,6 +13,7 @@ from typing import Any
 from companion.core.disturbance import EstimatorParams
 from companion.core.errors import ParamError
 from companion.core.latency import LatencyParams
+from companion.core.lead import LeadParams
 
 
 def positive(x: float) -> str | None:
@@ -205,6 +206,8 @@ class ControlParams:
     # (companion/core/disturbance.py, latency.py; docs/offset-free.md).
     estimator: EstimatorParams = field(default_factory=EstimatorParams)
     latency: LatencyParams = field(default_factory=LatencyParams)
+    # Tilt-lag lead compensation of the commands (companion/core/lead.py).
+    lead: LeadParams = field(default_factory=LeadParams)
 
     def __post_init__(self) -> None:
         if not self.thrust_min < self.hover_thrust < self.thrust_max:
