@@ -1,7 +1,7 @@
 """``companion log info LOG.mcap``: channels, counts, rates, duration (like ``mcap info``).
 ``companion log export --tlog OUT.tlog LOG.mcap``: the MAVLink traffic as a telemetry log.
-``companion log lag LOG.mcap``: the vehicle's tilt lag (``control.attitude_lag_s``) measured from
-the setpoints it flew (docs/attitude-lag.md)."""
+``companion log lag LOG.mcap``: the vehicle's tilt lag (``control.lead.attitude_lag_s``)
+measured from the setpoints it flew (docs/attitude-lag.md)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     exp.add_argument("log", type=Path)
     exp.set_defaults(func=_export)
     lag = lsub.add_parser(
-        "lag", help="measure the vehicle's tilt lag (control.attitude_lag_s) from a flight")
+        "lag", help="measure the vehicle's tilt lag (control.lead.attitude_lag_s) from a flight")
     lag.add_argument("log", type=Path)
     lag.add_argument("--no-delay", action="store_true",
                      help="fit the first-order lag alone (no pure delay)")

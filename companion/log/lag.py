@@ -122,7 +122,7 @@ class LagFit:
 
 
 def config_line(tau_s: float) -> str:
-    return f"control.attitude_lag_s = {tau_s:.3f}"
+    return f"control.lead.attitude_lag_s = {tau_s:.3f}"
 
 
 def roll_pitch_from_quat(q_wxyz: np.ndarray) -> np.ndarray:

@@ -211,7 +211,7 @@ def test_the_lag_of_a_logged_flight_from_the_cli(tmp_path: Path,
     # the setpoints are logged when sent and the samples placed by the link's smallest delay
     # (2 ms): what is left is at most the 6 ms receipt jitter
     assert 0.0 <= res["delay_s"] <= 0.01
-    assert res["config_line"] == f"control.attitude_lag_s = {res['tau_s']:.3f}"
+    assert res["config_line"] == f"control.lead.attitude_lag_s = {res['tau_s']:.3f}"
     # OFFBOARD from the first setpoint after the accepted request at 3 s (3.05 s: PX4 flies
     # only setpoints received in OFFBOARD) to the last OFFBOARD heartbeat at 26.5 s (the change
     # at 27 s has no request of ours: the second up to the next heartbeat is left out), less
@@ -222,7 +222,7 @@ def test_the_lag_of_a_logged_flight_from_the_cli(tmp_path: Path,
     assert res["samples"] == pytest.approx(50 * (22.9 - 2 * 0.2), abs=4)
     assert res["stretches"] == 2  # split at the 1 s setpoint gap
     rc, out, _ = _cli([str(tmp_path / "f.mcap")], capsys)
-    assert rc == 0 and f"suggested: control.attitude_lag_s = {res['tau_s']:.3f}" in out
+    assert rc == 0 and f"suggested: control.lead.attitude_lag_s = {res['tau_s']:.3f}" in out
 
 
 def test_a_log_without_setpoints_is_a_clear_error(tmp_path: Path,
