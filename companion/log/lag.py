@@ -374,14 +374,16 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
         raise LagFitError(f"{path}: no attitude setpoints ({TOPIC_SAT}) in the log: "
                           "it is not a log of a flight the companion flew")
     f0 = raw.sat[0][1]
-    sysid, compid = int(_num(f0.get("target_system"))), int(_num(f0.get("target_component")))
+    sysid, compid = f0.get("target_system"), f0.get("target_component")
+    if not (isinstance(sysid, int) and isinstance(compid, int)):
+        raise LagFitError(f"{path}: the setpoints carry no target system/component")
     # commands
     dropped = 0
     cmd_t_l, q_l = [], []
     for t, f in raw.sat:
         q = f.get("q")
-        mask = int(_num(f.get("type_mask"))) if math.isfinite(_num(f.get("type_mask"))) else 0
-        if mask & 128:  # attitude ignored (a body-rate setpoint): no attitude command
+        mask = f.get("type_mask")
+        if isinstance(mask, int) and mask & 128:  # attitude ignored: a body-rate setpoint
             continue
         qa = [_num(v) for v in q] if isinstance(q, list) and len(q) == 4 else [math.nan] * 4
         cmd_t_l.append(t * 1e-9)

@@ -143,13 +143,17 @@ BOOT_OFFSET_S = 1234.5  # companion clock - autopilot clock
 
 
 def _write_flight(path: Path, tau_s: float, *, setpoints: bool = True, nan_from_s: float = 1e9,
-                  gap: tuple[float, float] = (14.0, 15.0), chunk_size: int = 1 << 20) -> None:
+                  gap: tuple[float, float] = (14.0, 15.0), chunk_size: int = 1 << 20,
+                  quaternion: bool = False, offboard: bool = True) -> None:
     """A receipt-clock log: the autopilot (sysid 1) streams ATTITUDE at 50 Hz (received
     2-8 ms after its stamp, on a companion clock BOOT_OFFSET_S ahead) and a 1 Hz HEARTBEAT;
     the companion streams setpoints at 20 Hz from t = 0. Before T_ON_S (POSCTL) the vehicle
     holds level and ignores them; our DO_SET_MODE(OFFBOARD) is accepted at T_ON_S; at T_OFF_S
     the pilot takes over (POSCTL, no command of ours) and the vehicle levels again. No setpoint
-    in ``gap`` (the vehicle holds the last one). Attitude is NaN from ``nan_from_s``."""
+    in ``gap`` (the vehicle holds the last one). Attitude is NaN from ``nan_from_s``;
+    ``quaternion``: sent as ATTITUDE_QUATERNION instead of ATTITUDE; ``offboard`` False: our
+    request is refused and every heartbeat says POSCTL (the vehicle still flies as above: only
+    the log's mode records differ)."""
     rng = np.random.default_rng(7)
     ap, comp = _mav(1, 1), _mav(1, 191)
     cmd_t = np.arange(0.0, T_END_S, 0.05)
@@ -170,17 +174,21 @@ def _write_flight(path: Path, tau_s: float, *, setpoints: bool = True, nan_from_
         r, p = y[i] + rng.normal(0.0, NOISE_RAD, 2)
         if tb >= nan_from_s:
             r = p = float("nan")
-        msg = mavlink2.MAVLink_attitude_message(round(tb * 1e3), r, p, 0.3, 0.0, 0.0, 0.0)
+        if quaternion:  # ATTITUDE_QUATERNION only (a stream set-up without ATTITUDE)
+            msg = mavlink2.MAVLink_attitude_quaternion_message(
+                round(tb * 1e3), *_quat(r, p), 0.0, 0.0, 0.0, [0.0] * 4)
+        else:
+            msg = mavlink2.MAVLink_attitude_message(round(tb * 1e3), r, p, 0.3, 0.0, 0.0, 0.0)
         items.append(("in", _rx(ap, msg, off + int((tb + rng.uniform(0.002, 0.008)) * 1e9))))
     for k in range(int(T_END_S)):
-        mode = OFFBOARD if T_ON_S < k + 0.5 <= T_OFF_S else POSCTL
+        mode = OFFBOARD if offboard and T_ON_S < k + 0.5 <= T_OFF_S else POSCTL
         base = 209 if mode == OFFBOARD else 217
         hb = mavlink2.MAVLink_heartbeat_message(2, 12, base, mode, 4, 3)
         items.append(("in", _rx(ap, hb, off + int((k + 0.5) * 1e9))))
     # our OFFBOARD request and its acceptance
     items.append(("out", _tx(comp, mavlink2.MAVLink_command_long_message(
         1, 1, 176, 0, 1.0, 6.0, 0.0, 0.0, 0.0, 0.0, 0.0), off + int((T_ON_S - 0.01) * 1e9))))
-    items.append(("in", _rx(ap, mavlink2.MAVLink_command_ack_message(176, 0),
+    items.append(("in", _rx(ap, mavlink2.MAVLink_command_ack_message(176, 0 if offboard else 4),
                             off + int(T_ON_S * 1e9))))
     if setpoints:
         for t, (r, p) in zip(cmd_t, cmd, strict=True):
@@ -257,3 +265,17 @@ def test_a_truncated_log_gives_what_its_salvaged_part_holds(tmp_path: Path) -> N
     cut.write_bytes(data[: len(data) // 10])  # before OFFBOARD engaged
     with pytest.raises(LagFitError, match="OFFBOARD"):
         measure_lag(cut)
+
+
+def test_attitude_quaternion_is_used_without_attitude(tmp_path: Path) -> None:
+    _write_flight(tmp_path / "q.mcap", 0.12, quaternion=True)
+    res = measure_lag(tmp_path / "q.mcap")
+    assert res.attitude_topic == "/mavlink/in/ATTITUDE_QUATERNION"
+    assert res.tau_s == pytest.approx(0.12, rel=0.10)
+
+
+def test_a_log_never_in_offboard_is_refused(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    _write_flight(tmp_path / "f.mcap", 0.1, offboard=False)
+    rc, _, err = _cli([str(tmp_path / "f.mcap")], capsys)
+    assert rc == 2 and "never reports OFFBOARD" in err
