@@ -101,7 +101,7 @@ def _lag(args: argparse.Namespace) -> int:
           f"{res.per_axis_tau_s[1]:.3f} s; squared error within 10 % of the best for "
           f"{res.tau_range_s[0]:.3f}..{res.tau_range_s[1]:.3f} s)")
     if res.fit_delay:
-        print(f"delay:     {res.delay_s * 1e3:.0f} ms (setpoint sent -> autopilot acting on it)")
+        print(f"delay:     {res.delay_s:.3f} s  (setpoint sent -> autopilot acting on it)")
     print(f"fit:       RMS residual {res.rms_deg:.3f} deg, variance explained "
           f"{res.variance_explained * 100:.1f} %")
     for w in res.warnings:
