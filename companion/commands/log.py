@@ -95,6 +95,8 @@ def _lag(args: argparse.Namespace) -> int:
     print(f"log:       {args.log}")
     print(f"used:      {res.samples} attitude samples ({res.attitude_topic}), {res.setpoints} "
           f"setpoints, {res.stretches} stretch(es), {res.offboard_s:.1f} s in OFFBOARD")
+    if res.salvage_note:
+        print(f"note:      {res.salvage_note}")
     if res.dropped_nonfinite:
         print(f"dropped:   {res.dropped_nonfinite} non-finite samples")
     print(f"tau:       {res.tau_s:.3f} s  (roll {res.per_axis_tau_s[0]:.3f} s, pitch "

@@ -106,6 +106,7 @@ class LagFit:
     dropped_nonfinite: int = 0
     attitude_topic: str = ""
     fit_delay: bool = True
+    salvage_note: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -116,7 +117,7 @@ class LagFit:
             "tau_range_s": list(self.tau_range_s), "warnings": self.warnings,
             "stretches": self.stretches, "setpoints": self.setpoints,
             "offboard_s": self.offboard_s, "dropped_nonfinite": self.dropped_nonfinite,
-            "attitude_topic": self.attitude_topic,
+            "attitude_topic": self.attitude_topic, "damaged_log": self.salvage_note or None,
             "config_line": config_line(self.tau_s),
         }
 
@@ -282,6 +283,8 @@ class _Raw:
     hb: list[tuple[int, dict[str, Any], int | None, int | None]] = field(default_factory=list)
     ack: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
     cmd_out: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
+    #: "" for a complete log, else what the reader salvaged (appended to errors)
+    salvage_note: str = ""
 
 
 def _read(path: Path) -> _Raw:
@@ -289,6 +292,12 @@ def _read(path: Path) -> _Raw:
     topics = [TOPIC_SAT, TOPIC_ATTITUDE, TOPIC_ATTITUDE_Q, TOPIC_HEARTBEAT, TOPIC_ACK,
               *TOPICS_COMMAND_OUT]
     with LogReader(path) as r:
+        rec = r.recovery
+        if rec.truncated or rec.corrupt_chunks:
+            raw.salvage_note = (
+                f" (the log is damaged: {rec.messages} messages readable in its first "
+                f"{rec.bytes_used} of {rec.bytes_total} bytes, {rec.corrupt_chunks} damaged "
+                "chunk(s) skipped)")
         for m in r.messages(topics):
             d = m.data
             if d is None or not isinstance(d.get("fields"), dict):
@@ -365,14 +374,15 @@ class LogSeries:
     offboard_s: float
     dropped_nonfinite: int
     attitude_topic: str
+    salvage_note: str = ""
 
 
 def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     """The offboard stretches of a companion log as :class:`Series` (see the module doc)."""
     raw = _read(Path(path))
     if not raw.sat:
-        raise LagFitError(f"{path}: no attitude setpoints ({TOPIC_SAT}) in the log: "
-                          "it is not a log of a flight the companion flew")
+        why = raw.salvage_note or ": it is not a log of a flight the companion flew"
+        raise LagFitError(f"{path}: no attitude setpoints ({TOPIC_SAT}) in the log{why}")
     f0 = raw.sat[0][1]
     sysid, compid = f0.get("target_system"), f0.get("target_component")
     if not (isinstance(sysid, int) and isinstance(compid, int)):
@@ -402,7 +412,7 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
         rows = [(t, f) for t, f, s in raw.att_q if s == sysid]
     if not rows:
         raise LagFitError(f"{path}: no attitude from the autopilot (sysid {sysid}) on "
-                          f"{TOPIC_ATTITUDE} or {TOPIC_ATTITUDE_Q}")
+                          f"{TOPIC_ATTITUDE} or {TOPIC_ATTITUDE_Q}{raw.salvage_note}")
     att_log = np.array([t * 1e-9 for t, _ in rows])
     att_boot = np.array([_num(f.get("time_boot_ms")) * 1e-3 for _, f in rows])
     if topic == TOPIC_ATTITUDE:
@@ -419,10 +429,10 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     intervals, n_hb = offboard_intervals(raw, sysid, compid)
     if n_hb == 0:
         raise LagFitError(f"{path}: no HEARTBEAT from the autopilot (sysid {sysid}): cannot "
-                          "tell when the vehicle flew the setpoints (OFFBOARD)")
+                          f"tell when the vehicle flew the setpoints (OFFBOARD){raw.salvage_note}")
     if not intervals:
         raise LagFitError(f"{path}: the autopilot's HEARTBEAT never reports OFFBOARD: the "
-                          "setpoints were never flown")
+                          f"setpoints were never flown{raw.salvage_note}")
     series: list[Series] = []
     off_s = 0.0
     n_sp = 0
@@ -470,8 +480,8 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     if not series:
         raise LagFitError(f"{path}: no stretch with both setpoints and attitude while the "
                           f"autopilot was in OFFBOARD ({len(raw.sat)} setpoints, {len(rows)} "
-                          f"attitude samples in the log, {dropped} not finite)")
-    return LogSeries(series, n_sp, off_s, dropped, topic)
+                          f"attitude samples in the log, {dropped} not finite){raw.salvage_note}")
+    return LogSeries(series, n_sp, off_s, dropped, topic, raw.salvage_note)
 
 
 def measure_lag(path: str | Path, *, fit_delay: bool = True, max_delay_s: float = 0.2,
@@ -484,7 +494,8 @@ def measure_lag(path: str | Path, *, fit_delay: bool = True, max_delay_s: float 
     except LagFitError as e:
         extra = f" ({ls.dropped_nonfinite} non-finite samples dropped)" \
             if ls.dropped_nonfinite else ""
-        raise LagFitError(f"{path}: {e}{extra}") from None
+        raise LagFitError(f"{path}: {e}{extra}{ls.salvage_note}") from None
     res.setpoints, res.offboard_s = ls.setpoints, ls.offboard_s
     res.dropped_nonfinite, res.attitude_topic = ls.dropped_nonfinite, ls.attitude_topic
+    res.salvage_note = ls.salvage_note.strip(" ()")
     return res

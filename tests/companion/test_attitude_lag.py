@@ -262,8 +262,9 @@ def test_a_truncated_log_gives_what_its_salvaged_part_holds(tmp_path: Path) -> N
     part = measure_lag(cut)
     assert 0 < part.samples < whole.samples
     assert part.tau_s == pytest.approx(0.12, rel=0.10)
+    assert not whole.salvage_note and "damaged" in part.salvage_note
     cut.write_bytes(data[: len(data) // 10])  # before OFFBOARD engaged
-    with pytest.raises(LagFitError, match="OFFBOARD"):
+    with pytest.raises(LagFitError, match=r"OFFBOARD.*the log is damaged"):
         measure_lag(cut)
 
 
