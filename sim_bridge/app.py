@@ -13,7 +13,11 @@ Two clocks:
   (camera latency jitter can deliver two frames in one step: the step then waits for two
   answers; a timeout is counted as a lost setpoint, is no offboard signal, and clears the
   count); then
-  integrates to ``t + step_dt_s``. Commands are handled whenever they arrive, stamped ``t``.
+  integrates to ``t + step_dt_s``, stopping at every link event in between: each stream's
+  messages at their own rate (stamped with the state they carry), each message leaving the
+  transport delay (``[sim.telemetry]``) at its due time, each delayed delivery of an impaired
+  link. The telemetry a client holds when step ``k``'s frame arrives is therefore what a real
+  link would have delivered by ``t``. Commands are handled whenever they arrive, stamped ``t``.
 """
 
 from __future__ import annotations
@@ -203,6 +207,11 @@ class _Streams:
         self.next_s[msgid] = now_s
         return True
 
+    def next_due_s(self) -> float:
+        """Boot time of the next message due on this link (``inf``: none streams)."""
+        return min((self.next_s[mid] for mid, iv in self.interval_s.items() if iv is not None),
+                   default=math.inf)
+
     def due(self, now_s: float) -> list[int]:
         out = []
         for mid, iv in self.interval_s.items():
@@ -390,17 +399,29 @@ class SimBridge:
         for ml in self._links.values():
             ml.pump(t_s)
 
-    def _next_delivery_s(self) -> float | None:
+    def _next_event_s(self) -> float:
+        """Lockstep: the next time something leaves or arrives on a link: a delayed delivery
+        (impairment), a telemetry message leaving the transport delay, a stream message due."""
         due = [d for ml in self._links.values() if (d := ml.next_due_s()) is not None]
-        return min(due) if due else None
+        due.append(self._next_tx_s())
+        due += [st.next_due_s() for st in self._streams.values()]
+        return min(due)
 
     def _advance_delivering(self, t_target: float) -> None:
-        """Lockstep: integrate to ``t_target``, stopping at each delayed delivery in between
-        so that a delayed setpoint takes effect at its arrival time (to a physics step)."""
-        while (due := self._next_delivery_s()) is not None and due < t_target:
+        """Lockstep: integrate to ``t_target``, stopping at every link event in between, as a
+        real autopilot's links run while it flies: a delayed setpoint takes effect at its
+        arrival time, each stream is sampled at its own rate and stamped with the state it
+        carries, and a message leaves the transport delay when it is due (each to a physics
+        step). So the telemetry a client has when the next frame arrives is what a real link
+        would have delivered by then: stamped up to one stream period plus the transport delay
+        before the frame's step, not the whole step before it (streams sampled only at step
+        boundaries, with any delay, arrived one step late)."""
+        while (due := self._next_event_s()) < t_target - 1e-9:
             self._advance(due)
             self.t_s = due
             self._deliver_due(due)
+            self._send_streams(due)
+            self._flush_tx(due)
         self._advance(t_target)
 
     # ------------------------------------------------------------------ clock
