@@ -436,8 +436,9 @@ class SimBridge:
         return t_s + self.boot_offset_s
 
     def _ms(self, t_s: float) -> int:
-        """``time_boot_ms`` at simulation time ``t_s``."""
-        return int(self.boot_s(t_s) * 1000) & 0xFFFFFFFF
+        """``time_boot_ms`` at simulation time ``t_s`` (whole ms, as PX4's; the nanosecond
+        of slack keeps a float sum such as 37.25 + 0.04 = 37.28999... on 37290 ms)."""
+        return math.floor(self.boot_s(t_s) * 1000 + 1e-6) & 0xFFFFFFFF
 
     def _us(self, t_s: float) -> int:
         """``time_usec`` (boot time) at simulation time ``t_s``."""
