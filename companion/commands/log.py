@@ -29,8 +29,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     lag = lsub.add_parser(
         "lag", help="measure the vehicle's tilt lag (control.lead.attitude_lag_s) from a flight")
     lag.add_argument("log", type=Path)
-    lag.add_argument("--no-delay", action="store_true",
-                     help="fit the first-order lag alone (no pure delay)")
+    lag.add_argument("--delay", action="store_true",
+                     help="also fit a pure delay before the lag (a diagnostic: the lead, "
+                          "control.lead.attitude_lag_s, inverts a lag alone)")
     lag.add_argument("--max-delay", type=float, default=0.2, metavar="S",
                      help="largest pure delay searched (s, default 0.2)")
     lag.add_argument("--max-gap", type=float, default=0.5, metavar="S",
@@ -87,7 +88,7 @@ def _lag(args: argparse.Namespace) -> int:
 
     if not (0.0 <= args.max_delay <= 2.0) or not (0.0 < args.max_gap <= 10.0):
         raise CompanionError("--max-delay must be in [0, 2] s and --max-gap in (0, 10] s")
-    res = measure_lag(args.log, fit_delay=not args.no_delay, max_delay_s=args.max_delay,
+    res = measure_lag(args.log, fit_delay=args.delay, max_delay_s=args.max_delay,
                       max_gap_s=args.max_gap)
     if args.json:
         print(json.dumps(res.to_dict(), indent=2))
@@ -108,8 +109,9 @@ def _lag(args: argparse.Namespace) -> int:
           f"{res.variance_explained * 100:.1f} %")
     for w in res.warnings:
         print(f"warning:   {w}")
-    print(f"suggested: {config_line(res.tau_s)}")
     if res.fit_delay:
-        print(f"with:      control.latency.actuation_delay_s = {res.delay_s:.3f} (the two "
-              "belong together; --no-delay for a lag alone)")
+        print("suggested: none from a lag fitted beside a delay; run without --delay for "
+              "control.lead.attitude_lag_s")
+    else:
+        print(f"suggested: {config_line(res.tau_s)}")
     return 0

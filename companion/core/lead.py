@@ -11,9 +11,13 @@ estimate acts at once instead of ``tau`` later.
 Here ``a_d`` is the horizontal specific force the setpoint mapping asks for (the controller's
 input minus the estimated disturbance, NED) at the control steps, and ``a_d'`` its backward
 difference. Only the horizontal (tilt) part is led: the vertical acceleration follows the
-thrust through the motors, much faster. The lead term is bounded in norm (``max_m_s2``) and
-starts afresh after a gap, a level hover, or while PX4 flies the vehicle itself (before
-OFFBOARD), so a jump in the command never becomes a kick larger than the bound.
+thrust through the motors, much faster. The lead term is bounded in norm (``max_m_s2``,
+default 0.3 m/s^2: a fifth of the paper's input bound) and starts afresh after a gap, a level
+hover, or while PX4 flies the vehicle itself (before OFFBOARD), so a jump in the command never
+becomes a kick larger than the bound. The bound is what keeps it a small-signal correction: the
+lead terms of disturbance rejection are hundredths of m/s^2, while a recovery's jump of the
+plan, led in full (bound 1.5), chased near-edge targets harder and pushed corners out further
+(docs/offset-free.md, "Tilt-lag lead").
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ class LeadParams:
 
     enabled: bool = True
     attitude_lag_s: float = 0.1
-    max_m_s2: float = 1.5
+    max_m_s2: float = 0.3
     max_gap_s: float = 0.15
 
     def __post_init__(self) -> None:

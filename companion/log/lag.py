@@ -118,7 +118,8 @@ class LagFit:
             "stretches": self.stretches, "setpoints": self.setpoints,
             "offboard_s": self.offboard_s, "dropped_nonfinite": self.dropped_nonfinite,
             "attitude_topic": self.attitude_topic, "damaged_log": self.salvage_note or None,
-            "config_line": config_line(self.tau_s),
+            # the lead inverts a lag alone: a tau fitted beside a delay is a diagnostic
+            "config_line": None if self.fit_delay else config_line(self.tau_s),
         }
 
 
@@ -484,7 +485,7 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     return LogSeries(series, n_sp, off_s, dropped, topic, raw.salvage_note)
 
 
-def measure_lag(path: str | Path, *, fit_delay: bool = True, max_delay_s: float = 0.2,
+def measure_lag(path: str | Path, *, fit_delay: bool = False, max_delay_s: float = 0.2,
                 max_gap_s: float = 0.5) -> LagFit:
     """Read ``path`` and fit the lag; raises :class:`LagFitError` with the reason when the log
     cannot give one."""

@@ -65,8 +65,12 @@ def test_default_campaign_covers_the_library() -> None:
     assert len(camp.controllers) * len(scens) * camp.seeds >= 200
 
 
-def test_every_scenario_and_start_is_accepted_by_both_programs() -> None:
-    camp = load_campaign()
+CAMPAIGNS = Path(__file__).resolve().parents[2] / "config" / "campaigns"
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in CAMPAIGNS.glob("*.toml")))
+def test_every_scenario_and_start_is_accepted_by_both_programs(name: str) -> None:
+    camp = load_campaign(CAMPAIGNS / f"{name}.toml")
     base = read_document(camp.config)
     for spec in camp.runs(Path("/nonexistent"), seeds=[0, 1],
                           controllers=[camp.controllers[0].name]):

@@ -210,7 +210,7 @@ def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str,
 def test_the_lag_of_a_logged_flight_from_the_cli(tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     _write_flight(tmp_path / "f.mcap", 0.15)
-    rc, out, _ = _cli(["--json", str(tmp_path / "f.mcap")], capsys)
+    rc, out, _ = _cli(["--json", "--delay", str(tmp_path / "f.mcap")], capsys)
     assert rc == 0
     res = json.loads(out)
     # receipt jitter (6 ms) is removed by placing samples at their stamps: a tau this close
@@ -219,7 +219,8 @@ def test_the_lag_of_a_logged_flight_from_the_cli(tmp_path: Path,
     # the setpoints are logged when sent and the samples placed by the link's smallest delay
     # (2 ms): what is left is at most the 6 ms receipt jitter
     assert 0.0 <= res["delay_s"] <= 0.01
-    assert res["config_line"] == f"control.lead.attitude_lag_s = {res['tau_s']:.3f}"
+    # a tau fitted beside a delay is a diagnostic, not the lead's constant
+    assert res["config_line"] is None
     # OFFBOARD from the first setpoint after the accepted request at 3 s (3.05 s: PX4 flies
     # only setpoints received in OFFBOARD) to the last OFFBOARD heartbeat at 26.5 s (the change
     # at 27 s has no request of ours: the second up to the next heartbeat is left out), less
@@ -229,8 +230,15 @@ def test_the_lag_of_a_logged_flight_from_the_cli(tmp_path: Path,
     # less the first max_delay_s (0.2 s) of each stretch, which every candidate delay needs
     assert res["samples"] == pytest.approx(50 * (22.9 - 2 * 0.2), abs=4)
     assert res["stretches"] == 2  # split at the 1 s setpoint gap
+    rc, out, _ = _cli(["--json", str(tmp_path / "f.mcap")], capsys)
+    alone = json.loads(out)
+    # the default fits the lag alone (what the lead inverts): no delay, the same tau here
+    # (the true delay is 0) and a config line for it
+    assert rc == 0 and alone["delay_s"] is None
+    assert alone["tau_s"] == pytest.approx(0.15, rel=0.10)
+    assert alone["config_line"] == f"control.lead.attitude_lag_s = {alone['tau_s']:.3f}"
     rc, out, _ = _cli([str(tmp_path / "f.mcap")], capsys)
-    assert rc == 0 and f"suggested: control.lead.attitude_lag_s = {res['tau_s']:.3f}" in out
+    assert rc == 0 and f"suggested: control.lead.attitude_lag_s = {alone['tau_s']:.3f}" in out
 
 
 def test_a_log_without_setpoints_is_a_clear_error(tmp_path: Path,

@@ -234,7 +234,7 @@ def test_log_lag_measures_the_emulators_attitude_time_constant(flight: tuple[Pat
     gap = max(float(np.max(np.abs(s.cmd[np.searchsorted(s.cmd_t, s.att_t, "right") - 1] - s.att)))
               for s in series_from_log(out / "flight.mcap").series)
     assert gap < float(veh["max_tilt_rate_rad_s"]) * tau, "the rate limit may bind"
-    p = subprocess.run([sys.executable, "-m", "companion", "log", "lag", "--json",
+    p = subprocess.run([sys.executable, "-m", "companion", "log", "lag", "--json", "--delay",
                         str(out / "flight.mcap")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     res = json.loads(p.stdout)
@@ -243,7 +243,14 @@ def test_log_lag_measures_the_emulators_attitude_time_constant(flight: tuple[Pat
     assert res["variance_explained"] > 0.99 and not res["warnings"]
     # most of the OFFBOARD flight is used: from engagement (~1.1 s) to the end (DURATION_S)
     assert res["offboard_s"] > DURATION_S - 2.0
-    assert res["config_line"] == f"control.lead.attitude_lag_s = {res['tau_s']:.3f}"
+    assert res["config_line"] is None  # fitted beside a delay: a diagnostic
+    # the default (what the lead uses) fits the lag alone: the same tau for a model without delay
+    p = subprocess.run([sys.executable, "-m", "companion", "log", "lag", "--json",
+                        str(out / "flight.mcap")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    alone = json.loads(p.stdout)
+    assert alone["tau_s"] == pytest.approx(tau, rel=0.02) and alone["delay_s"] is None
+    assert alone["config_line"] == f"control.lead.attitude_lag_s = {alone['tau_s']:.3f}"
 
 
 def _sim_toml(path: Path) -> dict:
