@@ -13,11 +13,13 @@ Two clocks:
   (camera latency jitter can deliver two frames in one step: the step then waits for two
   answers; a timeout is counted as a lost setpoint, is no offboard signal, and clears the
   count); then
-  integrates to ``t + step_dt_s``, stopping at every link event in between: each stream's
-  messages at their own rate (stamped with the state they carry), each message leaving the
-  transport delay (``[sim.telemetry]``) at its due time, each delayed delivery of an impaired
-  link. The telemetry a client holds when step ``k``'s frame arrives is therefore what a real
-  link would have delivered by ``t``. Commands are handled whenever they arrive, stamped ``t``.
+  integrates to ``t + step_dt_s``, stopping at every link event in between: each message
+  leaving the transport delay (``[sim.telemetry]``) at its due time, each delayed delivery of
+  an impaired link, and, with a transport delay, each stream's messages at their own rates
+  (stamped with the time they sample; on the ideal link the streams are sampled at the step
+  boundaries only). The telemetry a client holds when step ``k``'s frame arrives is therefore
+  what a real link would have delivered by ``t``. Commands are handled whenever they arrive,
+  stamped ``t``.
 """
 
 from __future__ import annotations
@@ -288,6 +290,11 @@ class SimBridge:
         self._delivered_this_step = 0
         tm = sim.telemetry
         self._tx_delay = (tm.delay_ms * 1e-3, tm.delay_jitter_ms * 1e-3)
+        # Lockstep streams: with a transport delay they run at their own rates inside each
+        # step (a sample taken at a step boundary would reach the client only after it answered
+        # that step's frame). On the ideal link (no delay) they are sampled at each step
+        # boundary, as the emulator always did: the client gets the step's exact time.
+        self._streams_in_step = self.lockstep and tm.delay_ms > 0
         (self._tx_rng,) = rngs(sim.seed, 1, salt=3)
         self._tx_lines: dict[str, DelayLine[tuple[list[bytes], Address | None]]] = {}
         self._timesync_sent_ns: dict[int, float] = {}
@@ -404,18 +411,19 @@ class SimBridge:
         (impairment), a telemetry message leaving the transport delay, a stream message due."""
         due = [d for ml in self._links.values() if (d := ml.next_due_s()) is not None]
         due.append(self._next_tx_s())
-        due += [st.next_due_s() for st in self._streams.values()]
+        if self._streams_in_step:
+            due += [st.next_due_s() for st in self._streams.values()]
         return min(due)
 
     def _advance_delivering(self, t_target: float) -> None:
         """Lockstep: integrate to ``t_target``, stopping at every link event in between, as a
         real autopilot's links run while it flies: a delayed setpoint takes effect at its
-        arrival time, each stream is sampled at its own rate and stamped with the state it
-        carries, and a message leaves the transport delay when it is due (each to a physics
-        step). So the telemetry a client has when the next frame arrives is what a real link
-        would have delivered by then: stamped up to one stream period plus the transport delay
-        before the frame's step, not the whole step before it (streams sampled only at step
-        boundaries, with any delay, arrived one step late)."""
+        arrival time, a message leaves the transport delay when it is due and (with a
+        transport delay, :attr:`_streams_in_step`) each stream is sampled at its own rate,
+        stamped with the time it samples (each to a physics step). So the telemetry a client
+        holds when the next frame arrives is what a real link would have delivered by then:
+        stamped at most the transport delay plus one stream period before the frame's step.
+        (Streams sampled only at step boundaries, with any delay, arrived a whole step late.)"""
         while (due := self._next_event_s()) < t_target - 1e-9:
             self._advance(due)
             self.t_s = due

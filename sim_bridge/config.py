@@ -499,7 +499,7 @@ class TelemetryConfig:
     MAVLink "onboard" mode on the offboard link and "normal" mode on the GCS link, with its
     10 Hz TIMESYNC requests and 1 Hz SYSTEM_TIME). ``delay_ms`` +- ``delay_jitter_ms``
     (uniform, in order): autopilot -> client transport delay of every message on the vehicle's
-    links (in lockstep a message leaves at the first step at or after its due time).
+    links (in lockstep at its due time in simulated time, inside the step: docs/wire.md).
     ``boot_offset_s``: the autopilot booted this long before the simulation started: every
     autopilot stamp (``time_boot_ms``, ``time_usec``, TIMESYNC ``tc1``/``ts1``, the camera's
     ``t_us`` and the ground truth's ``t_us``) is simulation time + this offset.

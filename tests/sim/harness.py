@@ -87,14 +87,6 @@ class MavClient:
         return self.wait_for(lambda m: m.get_type() == "COMMAND_ACK" and m.command == command,
                              timeout_s)
 
-    def attitude_at_step_rate(self, step_us: int = 50_000) -> None:
-        """ATTITUDE_QUATERNION once per lockstep step (SET_MESSAGE_INTERVAL), for a client that
-        answers each step when it sees it: in lockstep the streams run at their own rates
-        inside the step, so at its default 50 Hz it is no step signal."""
-        self.command(511, 31, step_us)
-        ack = self.ack(511, 2.0)
-        assert ack is not None and ack.result == 0, ack
-
     def close(self) -> None:
         self.sock.close()
 

@@ -28,17 +28,14 @@ def _fly(client: MavClient, thrust: float) -> dict[int, float]:
     switched = False
     with run_sim(cfg, duration_s=100.0) as rs:
         client.target = ("127.0.0.1", rs.ports["offboard"])
-        client.attitude_at_step_rate()  # one answer per step, to its ATTITUDE_QUATERNION
-        answered_ms = -1
         end = time.monotonic() + 60.0
         while time.monotonic() < end:
             for m in client.recv(0.05):
                 kind: Any = m.get_type()
                 if kind == "LOCAL_POSITION_NED":
                     z_by_ms[m.time_boot_ms] = m.z
-                if kind != "ATTITUDE_QUATERNION" or m.time_boot_ms <= answered_ms:
+                if kind != "ATTITUDE_QUATERNION":
                     continue
-                answered_ms = m.time_boot_ms
                 client.send(
                     client.mav.set_attitude_target_encode(
                         m.time_boot_ms, 1, 1, 7, Q_LEVEL_YAW_22_5, 0, 0, 0, thrust
