@@ -406,14 +406,13 @@ class SimBridge:
         for ml in self._links.values():
             ml.pump(t_s)
 
-    def _next_event_s(self) -> float:
-        """Lockstep: the next time something leaves or arrives on a link: a delayed delivery
-        (impairment), a telemetry message leaving the transport delay, a stream message due."""
+    def _next_state_event_s(self) -> float:
+        """Lockstep: the next link event that needs the vehicle's state at its time: a delayed
+        delivery (impairment; a setpoint takes effect then) or a stream message due."""
         due = [d for ml in self._links.values() if (d := ml.next_due_s()) is not None]
-        due.append(self._next_tx_s())
         if self._streams_in_step:
             due += [st.next_due_s() for st in self._streams.values()]
-        return min(due)
+        return min(due, default=math.inf)
 
     def _advance_delivering(self, t_target: float) -> None:
         """Lockstep: integrate to ``t_target``, stopping at every link event in between, as a
@@ -424,8 +423,9 @@ class SimBridge:
         holds when the next frame arrives is what a real link would have delivered by then:
         stamped at most the transport delay plus one stream period before the frame's step.
         (Streams sampled only at step boundaries, with any delay, arrived a whole step late.)"""
-        while (due := self._next_event_s()) < t_target - 1e-9:
-            self._advance(due)
+        while (due := min(self._next_state_event_s(), self._next_tx_s())) < t_target - 1e-9:
+            if self._next_state_event_s() <= due:  # a message leaving the delay needs no state
+                self._advance(due)
             self.t_s = due
             self._deliver_due(due)
             self._send_streams(due)
