@@ -304,11 +304,15 @@ class ControlPipeline:
         est = self._dist.estimate() if self._dist is not None else None
         if u is not None:
             try:
-                # led only while our setpoints fly the vehicle: before OFFBOARD PX4 holds
+                # led only while our setpoints fly the vehicle (before OFFBOARD PX4 holds
                 # level with its own controller, so a difference of streamed commands is not
-                # a change of tilt the vehicle must catch up with
+                # a change of tilt the vehicle must catch up with) and the controller tracks
+                # in its nominal problem: the recovery's chase and the fallbacks' jumps are
+                # flown as commanded (docs/offset-free.md 2b)
+                led = (in_control is not False and level is SafetyLevel.TRACKING
+                       and rmpc_res is not None and rmpc_res.mode != "recovery")
                 sp = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est,
-                                    None if in_control is False else t_now)
+                                    t_now if led else None)
             except ValueError as exc:
                 notes.append(f"setpoint refused: {exc}")
                 self._lead.reset()

@@ -14,10 +14,11 @@ difference. Only the horizontal (tilt) part is led: the vertical acceleration fo
 thrust through the motors, much faster. The lead term is bounded in norm (``max_m_s2``,
 default 0.3 m/s^2: a fifth of the paper's input bound) and starts afresh after a gap, a level
 hover, or while PX4 flies the vehicle itself (before OFFBOARD), so a jump in the command never
-becomes a kick larger than the bound. The bound is what keeps it a small-signal correction: the
-lead terms of disturbance rejection are hundredths of m/s^2, while a recovery's jump of the
-plan, led in full (bound 1.5), chased near-edge targets harder and pushed corners out further
-(docs/offset-free.md, "Tilt-lag lead").
+becomes a kick larger than the bound. It is a small-signal correction: the lead terms of
+disturbance rejection are hundredths of m/s^2. The pipeline leads only the nominal tracking
+(the hard problem, or a controller without a soft copy): a recovery's chase of a target that got
+away, led, pushed corners further out in near-edge starts (docs/offset-free.md, "Tilt-lag
+lead").
 """
 
 from __future__ import annotations

@@ -102,25 +102,28 @@ def test_config_refuses_a_bad_lead_key() -> None:
 
 
 class _RampSolver:
-    """'Optimal' with an input that grows by 0.1 m/s^2 north per call (a planned ramp)."""
+    """``mode`` ('optimal' or 'recovery') with an input that grows by 0.1 m/s^2 north per call
+    (a planned ramp)."""
 
-    def __init__(self, horizon: int) -> None:
+    def __init__(self, horizon: int, mode: str = "optimal") -> None:
         self.n = horizon
         self.k = 0
+        self.mode = mode
 
     def solve(self, eta0: np.ndarray, motion: TargetMotion) -> RmpcResult:
         self.k += 1
         u = np.array([0.1 * self.k, 0.0, 0.0, 0.0])
-        return RmpcResult(True, "optimal", "ok", "ok", 0.0, 1, 0.0, u,
+        return RmpcResult(True, self.mode, "ok", "ok", 0.0, 1, 0.0, u,
                           np.tile(eta0, (self.n + 1, 1)), np.tile(u, (self.n, 1)), 0.0,
                           (), motion)
 
 
-def _steps(in_control: bool, lag_s: float, n: int = 6) -> list[StepResult]:
+def _steps(in_control: bool, lag_s: float, n: int = 6,
+           mode: str = "optimal") -> list[StepResult]:
     cfg = load_config(overrides=[f"control.lead.attitude_lag_s={lag_s}",
                                  "control.estimator.enabled=false",
                                  "control.latency.enabled=false"])
-    pipe = ControlPipeline(cfg, _NoImages(), rmpc=_RampSolver(cfg.rmpc.horizon))  # type: ignore[arg-type]
+    pipe = ControlPipeline(cfg, _NoImages(), rmpc=_RampSolver(cfg.rmpc.horizon, mode))  # type: ignore[arg-type]
     store = new_store(cfg)
     seen = _target_seen(cfg.rmpc.desired_depth_m, cfg.camera.focal_length_m,
                         cfg.target.length_m, cfg.target.width_m)
@@ -151,3 +154,13 @@ def test_pipeline_leads_only_while_in_control() -> None:
         assert a.setpoint is not None and b.setpoint is not None
         assert math.isclose(a.setpoint.pitch_rad, b.setpoint.pitch_rad, abs_tol=1e-12)
     assert flown[1].to_record()["lead_m_s2"] == pytest.approx([0.2, 0.0])
+
+
+def test_pipeline_does_not_lead_the_recovery() -> None:
+    """The soft problem's chase is flown as commanded: no lead term, the plain setpoint."""
+    rec = _steps(True, 0.1, mode="recovery")
+    plain = _steps(True, 0.0, mode="recovery")
+    for a, b in zip(rec, plain, strict=True):
+        assert a.rmpc is not None and a.rmpc.mode == "recovery"
+        assert a.lead_m_s2 is None and a.setpoint is not None and b.setpoint is not None
+        assert math.isclose(a.setpoint.pitch_rad, b.setpoint.pitch_rad, abs_tol=1e-12)
