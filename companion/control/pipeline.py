@@ -310,7 +310,8 @@ class ControlPipeline:
                 # in its nominal problem: the recovery's chase and the fallbacks' jumps are
                 # flown as commanded (docs/offset-free.md 2b)
                 led = (in_control is not False and level is SafetyLevel.TRACKING
-                       and rmpc_res is not None and rmpc_res.mode != "recovery")
+                       and rmpc_res is not None
+                       and rmpc_res.mode not in ("recovery", "fallback"))
                 sp = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est,
                                     t_now if led else None)
             except ValueError as exc:

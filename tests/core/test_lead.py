@@ -156,11 +156,13 @@ def test_pipeline_leads_only_while_in_control() -> None:
     assert flown[1].to_record()["lead_m_s2"] == pytest.approx([0.2, 0.0])
 
 
-def test_pipeline_does_not_lead_the_recovery() -> None:
-    """The soft problem's chase is flown as commanded: no lead term, the plain setpoint."""
-    rec = _steps(True, 0.1, mode="recovery")
-    plain = _steps(True, 0.0, mode="recovery")
+@pytest.mark.parametrize("mode", ["recovery", "fallback"])
+def test_pipeline_does_not_lead_the_recovery_or_a_fallback(mode: str) -> None:
+    """The soft problem's chase and the terminal law are flown as commanded: no lead term,
+    the plain setpoint."""
+    rec = _steps(True, 0.1, mode=mode)
+    plain = _steps(True, 0.0, mode=mode)
     for a, b in zip(rec, plain, strict=True):
-        assert a.rmpc is not None and a.rmpc.mode == "recovery"
+        assert a.rmpc is not None and a.rmpc.mode == mode
         assert a.lead_m_s2 is None and a.setpoint is not None and b.setpoint is not None
         assert math.isclose(a.setpoint.pitch_rad, b.setpoint.pitch_rad, abs_tol=1e-12)
