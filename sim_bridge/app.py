@@ -423,8 +423,12 @@ class SimBridge:
         holds when the next frame arrives is what a real link would have delivered by then:
         stamped at most the transport delay plus one stream period before the frame's step.
         (Streams sampled only at step boundaries, with any delay, arrived a whole step late.)"""
-        while (due := min(self._next_state_event_s(), self._next_tx_s())) < t_target - 1e-9:
-            if self._next_state_event_s() <= due:  # a message leaving the delay needs no state
+        while True:
+            state_due = self._next_state_event_s()
+            due = min(state_due, self._next_tx_s())
+            if due >= t_target - 1e-9:
+                break
+            if state_due <= due:  # a message leaving the delay needs no state
                 self._advance(due)
             self.t_s = due
             self._deliver_due(due)

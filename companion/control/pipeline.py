@@ -165,7 +165,6 @@ class ControlPipeline:
         self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)
         self._control_since: float | None = None  # since when our setpoints fly the vehicle
         self._lead = TiltLead(cfg.control.lead)
-        self._lead_m_s2: np.ndarray | None = None
         self.force_solver_failure = False
         # Optional stage timing (seconds clock, e.g. time.perf_counter): measurement only,
         # it never changes a result, so replay stays exact with or without it.
@@ -302,6 +301,7 @@ class ControlPipeline:
         elif level is SafetyLevel.REACQUIRE and att is not None and kin is not None:
             u = self._reacquire(store, kin, yaw)
         est = self._dist.estimate() if self._dist is not None else None
+        lead_m_s2: np.ndarray | None = None
         if u is not None:
             try:
                 # led only while our setpoints fly the vehicle (before OFFBOARD PX4 holds
@@ -312,22 +312,22 @@ class ControlPipeline:
                 led = (in_control is not False and level is SafetyLevel.TRACKING
                        and rmpc_res is not None
                        and rmpc_res.mode not in ("recovery", "fallback"))
-                sp = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est,
-                                    t_now if led else None)
+                sp, lead_m_s2 = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est,
+                                               t_now if led else None)
             except ValueError as exc:
                 notes.append(f"setpoint refused: {exc}")
                 self._lead.reset()
                 sp = None
                 level = SafetyLevel.HOVER
-        lead_m_s2 = self._lead_m_s2 if sp is not None else None
         if sp is None:
+            lead_m_s2 = None  # a refused setpoint's lead was never sent
             self._lead.reset()
         if sp is None and level is not SafetyLevel.SILENT:
             u = None
             sp = None
             if est is not None:  # hold still against the estimated disturbance
                 try:
-                    sp = self._setpoint(np.zeros(4), self._last_yaw, 0.0, est)
+                    sp, _ = self._setpoint(np.zeros(4), self._last_yaw, 0.0, est)
                 except ValueError as exc:
                     notes.append(f"compensated hover refused: {exc}")
             if sp is None:
@@ -360,17 +360,19 @@ class ControlPipeline:
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,
                   est: DisturbanceEstimate | None,
-                  lead_at_s: float | None = None) -> AttitudeSetpoint:
+                  lead_at_s: float | None = None
+                  ) -> tuple[AttitudeSetpoint, np.ndarray | None]:
         """Spec 5 for the acceleration ``u``; with the estimator, the specific force that gives
         ``u`` despite the disturbance, at the estimated hover thrust. ``lead_at_s``: the
         controller's command at that time, led for the vehicle's tilt lag (companion/core/
-        lead.py); ``None``: a command that is not led (level hover), which restarts the lead."""
+        lead.py); ``None``: a command that is not led (level hover), which restarts the lead.
+        Returns the setpoint and the lead term added (``None``: not led)."""
         c = self.cfg.control
         hover = c.hover_thrust
         if est is not None:
             u = compensated_input(u, est.d_ned_m_s2, self._last_yaw)
             hover = est.hover_thrust
-        self._lead_m_s2 = None
+        lead: np.ndarray | None = None
         if lead_at_s is None:
             self._lead.reset()
         else:
@@ -380,10 +382,9 @@ class ControlPipeline:
             led, lead = self._lead.apply(lead_at_s, a_ned)
             uu[0], uu[1] = cy * led[0] + sy * led[1], -sy * led[0] + cy * led[1]
             u = uu
-            self._lead_m_s2 = lead
         return attitude_setpoint(u, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
                                  hover_thrust=hover, thrust_min=c.thrust_min,
-                                 thrust_max=c.thrust_max)
+                                 thrust_max=c.thrust_max), lead
 
     def _update_estimator(self, store: TelemetryStore, in_control: bool | None,
                           t_now: float) -> None:
