@@ -54,5 +54,5 @@ def _run(args: argparse.Namespace) -> int:
     rc = asyncio.run(app.run())
     if app.cpu_ms_per_step is not None:
         print(f"companion: {app.steps} steps, CPU {app.cpu_ms_per_step:.2f} ms per step "
-              "(getrusage, all threads)")
+              "(getrusage, all threads and the solver process)")
     return rc

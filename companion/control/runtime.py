@@ -195,9 +195,12 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _cpu_s() -> float:
+def _cpu_s(controller: Any = None) -> float:
+    """This process's CPU time (all threads), plus that of ``controller``'s solver process
+    (``rmpc.solve_isolation = "process"``), seconds."""
     r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    backend = getattr(controller, "backend", None)
+    return r.ru_utime + r.ru_stime + float(getattr(backend, "child_cpu_s", 0.0))
 
 
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
@@ -328,10 +331,12 @@ class CompanionApp:
             if live is not None:
                 live.close()
         if self._cpu0 is not None and self.steps > self._cpu0[1]:
-            self.cpu_ms_per_step = 1e3 * (_cpu_s() - self._cpu0[0]) / (self.steps - self._cpu0[1])
+            self.cpu_ms_per_step = (1e3 * (_cpu_s(self.pipeline.rmpc) - self._cpu0[0])
+                                    / (self.steps - self._cpu0[1]))
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
-                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads, first "
-                 "frame to exit)", self.steps, self.sent, self.rx_count, self.log_path,
+                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads and the "
+                 "solver process, first frame to exit)", self.steps, self.sent, self.rx_count,
+                 self.log_path,
                  logger.stats.written, logger.stats.dropped,
                  "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
         self._write_progress(final=True)
@@ -626,7 +631,7 @@ class CompanionApp:
         self._log_offboard(before, t_s)
         self.steps += 1
         if self._cpu0 is None:
-            self._cpu0 = (_cpu_s(), self.steps)
+            self._cpu0 = (_cpu_s(self.pipeline.rmpc), self.steps)
         elif self.progress_file is not None and self.steps % 20 == 0:
             self._write_progress()
         rec = res.to_record()

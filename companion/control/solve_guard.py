@@ -14,7 +14,8 @@ Protocol (a ``multiprocessing`` pipe, 'spawn' start: nothing of the parent's eve
 threads or sockets is inherited): the child builds the controller's compiled solvers from the
 on-disk cache (:mod:`companion.core.rmpc_cache`: the parent compiled them, the child only loads
 the libraries), sends ``("ready", pid)``, then answers each ``("solve", kind, w0, p, lbx, ubx,
-hang)`` with ``("ok", evaluation)`` or ``("error", message)`` (CasADi raised). On a timeout the
+hang)`` with ``("ok", evaluation, cpu_s)`` or ``("error", message, cpu_s)`` (CasADi raised;
+``cpu_s``: the child's CPU time so far, so the companion's CPU figures include it). On a timeout the
 parent kills the child, starts a fresh one in the background and the step flies the terminal
 law (:class:`~companion.core.rmpc.SolveAborted` -> ``mode='fallback'``, status ``timeout:
 ...``); steps while the new child starts fly the fallback too (status ``solver restarting``).
@@ -89,11 +90,12 @@ def _child_main(conn: multiprocessing.connection.Connection, rmpc: RmpcParams,
         if msg[0] != "solve":
             return
         _, kind, w0, par, lbx, ubx, hang = msg
-        reply: tuple[str, Any]
+        reply: tuple[str, Any, float]
         try:
-            reply = ("ok", solvers[kind].evaluate(w0, par, lbx, ubx))
+            out: Any = solvers[kind].evaluate(w0, par, lbx, ubx)
+            reply = ("ok", out, time.process_time())
         except RuntimeError as exc:
-            reply = ("error", str(exc))
+            reply = ("error", str(exc), time.process_time())
         if hang:  # test hook: a solver that never returns and ignores SIGTERM
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
             while True:
@@ -128,6 +130,8 @@ class ProcessSolveBackend:
         self.restarts = 0
         """Children killed (timeout) or lost (died) and replaced since construction."""
         self.timeouts = 0
+        self._cpu_dead_s = 0.0  # CPU last reported by the children already replaced
+        self._cpu_live_s = 0.0  # CPU last reported by the current child
         self._start()
         self._finalizer = weakref.finalize(self, ProcessSolveBackend._stop_child, self._proc,
                                            self._conn)
@@ -163,12 +167,20 @@ class ProcessSolveBackend:
                   self._proc.pid if self._proc is not None else None)
         self._stop_child(self._proc, self._conn)
         self.restarts += 1
+        self._cpu_dead_s += self._cpu_live_s
+        self._cpu_live_s = 0.0
         self._start()
 
     @property
     def pid(self) -> int | None:
         """The current child's pid (None before start)."""
         return self._proc.pid if self._proc is not None else None
+
+    @property
+    def child_cpu_s(self) -> float:
+        """CPU time (user + system, s) the solver children reported with their last results
+        (a killed child's CPU after its last result is not included)."""
+        return self._cpu_dead_s + self._cpu_live_s
 
     @property
     def ready(self) -> bool:
@@ -241,7 +253,7 @@ class ProcessSolveBackend:
                 self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} s")
                 raise SolveAborted(f"timeout: {kind} solve exceeded rmpc.max_solve_time_s = "
                                    f"{self.max_solve_time_s:g} s (solver process restarted)")
-            status, payload = self._conn.recv()
+            status, payload, self._cpu_live_s = self._conn.recv()
         except (EOFError, OSError) as exc:
             code = self._proc.exitcode if self._proc is not None else None
             self._restart(f"lost (exit code {code})")

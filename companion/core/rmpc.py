@@ -13,6 +13,11 @@ and its input is returned with ``mode='recovery'``; if that fails too, the termi
 the input box is returned with ``mode='fallback'``. Every returned trajectory is finite and its
 solver status was checked; :func:`check_solution` re-evaluates every constraint independently.
 
+The solves run here, or on a :class:`SolveBackend` the shell provides (``rmpc.solve_isolation =
+"process"``: a child process, each step's solves bounded by ``rmpc.max_solve_time_s``); a step
+the backend abandons (:class:`SolveAborted`: timeout, solver restarting) is a ``'fallback'``
+whose status says so (``timeout: ...``).
+
 The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code cache in
 :mod:`companion.core.rmpc_cache`.
 """
@@ -212,8 +217,8 @@ class RmpcResult:
     (terminal law clipped to U); ``status``: the return status of the solve that produced the
     result (``hard_status``: that of the hard attempt); ``cost``: its objective;
     ``iterations`` and ``solve_time_s``: summed over the solves of this step (wall time of the
-    compiled solver's evaluation on the shell's ``clock``; NaN if it raised or without a
-    clock); ``u0`` (4,): the input to apply;
+    compiled solver's evaluation on the shell's ``clock``; NaN if it raised, was abandoned
+    (:class:`SolveAborted`) or without a clock); ``u0`` (4,): the input to apply;
     ``eta_pred`` (N+1, 7), ``u_pred`` (N, 4): the predicted trajectory;
     ``max_soft_violation``: largest slack of the recovery solve in the squared-row units
     (0 otherwise); ``active_groups``: constraint groups in the problem; ``target``: the motion
@@ -471,7 +476,9 @@ class Rmpc:
     ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
     ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start). ``clock``
     (seconds, e.g. ``time.perf_counter``, given by the shell: the core reads no clock) times
-    each solve for ``RmpcResult.solve_time_s``; without it that is NaN.
+    each solve for ``RmpcResult.solve_time_s``; without it that is NaN. ``backend`` (built
+    from this controller once its solvers are compiled) runs the NLP evaluations elsewhere
+    (:class:`SolveBackend`); :meth:`close` stops it.
     """
 
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
