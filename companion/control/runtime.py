@@ -330,6 +330,9 @@ class CompanionApp:
                     loop.remove_signal_handler(sig)
             if live is not None:
                 live.close()
+            close = getattr(self.pipeline.rmpc, "close", None)
+            if callable(close):  # the solver's child process (rmpc.solve_isolation)
+                close()
         if self._cpu0 is not None and self.steps > self._cpu0[1]:
             self.cpu_ms_per_step = (1e3 * (_cpu_s(self.pipeline.rmpc) - self._cpu0[0])
                                     / (self.steps - self._cpu0[1]))
