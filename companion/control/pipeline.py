@@ -33,6 +33,7 @@ from companion.core.disturbance import (
 )
 from companion.core.estimator import ImageVelocityEstimator
 from companion.core.geometry import (
+    camera_to_body_rotation,
     euler_zyx_from_quat,
     rectangle_corners_m,
     rotation_from_quat,
@@ -154,6 +155,9 @@ class ControlPipeline:
                              cfg.camera.focal_length_m)
         self._estimator = ImageVelocityEstimator(cfg.rmpc.desired_depth_m)
         self._s4_prev: float | None = None
+        # a camera turned about its optical axis: points re-projected into body axes
+        self._cam_to_body = (None if cfg.camera.mount_yaw_rad == 0.0
+                             else camera_to_body_rotation(cfg.camera.mount_rpy_rad))
         self._last_seen_s = -math.inf
         self._last_yaw = 0.0
         self._yaw_sp: float | None = None
@@ -229,6 +233,7 @@ class ControlPipeline:
                                         if cfg.target.pattern == "aruco" else math.pi),
                     # a square marker's moments carry no orientation: use its corner order
                     heading_from_corners=cfg.target.pattern == "aruco",
+                    cam_to_body=self._cam_to_body,
                 )
             except (MeasurementError, DegenerateTargetError) as exc:
                 finite = not isinstance(exc, MeasurementError)

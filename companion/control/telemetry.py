@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.core.geometry import euler_zyx_from_quat
+from companion.core.geometry import euler_zyx_from_quat, quat_from_euler_zyx
 
 EARTH_RADIUS_M = 6378137.0
 
@@ -69,8 +69,9 @@ class TelemetryStore:
     """Latest samples per kind; attitude keeps a short history for interpolation."""
 
     #: the only messages :meth:`ingest` takes (any other returns False and changes nothing)
-    MESSAGES = frozenset({"FOLLOW_TARGET", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED",
-                          "HEARTBEAT", "ATTITUDE_TARGET", "EXTENDED_SYS_STATE"})
+    MESSAGES = frozenset({"FOLLOW_TARGET", "ATTITUDE_QUATERNION", "ATTITUDE",
+                          "LOCAL_POSITION_NED", "HEARTBEAT", "ATTITUDE_TARGET",
+                          "EXTENDED_SYS_STATE"})
 
     def __init__(
         self,
@@ -109,8 +110,14 @@ class TelemetryStore:
                      float(fields["q4"]))
                 if not _finite(*q, fields["yawspeed"]) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
                     return self._reject("ATTITUDE_QUATERNION not a unit quaternion")
-                self._push_attitude(AttitudeSample(t_s, q, float(fields["yawspeed"])))
-                return True
+                return self._push_attitude(name, AttitudeSample(t_s, q, float(fields["yawspeed"])))
+            if name == "ATTITUDE":  # PX4 onboard: 100 Hz against ATTITUDE_QUATERNION's 50 Hz
+                rpy = [float(fields[k]) for k in ("roll", "pitch", "yaw")]
+                if not _finite(*rpy, fields["yawspeed"]):
+                    return self._reject("ATTITUDE non-finite")
+                qa = quat_from_euler_zyx(*rpy)
+                return self._push_attitude(name, AttitudeSample(
+                    t_s, tuple(float(x) for x in qa), float(fields["yawspeed"])))  # type: ignore[arg-type]
             if name == "LOCAL_POSITION_NED":
                 vals = [float(fields[k]) for k in ("x", "y", "z", "vx", "vy", "vz")]
                 if not _finite(*vals):
@@ -147,11 +154,16 @@ class TelemetryStore:
             return self._reject(f"{name} malformed")
         return False
 
-    def _push_attitude(self, s: AttitudeSample) -> None:
-        if self.attitude and s.t_s < self.attitude[-1].t_s:
-            self._reject("ATTITUDE_QUATERNION out of order")
-            return
+    def _push_attitude(self, name: str, s: AttitudeSample) -> bool:
+        """One attitude history for both attitude messages (PX4 sends the same estimate as
+        ATTITUDE and ATTITUDE_QUATERNION): a sample older than the newest is not used, one of
+        the same instant replaces it."""
+        if self.attitude and s.t_s <= self.attitude[-1].t_s:
+            if s.t_s < self.attitude[-1].t_s:
+                return self._reject(f"{name} out of order")
+            self.attitude.pop()  # the same instant from the other message: the newer one
         self.attitude.append(s)
+        return True
 
     def _follow_target(self, f: Mapping[str, Any], t_s: float) -> bool:
         caps = int(f["est_capabilities"])

@@ -6,6 +6,7 @@ field's ``check`` metadata is the per-value rule it applies first.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -47,17 +48,31 @@ class CameraParams:
     calibration_file: str = ""
 
     def __post_init__(self) -> None:
-        # The control pipeline builds the virtual image from the camera's own roll/pitch, which
-        # equal the body's only for the paper's mount (camera axes = body axes, at the body
-        # origin). A tilted or offset camera would be flown with the wrong geometry, so refuse it
-        # here instead of failing in the air (docs/limits.md).
+        # The companion flies a camera whose optical axis is the body's z axis at the body
+        # origin (the paper's mount), turned by any angle about that axis (mount yaw: a camera
+        # fitted with its image "up" to the side or backwards). The detected points are then
+        # re-projected into body axes (core.state.virtual_image_points); the visibility rows
+        # are circles about the optical axis, so they hold unchanged. A tilted or offset camera
+        # would be flown with the wrong geometry: refused here instead of failing in the air
+        # (docs/limits.md).
         for name in ("mount_offset_m", "mount_rpy_rad"):
             value = getattr(self, name)
-            if any(float(v) != 0.0 for v in value):
-                raise ParamError(
-                    f"camera.{name}: {list(value)} is not supported by the companion yet "
-                    "(only the paper's mount: camera axes = body axes at the body origin)"
-                )
+            if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
+                raise ParamError(f"camera.{name}: need 3 finite numbers, got {list(value)}")
+        if any(float(v) != 0.0 for v in self.mount_offset_m):
+            raise ParamError(
+                f"camera.mount_offset_m: {list(self.mount_offset_m)} is not supported by the "
+                "companion yet (the camera's optical centre must be at the body origin)")
+        if any(float(v) != 0.0 for v in self.mount_rpy_rad[:2]):
+            raise ParamError(
+                f"camera.mount_rpy_rad: {list(self.mount_rpy_rad)}: a tilted camera (roll or "
+                "pitch) is not supported by the companion yet; only a turn about the optical "
+                "axis (the third value, yaw) is")
+
+    @property
+    def mount_yaw_rad(self) -> float:
+        """The camera's turn about the body z axis (its optical axis) (rad)."""
+        return float(self.mount_rpy_rad[2])
 
     @property
     def visible_half_m(self) -> float:
