@@ -170,10 +170,15 @@ class TimeBase:
         return t
 
 
+FAULT_KINDS = ("solver", "solver-hang")
+
+
 @dataclass(frozen=True)
 class FaultWindow:
-    """Fault injection for tests and bench (like PX4's failure injection): ``kind`` is
-    ``solver`` (every solve reported failed) during ``[t0_s, t1_s)`` after the first frame."""
+    """Fault injection for tests and bench (like PX4's failure injection) during ``[t0_s,
+    t1_s)`` after the first frame: ``kind`` is ``solver`` (every solve reported failed) or
+    ``solver-hang`` (each step's solve never returns: the solver process's test hook, cut by
+    ``rmpc.max_solve_time_s``; needs ``rmpc.solve_isolation = "process"``)."""
 
     kind: str
     t0_s: float
@@ -186,8 +191,9 @@ class FaultWindow:
             w = cls(kind, float(t0), float(t1))
         except ValueError:
             raise CompanionError(f"--inject-fault {text!r}: expected KIND:T0:T1") from None
-        if w.kind != "solver" or not w.t1_s > w.t0_s:
-            raise CompanionError(f"--inject-fault {text!r}: kind 'solver' and T1 > T0 only")
+        if w.kind not in FAULT_KINDS or not w.t1_s > w.t0_s:
+            raise CompanionError(f"--inject-fault {text!r}: kind one of {FAULT_KINDS} and "
+                                 "T1 > T0 only")
         return w
 
 
@@ -265,6 +271,10 @@ class CompanionApp:
             lat.auto_delay_max_s, 1.0 / lat.auto_delay_probe_hz) if lat.auto_delay else None
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
+        if any(f.kind == "solver-hang" for f in faults) and not hasattr(
+                getattr(self.pipeline.rmpc, "backend", None), "hang_next_solve"):
+            raise CompanionError("--inject-fault solver-hang: needs controller.kind an RMPC "
+                                 "with rmpc.solve_isolation = \"process\"")
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
         self.rx_count = 0
         self.steps = 0
@@ -608,6 +618,9 @@ class CompanionApp:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
+        hang = [f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver-hang"]
+        if hang:  # the solver process's test hook, withdrawn after the window
+            self.pipeline.rmpc.backend.hang_next_solve(any(hang))  # type: ignore[attr-defined]
         t_start_ns = time.monotonic_ns()
         # The log writer waits while the step computes and sends (McapLogger.hold): its Python
         # serialisation otherwise takes the GIL from the step for up to CPython's 5 ms switch

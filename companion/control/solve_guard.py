@@ -225,10 +225,11 @@ class ProcessSolveBackend:
     def start_step(self) -> None:
         self._deadline = self._clock() + self.max_solve_time_s
 
-    def hang_next_solve(self) -> None:
-        """Test hook: the child's next solve computes its result and then never returns it
-        (spinning at 100 % CPU with SIGTERM ignored), like the stuck fatrop solve."""
-        self._hang_next = True
+    def hang_next_solve(self, on: bool = True) -> None:
+        """Test hook: the child's next solve (the next one sent to a ready child) computes its
+        result and then never returns it (spinning at 100 % CPU with SIGTERM ignored), like the
+        stuck fatrop solve. ``on=False`` withdraws a pending request."""
+        self._hang_next = on
 
     def evaluate(self, kind: str, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
                  ubx: np.ndarray) -> Evaluation:
