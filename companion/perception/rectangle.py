@@ -55,9 +55,12 @@ class RectangleSettings:
     ``threshold``: a fixed grey level separating the top from everything else, or ``None``
     (the default) for a level chosen per frame: ``G + level_fraction * (T - G)`` with ``G`` the
     frame's median (the ground: the top covers well under half of the searched image) and ``T``
-    its bright level (the grey level that at least ``bright_count_px`` pixels reach). A frame
-    whose bright region does not stand out is "no bright region": ``T - G`` must reach
-    ``min_separation * G`` and ``min_level_contrast`` grey levels, and the valley around the
+    the bright region's level (the median of the pixels above a first threshold placed the same
+    way with the level that ``bright_count_px`` pixels reach, so sensor noise on the top does
+    not raise it). A frame whose bright region does not stand out is "no bright region":
+    ``T - G`` must reach ``min_separation * G`` (the top at least 1.5 x the ground's median: at
+    the emulator's nominal exposure it is 2.5 x; from gain ~1.8 on the ground saturates with
+    the top) and ``min_level_contrast`` grey levels, and the valley around the
     threshold must be empty enough (pixels within ``valley_band`` of ``T - G`` of the
     threshold, at most ``max_valley_ratio`` times the pixels above it): a textured ground
     alone has a continuous histogram there, a bright top on it a gap. The edges' contrast
@@ -74,7 +77,7 @@ class RectangleSettings:
     threshold: int | None = None
     level_fraction: float = 0.7
     bright_count_px: float = 40.0
-    min_separation: float = 0.25
+    min_separation: float = 0.5
     min_level_contrast: float = 20.0
     valley_band: float = 0.05
     max_valley_ratio: float = 0.5
@@ -156,8 +159,8 @@ class RectangleDetector(QuadDetectorBase):
         if s.threshold is None:
             levels = grey_levels(gray, s)
             if isinstance(levels, str):
-                return DetectionReport(None, (), f"no bright region (target not in view): {levels}",
-                                       0)
+                return DetectionReport(
+                    None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
             threshold, contrast = levels
             edge_settings = dataclasses.replace(
                 edge_settings,
