@@ -274,10 +274,13 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
         pipeline.force_solver_failure = bool(rec_step.get("fault_injected", False))
         t_now = rec_step.get("t_now_s")  # the live step's "now" (latency compensation)
         ic = rec_step.get("in_control")
+        ad = rec_step.get("actuation_delay_s")  # the delay the live step used (auto_delay)
         out = pipeline.step(None, t_s, store,
                             t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
                             in_control=ic if isinstance(ic, bool) else None,
-                            perceived=p.result(perception))
+                            perceived=p.result(perception),
+                            actuation_delay_s=float(ad) if isinstance(ad, (int, float))
+                            and cfg.control.latency.auto_delay else None)
         res.steps += 1
         if writer is not None:
             new = out.to_record()

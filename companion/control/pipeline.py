@@ -90,6 +90,8 @@ class StepResult:
     input_region: tuple[int, int, int, int] | None = None
     #: tilt-lag lead term added to the horizontal command (2,) NED m/s^2 (None: not led)
     lead_m_s2: np.ndarray | None = None
+    #: the actuation delay (s) the step placed its command and prediction with
+    actuation_delay_s: float | None = None
 
     def to_record(self) -> dict[str, Any]:
         """JSON-ready record for the log."""
@@ -127,6 +129,7 @@ class StepResult:
             "in_control": self.in_control,
             "estimator": None if self.estimator is None else self.estimator.to_record(),
             "lead_m_s2": _lst(self.lead_m_s2),
+            "actuation_delay_s": self.actuation_delay_s,
             "latency": None if self.prediction is None else {
                 "frame_age_s": self.prediction.t_to_s - self.prediction.t_from_s,
                 "horizon_s": self.prediction.horizon_s,
@@ -178,9 +181,13 @@ class ControlPipeline:
 
     def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore,
              t_now_s: float | None = None, in_control: bool | None = None,
-             perceived: PerceptionResult | None = None) -> StepResult:
+             perceived: PerceptionResult | None = None,
+             actuation_delay_s: float | None = None) -> StepResult:
         """One frame captured at ``t_s``; ``t_now_s``: the time the step runs (same time base;
-        default ``t_s``, i.e. no latency known); ``in_control``: our setpoints fly the vehicle
+        default ``t_s``, i.e. no latency known); ``actuation_delay_s``: from ``t_now_s`` to the
+        vehicle flying this step's command, as measured by the runtime
+        (``control.latency.auto_delay``; default ``control.latency.actuation_delay_s``);
+        ``in_control``: our setpoints fly the vehicle
         (the runtime knows OFFBOARD was requested before the 1 Hz HEARTBEAT confirms it;
         default: the HEARTBEAT's mode). ``perceived``: the perception result of that frame
         computed elsewhere (a replay from logged detections); ``image`` is then not looked at."""
@@ -210,6 +217,9 @@ class ControlPipeline:
         kin = store.kinematics
         self._update_estimator(store, in_control, t_now)
         lat = cfg.control.latency
+        delay_s = lat.actuation_delay_s
+        if actuation_delay_s is not None and math.isfinite(actuation_delay_s):
+            delay_s = min(max(float(actuation_delay_s), 0.0), 1.0)
         kin_cap = store.kinematics_at(t_s) if lat.enabled else kin
         finite = True
         es: ErrorState | None = None
@@ -266,7 +276,7 @@ class ControlPipeline:
             if lat.enabled:
                 v_a, vdot_a, psidot_a = motion.stage(0)
                 pred = predict_error_state(
-                    es.eta_e, t_s, t_now + lat.actuation_delay_s,
+                    es.eta_e, t_s, t_now + delay_s,
                     [(t, u) for t, u, _ in self._commands], v_a, vdot_a, psidot_a,
                     cfg.rmpc.desired_depth_m, lat)
                 if np.all(np.isfinite(pred.eta_e)):
@@ -340,7 +350,7 @@ class ControlPipeline:
                                     thrust_min=cfg.control.thrust_min,
                                     thrust_max=cfg.control.thrust_max)
         if sp is not None:
-            t_eff = t_now + lat.actuation_delay_s
+            t_eff = t_now + delay_s
             if self._commands and t_eff < self._commands[-1][0]:
                 t_eff = self._commands[-1][0]  # keep the history in time order
             # what the vehicle will fly: before OFFBOARD (in_control False) PX4 holds with its
@@ -360,7 +370,7 @@ class ControlPipeline:
             corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
             safety=decision, u=u, setpoint=sp, notes=tuple(notes), estimator=est,
             prediction=pred, t_now_s=t_now, in_control=in_control, input_region=region,
-            lead_m_s2=lead_m_s2,
+            lead_m_s2=lead_m_s2, actuation_delay_s=delay_s,
         )
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,

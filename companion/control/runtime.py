@@ -45,7 +45,7 @@ from companion.control.pipeline import ControlPipeline
 from companion.control.recording import FrameRecorder, LogClock
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
-from companion.control.timesync import TimeSync
+from companion.control.timesync import ActuationDelayMeter, TimeSync
 from companion.link import MavlinkLink, NoPeerError, Received
 from companion.log import schemas as sch
 from companion.log.live import start_live
@@ -256,6 +256,11 @@ class CompanionApp:
         self.clock = LogClock(cfg.logging.timestamps)
         self.recorder = FrameRecorder(cfg.logging)
         self.timesync = TimeSync()
+        lat = cfg.control.latency
+        # the actuation delay measured from TIMESYNC probes (None: the configured constant)
+        self.delay_meter = ActuationDelayMeter(
+            cfg.control.time_source, lat.auto_delay_window, lat.auto_delay_min_samples,
+            lat.auto_delay_max_s, 1.0 / lat.auto_delay_probe_hz) if lat.auto_delay else None
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
@@ -406,6 +411,8 @@ class CompanionApp:
         elif rx.name == "TIMESYNC" and is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
             answer = self.timesync.on_timesync(int(fields["tc1"]), int(fields["ts1"]),
                                                time.monotonic_ns())
+            if answer is None and self.delay_meter is not None:
+                self.delay_meter.on_reply(int(fields["tc1"]), int(fields["ts1"]), rx.t_rx_ns)
             if answer is not None and self._link is not None:
                 with contextlib.suppress(NoPeerError):
                     self._link.send_timesync(*answer)
@@ -599,13 +606,22 @@ class CompanionApp:
         # serialisation otherwise takes the GIL from the step for up to CPython's 5 ms switch
         # interval (measured: send stage 1.2-1.9 -> 0.4-0.6 ms median, frame -> command
         # 6.7-7.1 -> 5.8-6.2 ms median at load 6, interleaved).
+        meter = self.delay_meter
+        measured = None if meter is None else meter.value()
         logger.hold()
         try:
             res = self.pipeline.step(np.asarray(frame.image), t_s, self.store,
-                                     t_now_s=self.now_s(), in_control=self._in_control())
+                                     t_now_s=self.now_s(), in_control=self._in_control(),
+                                     actuation_delay_s=measured)
             sent_ns = None
             if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
                 try:
+                    t_now = res.t_now_s if res.t_now_s is not None else t_s
+                    if meter is not None and meter.due(t_now):
+                        # right before the setpoint: the same way, the same delays
+                        ts1 = time.monotonic_ns()
+                        link.send_timesync(*self.timesync.request(ts1))
+                        meter.sent(ts1, t_now)
                     link.send_attitude_target(res.setpoint.q_wxyz.tolist(),
                                               res.setpoint.thrust_norm,
                                               time_boot_ms=int(max(t_s, 0.0) * 1e3) & 0xFFFFFFFF)
@@ -638,6 +654,10 @@ class CompanionApp:
             "frame_late_s": frame_late_s,
             "telemetry_age_s": _finite_or_none(self.store.telemetry_age_s(t_s)),
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
+            "actuation_delay": None if meter is None else {
+                "used_s": res.actuation_delay_s, "measured": measured is not None,
+                "samples": meter.samples, "spread_s": meter.spread(),
+                "replies": meter.replies, "rejected": meter.rejected},
             "input": logged_input,
         })
         if sent_ns is not None:

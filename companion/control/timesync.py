@@ -16,6 +16,8 @@ A frame stamped ``t_us`` on the autopilot's clock (a hardware-synced camera) is 
 
 from __future__ import annotations
 
+import math
+import statistics
 from collections import deque
 from dataclasses import dataclass
 
@@ -72,4 +74,95 @@ class TimeSync:
         return None if b is None else (t_local_ns + b.offset_ns) * 1e-9
 
 
-__all__ = ["TimeSync", "TimesyncSample"]
+class ActuationDelayMeter:
+    """The actuation delay measured online (``control.latency.auto_delay``): from the step's
+    "now" (the time base the command history is stamped on) to the moment the vehicle receives
+    the setpoint sent in that step.
+
+    A TIMESYNC request sent right before a setpoint travels the same way; PX4 answers it with
+    ``tc1`` = its boot time when the request arrived, i.e. when the setpoint did. One sample
+    is that moment on the control time base minus the step's "now":
+
+    * ``"autopilot"`` and ``"timesync"`` (now on the autopilot's clock): ``tc1 - now``. With
+      ``"autopilot"`` now is the newest telemetry stamp, so the sample holds the whole
+      vehicle -> companion delay, the step's computation and the companion -> vehicle delay
+      (the round trip); with ``"timesync"`` now is the mapped local clock, so it holds the
+      computation and the companion -> vehicle delay only.
+    * ``"receipt"`` (everything stamped on arrival): the vehicle's state at the moment the
+      setpoint acts reaches us a vehicle -> companion delay later, like the reply, so the
+      moment is the reply's receipt time: ``t_rx - now``, the local round trip.
+
+    The value is the median of the last ``window`` samples (jitter-robust, a reordered or late
+    reply does not move it), once ``min_samples`` are in; samples above ``max_s`` or below
+    ``-tolerance_s`` are dropped and counted; small negative ones (stamp granularity) count as
+    0. Pure bookkeeping: the runtime sends the probes and feeds the replies."""
+
+    def __init__(self, time_source: str, window: int = 21, min_samples: int = 5,
+                 max_s: float = 0.5, probe_interval_s: float = 0.1, pending: int = 64,
+                 tolerance_s: float = 0.005) -> None:
+        if time_source not in ("receipt", "autopilot", "timesync"):
+            raise ValueError(f"ActuationDelayMeter: unknown time source {time_source!r}")
+        if not 1 <= min_samples <= window or max_s <= 0 or probe_interval_s < 0 or pending < 1:
+            raise ValueError("ActuationDelayMeter: need 1 <= min_samples <= window, max_s > 0,"
+                             " probe_interval_s >= 0, pending >= 1")
+        self.time_source = time_source
+        self.min_samples = min_samples
+        self.max_s = max_s
+        self.probe_interval_s = probe_interval_s
+        self.tolerance_s = tolerance_s
+        self._samples: deque[float] = deque(maxlen=window)
+        self._pending: dict[int, float] = {}
+        self._pending_max = pending
+        self._last_probe_s = -math.inf
+        self.rejected = 0
+        self.replies = 0
+
+    def due(self, now_s: float) -> bool:
+        """A probe is due at control time ``now_s`` (at most one per ``probe_interval_s``)."""
+        return now_s - self._last_probe_s >= self.probe_interval_s - 1e-9 or \
+            now_s < self._last_probe_s  # the time base restarted
+
+    def sent(self, ts1_ns: int, now_s: float) -> None:
+        """A request with ``ts1 = ts1_ns`` left right before the setpoint of the step whose
+        "now" is ``now_s``."""
+        self._last_probe_s = now_s
+        self._pending[int(ts1_ns)] = float(now_s)
+        while len(self._pending) > self._pending_max:  # lost replies: forget the oldest
+            del self._pending[next(iter(self._pending))]
+
+    def on_reply(self, tc1_ns: int, ts1_ns: int, t_rx_ns: int) -> float | None:
+        """PX4's answer (``tc1 > 0``) to one of our probes: the sample (s) it gave, or
+        ``None`` (not a probe of ours, a duplicate, or out of bounds)."""
+        if int(tc1_ns) <= 0:  # the autopilot's own request
+            return None
+        now_s = self._pending.pop(int(ts1_ns), None)
+        if now_s is None:
+            return None
+        self.replies += 1
+        t_eff = int(t_rx_ns) * 1e-9 if self.time_source == "receipt" else int(tc1_ns) * 1e-9
+        d = t_eff - now_s
+        if not math.isfinite(d) or d > self.max_s or d < -self.tolerance_s:
+            self.rejected += 1
+            return None
+        d = max(d, 0.0)
+        self._samples.append(d)
+        return d
+
+    @property
+    def samples(self) -> int:
+        return len(self._samples)
+
+    def value(self) -> float | None:
+        """The measured delay (s), ``None`` until ``min_samples`` are in."""
+        if len(self._samples) < self.min_samples:
+            return None
+        return float(statistics.median(self._samples))
+
+    def spread(self) -> float | None:
+        """Max minus min of the window (s): the jitter the median smooths out."""
+        if len(self._samples) < self.min_samples:
+            return None
+        return max(self._samples) - min(self._samples)
+
+
+__all__ = ["ActuationDelayMeter", "TimeSync", "TimesyncSample"]

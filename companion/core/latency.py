@@ -25,19 +25,40 @@ from companion.core.errors import ParamError
 
 @dataclass(frozen=True)
 class LatencyParams:
-    """``[control.latency]``: ``enabled``; ``actuation_delay_s``: from sending a setpoint to
-    the vehicle acting on it (link + PX4's attitude loop onset; 0 in the lockstep emulator);
-    ``max_prediction_s``: the prediction is never longer (a stale frame beyond it is predicted
-    only this far, and the step notes it); ``step_s``: integration step (s)."""
+    """``[control.latency]``: ``enabled``; ``actuation_delay_s``: from the step's "now" to
+    the vehicle acting on its setpoint (link + PX4's attitude loop onset; 0 in the lockstep
+    emulator's ideal link); with ``auto_delay`` it is only the value used until the delay is
+    measured. ``auto_delay``: measure that delay online from TIMESYNC probes sent with the
+    setpoints (``companion.control.timesync.ActuationDelayMeter``): the median of the last
+    ``auto_delay_window`` samples, once ``auto_delay_min_samples`` are in, probes at most
+    ``auto_delay_probe_hz``; a sample above ``auto_delay_max_s`` is dropped (a reply queued
+    behind a stall says nothing about the usual delay). ``max_prediction_s``: the prediction is
+    never longer (a stale frame beyond it is predicted only this far, and the step notes it);
+    ``step_s``: integration step (s)."""
 
     enabled: bool = True
     actuation_delay_s: float = 0.0
+    auto_delay: bool = True
+    auto_delay_window: int = 21
+    auto_delay_min_samples: int = 5
+    auto_delay_max_s: float = 0.5
+    auto_delay_probe_hz: float = 10.0
     max_prediction_s: float = 0.3
     step_s: float = 0.01
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.actuation_delay_s) and 0.0 <= self.actuation_delay_s <= 1.0):
             raise ParamError("control.latency.actuation_delay_s: must be in [0, 1]")
+        if not 1 <= self.auto_delay_window <= 1000:
+            raise ParamError("control.latency.auto_delay_window: must be in [1, 1000]")
+        if not 1 <= self.auto_delay_min_samples <= self.auto_delay_window:
+            raise ParamError("control.latency.auto_delay_min_samples: must be in "
+                             "[1, auto_delay_window]")
+        if not (math.isfinite(self.auto_delay_max_s) and 0.0 < self.auto_delay_max_s <= 1.0):
+            raise ParamError("control.latency.auto_delay_max_s: must be in (0, 1]")
+        if not (math.isfinite(self.auto_delay_probe_hz) and 0.0 < self.auto_delay_probe_hz
+                <= 100.0):
+            raise ParamError("control.latency.auto_delay_probe_hz: must be in (0, 100]")
         if not (math.isfinite(self.max_prediction_s) and 0.0 < self.max_prediction_s <= 2.0):
             raise ParamError("control.latency.max_prediction_s: must be in (0, 2]")
         if not (math.isfinite(self.step_s) and 0.0 < self.step_s <= 0.05):
