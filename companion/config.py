@@ -62,6 +62,28 @@ class TargetConfig:
 
 
 @dataclass(frozen=True)
+class PerceptionConfig:
+    """Optional table ``[perception]``: the companion's detector tuning (the emulator ignores
+    it). ``rectangle_threshold``: 0 = the rectangle detector's grey threshold is chosen per
+    frame between the ground's median and the brightest region's level (follows exposure and
+    light changes); 1..254 = that fixed grey level. ``rectangle_level_fraction``: where the
+    per-frame threshold sits between the ground's median (0) and the top's level (1)."""
+
+    rectangle_threshold: int = 0
+    rectangle_level_fraction: float = 0.7
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.rectangle_threshold <= 254:
+            raise ConfigError(
+                f"perception.rectangle_threshold: {self.rectangle_threshold} is not 0 (adaptive)"
+                " or a grey level in 1..254")
+        if not 0.3 <= self.rectangle_level_fraction <= 0.9:
+            raise ConfigError(
+                f"perception.rectangle_level_fraction: {self.rectangle_level_fraction} is not in"
+                " [0.3, 0.9]")
+
+
+@dataclass(frozen=True)
 class MavlinkConfig:
     url: str
     source_system: int = field(metadata=checked(positive))
@@ -249,6 +271,7 @@ class Config:
     logging: LoggingConfig
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
+    perception: PerceptionConfig = field(default_factory=PerceptionConfig)  # optional
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 

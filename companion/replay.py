@@ -218,7 +218,8 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
                     log_path, rec.messages,
                     ((rec.last_log_time_ns or 0) - (rec.first_log_time_ns or 0)) * 1e-9)
     pipeline = new_pipeline(cfg, timer=timer)
-    perception = Perception(cfg.camera, cfg.target)  # undistortion + metric of detections
+    # undistortion + metric of detections
+    perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
     store = new_store(cfg)
     tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
     parser = mavlink2.MAVLink(None)

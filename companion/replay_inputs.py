@@ -164,7 +164,7 @@ def perceive_log(path: Path, cfg: Config) -> Iterator[Perceived]:
                 f"{path}: no perception input logged (logging.perception_input = \"none\"): "
                 "replay it with --from-detections")
         topic = TOPIC_INPUT if mode == "crop" else TOPIC_FRAME
-        perception = Perception(cfg.camera, cfg.target)
+        perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
         canvas = _Canvas()
         frames: dict[int, deque[Future[np.ndarray | None]]] = {}
         pending: deque[tuple[dict[str, Any], Future[np.ndarray | None] | None]] = deque()

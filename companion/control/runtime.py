@@ -211,7 +211,8 @@ def _cpu_s(controller: Any = None) -> float:
 
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
     """The pipeline a flight (live or replayed) uses for this config."""
-    return ControlPipeline(cfg, Perception(cfg.camera, cfg.target), timer=timer)
+    perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
+    return ControlPipeline(cfg, perception, timer=timer)
 
 
 def new_store(cfg: Config) -> TelemetryStore:

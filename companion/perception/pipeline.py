@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from companion.config import TargetConfig
+from companion.config import PerceptionConfig, TargetConfig
 from companion.core.geometry import opencv_to_spec_pixel, principal_point_px
 from companion.core.params import CameraParams
 from companion.perception._types import (
@@ -29,7 +29,7 @@ from companion.perception._types import (
 )
 from companion.perception.aruco import ArucoDetector
 from companion.perception.calibration import Calibration, load_calibration
-from companion.perception.rectangle import RectangleDetector
+from companion.perception.rectangle import RectangleDetector, RectangleSettings
 
 _log = logging.getLogger(__name__)
 
@@ -122,10 +122,17 @@ class PerceptionResult:
         return self.status == "ok"
 
 
-def make_detector(target: TargetConfig) -> RectangleDetector | ArucoDetector:
-    """The detector ``target.pattern`` names."""
+def make_detector(target: TargetConfig, perception: PerceptionConfig | None = None
+                  ) -> RectangleDetector | ArucoDetector:
+    """The detector ``target.pattern`` names, tuned by ``perception`` (default: its
+    defaults)."""
     if target.pattern == "rectangle":
-        return RectangleDetector(target.length_m, target.width_m)
+        p = perception or PerceptionConfig()
+        settings = RectangleSettings(
+            threshold=p.rectangle_threshold or None,
+            level_fraction=p.rectangle_level_fraction,
+        )
+        return RectangleDetector(target.length_m, target.width_m, settings=settings)
     if target.pattern == "aruco":
         return ArucoDetector(target.aruco_dictionary, target.aruco_id, target.aruco_size_m)
     raise PerceptionError(f"target.pattern: {target.pattern!r} has no detector")
@@ -137,7 +144,8 @@ class Perception:
     ``calibration``: explicit, else loaded from ``camera.calibration_file`` when set, else
     the ideal pinhole. A calibration made at another image size than the config's is an
     error (its pixels would not be ours). Keeps the last accepted corners to hold the
-    rectangle's corner order across frames (``track_order=False`` to disable).
+    rectangle's corner order across frames (``track_order=False`` to disable). ``perception``:
+    the config's ``[perception]`` table (detector tuning; default: its defaults).
     """
 
     def __init__(
@@ -149,6 +157,7 @@ class Perception:
         detector: Detector | None = None,
         track_order: bool = True,
         roi: bool = True,
+        perception: PerceptionConfig | None = None,
     ) -> None:
         limit_opencv_threads()
         if calibration is None and camera.calibration_file:
@@ -163,7 +172,8 @@ class Perception:
         self.camera = camera
         self.calibration = calibration
         self.model = camera_model(camera, calibration)
-        self.detector: Detector = detector if detector is not None else make_detector(target)
+        self.detector: Detector = (detector if detector is not None
+                                   else make_detector(target, perception))
         self._track_order = track_order
         self._use_roi = roi
         self._last_corners: FloatArray | None = None

@@ -1,18 +1,23 @@
 """Detector for the emulator's pattern: a bright rectangle (the AGV's top) on a darker scene.
 
 Scene model (what the emulator renders, docs/wire.md): the AGV top is the brightest region
-(>= 200), the ground is textured (about 40..150) and the box's sides are dark (<= 60).
+(235 at the nominal exposure), the ground is textured (about 40..150) and the box's sides are
+dark (<= 60); a camera's exposure scales all of them (and saturates at 255).
 
-Pipeline: fixed (or Otsu) threshold -> external contours -> convex hull -> polygon
-approximation to 4 vertices (coarse corners, about 1 px) -> plausibility of the coarse quad ->
-sub-pixel refinement by fitting lines to the four edges (:mod:`companion.perception.edges`) ->
-plausibility of the refined quad. Measured on rendered scenes (tests/companion/
-test_perception.py, bench/perception.py): worst corner error 0.28 px over 458 random poses
-(1.5-5 m, tilt <= 0.3 rad), median 0.07 px; about 1.4 ms per 1000 x 1000 frame (2026-11-23).
+Pipeline: per-frame grey threshold (adaptive: between the frame's ground level and its
+brightest region, see :func:`grey_levels`; or a fixed level) -> external contours -> convex
+hull -> polygon approximation to 4 vertices (coarse corners, about 1 px) -> plausibility of
+the coarse quad -> sub-pixel refinement by fitting lines to the four edges
+(:mod:`companion.perception.edges`) -> plausibility of the refined quad. Measured on rendered
+scenes (tests/companion/test_perception.py, bench/perception.py): worst corner error 0.28 px
+over 458 random poses (1.5-5 m, tilt <= 0.3 rad), median 0.07 px; about 1.4 ms per
+1000 x 1000 frame (2026-11-23, fixed threshold). The adaptive threshold holds the target
+over exposure gains 0.5..1.5 (tests/companion/test_perception_exposure.py).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -47,8 +52,20 @@ _log = logging.getLogger(__name__)
 class RectangleSettings:
     """Tuning of :class:`RectangleDetector` (pixels unless named otherwise).
 
-    ``threshold``: grey level separating the top (>= 200) from everything else (<= 150);
-    ``None`` = Otsu (only sensible when the top covers a good part of the image).
+    ``threshold``: a fixed grey level separating the top from everything else, or ``None``
+    (the default) for a level chosen per frame: ``G + level_fraction * (T - G)`` with ``G`` the
+    frame's median (the ground: the top covers well under half of the searched image) and ``T``
+    the bright region's level (the median of the pixels above a first threshold placed the same
+    way with the level that ``bright_count_px`` pixels reach, so sensor noise on the top does
+    not raise it). A frame whose bright region does not stand out is "no bright region":
+    ``T - G`` must reach ``min_separation * G`` (the top at least 1.5 x the ground's median: at
+    the emulator's nominal exposure it is 2.5 x; from gain ~1.8 on the ground saturates with
+    the top) and ``min_level_contrast`` grey levels, and the valley around the
+    threshold must be empty enough (pixels within ``valley_band`` of ``T - G`` of the
+    threshold, at most ``max_valley_ratio`` times the pixels above it): a textured ground
+    alone has a continuous histogram there, a bright top on it a gap. The edges' contrast
+    bound then scales with the frame: ``min_contrast * (T - G) / 140`` (140: the top above
+    the ground at the emulator's nominal exposure), at least ``min_level_contrast / 2``.
     ``presmooth_px``: Gaussian sigma applied before thresholding (coarse stage only).
     ``profile_half_px``: half length of the profile sampled across each edge; must cover the
     edge blur plus the coarse corners' error. ``min_contrast``: inside minus outside level for
@@ -57,7 +74,13 @@ class RectangleSettings:
     ``max_candidates``: bright blobs examined per image, largest first.
     """
 
-    threshold: int | None = 175
+    threshold: int | None = None
+    level_fraction: float = 0.7
+    bright_count_px: float = 40.0
+    min_separation: float = 0.5
+    min_level_contrast: float = 20.0
+    valley_band: float = 0.05
+    max_valley_ratio: float = 0.5
     presmooth_px: float = 0.8
     profile_half_px: float = 4.0
     profile_step_px: float = 0.25
@@ -71,7 +94,15 @@ class RectangleSettings:
 
     def __post_init__(self) -> None:
         if self.threshold is not None and not 0 < self.threshold < 255:
-            raise PerceptionError("threshold: must be in (0, 255) or None for Otsu")
+            raise PerceptionError("threshold: must be in (0, 255), or None for adaptive")
+        if not 0.3 <= self.level_fraction <= 0.9:
+            raise PerceptionError("level_fraction: must be in [0.3, 0.9]")
+        if not self.bright_count_px >= 1:
+            raise PerceptionError("bright_count_px: must be >= 1")
+        if not (self.min_separation >= 0 and self.min_level_contrast > 0):
+            raise PerceptionError("min_separation, min_level_contrast: must be >= 0, > 0")
+        if not (0 < self.valley_band < 0.5 and self.max_valley_ratio > 0):
+            raise PerceptionError("valley_band: must be in (0, 0.5); max_valley_ratio > 0")
         if not self.profile_half_px >= 2:
             raise PerceptionError("profile_half_px: must be >= 2")
         if not 0 < self.profile_step_px <= 0.5:
@@ -124,11 +155,24 @@ class RectangleDetector(QuadDetectorBase):
         s = self.settings
         coarse = gray
         off = (0, 0)
-        if s.threshold is not None and s.presmooth_px > 0:
+        edge_settings = self._edge_settings
+        if s.threshold is None:
+            levels = grey_levels(gray, s)
+            if isinstance(levels, str):
+                return DetectionReport(
+                    None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
+            threshold, contrast = levels
+            edge_settings = dataclasses.replace(
+                edge_settings,
+                min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
+                                 0.5 * s.min_level_contrast))
+        else:
+            threshold = s.threshold
+        if s.presmooth_px > 0:
             # Work avoidance: blur and threshold only the window around the raw pixels above
             # the threshold (the top is a small part of the region of interest). The result is
             # the same as for the whole image: see _bright_window.
-            win = _bright_window(gray, s.threshold, _blur_radius_px(s.presmooth_px))
+            win = _bright_window(gray, threshold, _blur_radius_px(s.presmooth_px))
             if win is None:
                 return DetectionReport(None, (), "no bright region (target not in view)", 0)
             x0, y0, x1, y1 = win
@@ -136,10 +180,7 @@ class RectangleDetector(QuadDetectorBase):
             off = (x0, y0)
         if s.presmooth_px > 0:
             coarse = np.asarray(cv2.GaussianBlur(coarse, (0, 0), s.presmooth_px), dtype=np.uint8)
-        if s.threshold is None:
-            _, binary = cv2.threshold(coarse, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-        else:
-            _, binary = cv2.threshold(coarse, s.threshold, 255, cv2.THRESH_BINARY)
+        _, binary = cv2.threshold(coarse, threshold, 255, cv2.THRESH_BINARY)
         contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE,
                                        offset=off)
         blobs = [(float(cv2.contourArea(c)), np.asarray(c, dtype=np.int32)) for c in contours]
@@ -150,7 +191,7 @@ class RectangleDetector(QuadDetectorBase):
         rejections: list[Rejection] = []
         accepted: list[Detection] = []
         for area, contour in blobs[: s.max_candidates]:
-            result = self._candidate(gray, contour, area, w, h, hint)
+            result = self._candidate(gray, contour, area, w, h, hint, edge_settings)
             if isinstance(result, Rejection):
                 rejections.append(result)
             else:
@@ -173,6 +214,7 @@ class RectangleDetector(QuadDetectorBase):
         w: int,
         h: int,
         hint: npt.ArrayLike | None,
+        edge_settings: EdgeSettings,
     ) -> Detection | Rejection:
         s = self.settings
         lim = self.limits
@@ -194,7 +236,7 @@ class RectangleDetector(QuadDetectorBase):
         corners = ordered
         fits: list[EdgeFit] = []
         for _ in range(s.refine_passes):
-            refined = refine_quad(gray, corners, self._edge_settings)
+            refined = refine_quad(gray, corners, edge_settings)
             if refined is None:
                 return Rejection("edges not measurable (low contrast or too short)", ordered)
             corners, fits = refined
@@ -212,6 +254,46 @@ class RectangleDetector(QuadDetectorBase):
         if touches_border(corners, w, h, lim.border_margin_px + s.profile_half_px):
             flags = ("near border",)
         return Detection(corners, quality, abs(signed_area(corners)), None, flags)
+
+
+_NOMINAL_CONTRAST = 140.0  # the top above the ground's median at the nominal exposure
+_HIST_SAMPLES = 65_536  # the histogram samples every n-th row and column beyond this many px
+
+
+def grey_levels(gray: npt.NDArray[np.uint8], s: RectangleSettings) -> tuple[int, float] | str:
+    """The adaptive threshold of one frame: ``(threshold, T - G)``, or why the frame has no
+    bright region standing out (a message). ``G``: the median grey level; ``T``: the median of
+    the pixels above a first threshold, placed with the level that ``s.bright_count_px`` pixels
+    reach (a few noisy pixels do not set it). Images of 262 144 px or more are sampled on every
+    n-th row and column (n = isqrt(size / 65 536): 3 on 1000 x 1000; counts scaled to match):
+    the levels agree with the whole image's to about a grey level."""
+    step = max(math.isqrt(gray.size // _HIST_SAMPLES), 1)
+    sample = gray[::step, ::step] if step > 1 else gray
+    hist = cv2.calcHist([np.ascontiguousarray(sample)], [0], None, [256], [0, 256]).ravel()
+    total = float(hist.sum())
+    csum = np.cumsum(hist)
+    g = int(np.searchsorted(csum, 0.5 * total))
+    need = max(s.bright_count_px / (step * step), 1.0)
+    from_top = np.cumsum(hist[::-1])
+    t_max = 255 - int(np.searchsorted(from_top, need))
+    if t_max - g < max(s.min_level_contrast, s.min_separation * g):
+        return f"bright level {t_max} vs ground {g}"
+    # the bright region's own level: the median of the pixels above a first threshold (noise
+    # spreads the top's pixels; its brightest few would set the level too high)
+    first = round(g + s.level_fraction * (t_max - g))
+    n_first = float(total - csum[first])
+    t = int(np.searchsorted(csum, csum[first] + 0.5 * n_first))
+    contrast = float(t - g)
+    if contrast < max(s.min_level_contrast, s.min_separation * g):
+        return f"bright level {t} vs ground {g}"
+    threshold = round(g + s.level_fraction * contrast)
+    half = s.valley_band * contrast
+    lo, hi = max(math.floor(threshold - half), 0), min(math.ceil(threshold + half), 255)
+    band = float(csum[hi] - (csum[lo - 1] if lo > 0 else 0.0))
+    above = float(total - csum[threshold])
+    if band > s.max_valley_ratio * above:
+        return f"no gap below the bright level {t} (ground {g})"
+    return min(max(threshold, 1), 254), contrast
 
 
 def _blur_radius_px(sigma: float) -> int:
@@ -256,4 +338,4 @@ def _approx_quad(contour: npt.NDArray[np.int32]) -> FloatArray | None:
     return None
 
 
-__all__ = ["RectangleDetector", "RectangleSettings"]
+__all__ = ["RectangleDetector", "RectangleSettings", "grey_levels"]
