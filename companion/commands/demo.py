@@ -326,7 +326,8 @@ def _run(args: argparse.Namespace) -> int:
     cpu = rep.get("companion_cpu_ms_per_step")
     emu = rep.get("emulator_cpu_ms_per_step")
     print(f"CPU per step (getrusage): companion {'-' if cpu is None else f'{cpu:.2f} ms'} (all "
-          f"its threads, first frame to exit), emulator {'-' if emu is None else f'{emu:.2f} ms'}"
+          f"its threads and solver process, first frame to exit), emulator "
+          f"{'-' if emu is None else f'{emu:.2f} ms'}"
           f" (start to exit); load average {rep.get('load_1min', 0.0):.1f}")
     print(f"report: {out / 'report.json'}")
     return 0

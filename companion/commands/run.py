@@ -28,7 +28,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--truth-port", type=int, default=None,
                    help="record the emulator's ground truth from this UDP port (scoring only)")
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1",
-                   help="failure injection for tests: solver:T0:T1 (seconds after first frame)")
+                   help="failure injection for tests: solver:T0:T1 or solver-hang:T0:T1 (seconds "
+                        "after first frame)")
     p.add_argument("--live", action="store_true",
                    help="serve the log's channels live over the Foxglove WebSocket protocol "
                         "(live.host:live.port, default 127.0.0.1:8765; see [live] config)")
@@ -54,5 +55,5 @@ def _run(args: argparse.Namespace) -> int:
     rc = asyncio.run(app.run())
     if app.cpu_ms_per_step is not None:
         print(f"companion: {app.steps} steps, CPU {app.cpu_ms_per_step:.2f} ms per step "
-              "(getrusage, all threads)")
+              "(getrusage, all threads and the solver process)")
     return rc

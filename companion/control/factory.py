@@ -17,6 +17,7 @@ import time
 
 from companion.config import CONTROLLER_KINDS, Config
 from companion.control.seams import Controller
+from companion.control.solve_guard import process_backend
 from companion.core.ibvs import IbvsGains, IbvsPd
 from companion.core.params import RmpcParams
 from companion.core.rmpc import Rmpc
@@ -44,4 +45,9 @@ def build_controller(cfg: Config, terminal: TerminalDesign) -> Controller:
         return IbvsPd(gains, cfg.rmpc.horizon)
     if kind not in CONTROLLER_KINDS:  # config validation makes this unreachable
         raise ValueError(f"controller.kind: {kind!r} is not one of {CONTROLLER_KINDS}")
-    return Rmpc(rmpc_params_for(kind, cfg.rmpc), cfg.camera, terminal, clock=time.perf_counter)
+    params = rmpc_params_for(kind, cfg.rmpc)
+    # rmpc.solve_isolation = "process": every step's solves bounded in wall time in a child
+    # process (companion.control.solve_guard, docs/reliability.md)
+    backend = (process_backend(params, cfg.camera, terminal)
+               if params.solve_isolation == "process" else None)
+    return Rmpc(params, cfg.camera, terminal, clock=time.perf_counter, backend=backend)

@@ -170,10 +170,15 @@ class TimeBase:
         return t
 
 
+FAULT_KINDS = ("solver", "solver-hang")
+
+
 @dataclass(frozen=True)
 class FaultWindow:
-    """Fault injection for tests and bench (like PX4's failure injection): ``kind`` is
-    ``solver`` (every solve reported failed) during ``[t0_s, t1_s)`` after the first frame."""
+    """Fault injection for tests and bench (like PX4's failure injection) during ``[t0_s,
+    t1_s)`` after the first frame: ``kind`` is ``solver`` (every solve reported failed) or
+    ``solver-hang`` (each step's solve never returns: the solver process's test hook, cut by
+    ``rmpc.max_solve_time_s``; needs ``rmpc.solve_isolation = "process"``)."""
 
     kind: str
     t0_s: float
@@ -186,8 +191,9 @@ class FaultWindow:
             w = cls(kind, float(t0), float(t1))
         except ValueError:
             raise CompanionError(f"--inject-fault {text!r}: expected KIND:T0:T1") from None
-        if w.kind != "solver" or not w.t1_s > w.t0_s:
-            raise CompanionError(f"--inject-fault {text!r}: kind 'solver' and T1 > T0 only")
+        if w.kind not in FAULT_KINDS or not w.t1_s > w.t0_s:
+            raise CompanionError(f"--inject-fault {text!r}: kind one of {FAULT_KINDS} and "
+                                 "T1 > T0 only")
         return w
 
 
@@ -195,9 +201,12 @@ def _finite_or_none(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _cpu_s() -> float:
+def _cpu_s(controller: Any = None) -> float:
+    """This process's CPU time (all threads), plus that of ``controller``'s solver process
+    (``rmpc.solve_isolation = "process"``), seconds."""
     r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    backend = getattr(controller, "backend", None)
+    return r.ru_utime + r.ru_stime + float(getattr(backend, "child_cpu_s", 0.0))
 
 
 def new_pipeline(cfg: Config, timer: Any = None) -> ControlPipeline:
@@ -263,6 +272,10 @@ class CompanionApp:
             lat.auto_delay_max_s, 1.0 / lat.auto_delay_probe_hz) if lat.auto_delay else None
         self.store = new_store(cfg)
         self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
+        if any(f.kind == "solver-hang" for f in faults) and not hasattr(
+                getattr(self.pipeline.rmpc, "backend", None), "hang_next_solve"):
+            raise CompanionError("--inject-fault solver-hang: needs controller.kind an RMPC "
+                                 "with rmpc.solve_isolation = \"process\"")
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
         self.rx_count = 0
         self.steps = 0
@@ -333,11 +346,16 @@ class CompanionApp:
                     loop.remove_signal_handler(sig)
             if live is not None:
                 live.close()
+            close = getattr(self.pipeline.rmpc, "close", None)
+            if callable(close):  # the solver's child process (rmpc.solve_isolation)
+                close()
         if self._cpu0 is not None and self.steps > self._cpu0[1]:
-            self.cpu_ms_per_step = 1e3 * (_cpu_s() - self._cpu0[0]) / (self.steps - self._cpu0[1])
+            self.cpu_ms_per_step = (1e3 * (_cpu_s(self.pipeline.rmpc) - self._cpu0[0])
+                                    / (self.steps - self._cpu0[1]))
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
-                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads, first "
-                 "frame to exit)", self.steps, self.sent, self.rx_count, self.log_path,
+                 "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads and the "
+                 "solver process, first frame to exit)", self.steps, self.sent, self.rx_count,
+                 self.log_path,
                  logger.stats.written, logger.stats.dropped,
                  "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
         self._write_progress(final=True)
@@ -601,6 +619,9 @@ class CompanionApp:
             self._stop.set()
         self.pipeline.force_solver_failure = any(
             f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver")
+        hang = [f.t0_s <= elapsed < f.t1_s for f in self.faults if f.kind == "solver-hang"]
+        if hang:  # the solver process's test hook, withdrawn after the window
+            self.pipeline.rmpc.backend.hang_next_solve(any(hang))  # type: ignore[attr-defined]
         t_start_ns = time.monotonic_ns()
         # The log writer waits while the step computes and sends (McapLogger.hold): its Python
         # serialisation otherwise takes the GIL from the step for up to CPython's 5 ms switch
@@ -643,7 +664,7 @@ class CompanionApp:
         self._log_offboard(before, t_s)
         self.steps += 1
         if self._cpu0 is None:
-            self._cpu0 = (_cpu_s(), self.steps)
+            self._cpu0 = (_cpu_s(self.pipeline.rmpc), self.steps)
         elif self.progress_file is not None and self.steps % 20 == 0:
             self._write_progress()
         rec = res.to_record()

@@ -163,6 +163,14 @@ class RmpcParams:
     # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
     # key: companion.config fills it from [target] (used by visibility = "corners").
     target_corners_m: tuple[tuple[float, float], ...] = ()
+    # Where the NLP solves run (docs/reliability.md): "process" (a child process the shell
+    # kills and restarts when a solve exceeds max_solve_time_s: a solver that never returns
+    # cannot freeze the control loop) or "none" (in the calling thread, unbounded: tests,
+    # offline tools). The core itself only runs "none"; the shell builds the child.
+    solve_isolation: str = "none"
+    # Wall-time bound of one RMPC step's solves (hard problem plus soft copy), seconds. A step
+    # that exceeds it is abandoned and flies the terminal law ('fallback', status 'timeout').
+    max_solve_time_s: float = field(default=0.25, metadata=checked(positive))
 
     def __post_init__(self) -> None:
         if self.visibility_pairing not in ("spec", "causal"):
@@ -175,6 +183,7 @@ class RmpcParams:
             ("target_motion", self.target_motion, ("nominal", "planned_yaw")),
             ("target_speed_extrapolation", self.target_speed_extrapolation,
              ("linear", "box")),
+            ("solve_isolation", self.solve_isolation, ("process", "none")),
         ):
             if value not in allowed:
                 raise ParamError(
@@ -188,6 +197,10 @@ class RmpcParams:
             for i, v in enumerate(getattr(self, name)):
                 if not v > 0:
                     raise ParamError(f"rmpc.{name}[{i}]: must be > 0 (got {v})")
+        if not (math.isfinite(self.max_solve_time_s) and self.max_solve_time_s > 0):
+            raise ParamError(
+                f"rmpc.max_solve_time_s: must be a finite time > 0 s (got {self.max_solve_time_s})"
+            )
         if self.solver not in ("fatrop", "ipopt"):
             raise ParamError(f"rmpc.solver: {self.solver!r} is not 'fatrop' or 'ipopt'")
         if self.tube_h < 1:

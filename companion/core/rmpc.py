@@ -13,6 +13,11 @@ and its input is returned with ``mode='recovery'``; if that fails too, the termi
 the input box is returned with ``mode='fallback'``. Every returned trajectory is finite and its
 solver status was checked; :func:`check_solution` re-evaluates every constraint independently.
 
+The solves run here, or on a :class:`SolveBackend` the shell provides (``rmpc.solve_isolation =
+"process"``: a child process, each step's solves bounded by ``rmpc.max_solve_time_s``); a step
+the backend abandons (:class:`SolveAborted`: timeout, solver restarting) is a ``'fallback'``
+whose status says so (``timeout: ...``).
+
 The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code cache in
 :mod:`companion.core.rmpc_cache`.
 """
@@ -23,7 +28,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import casadi as ca
 import numpy as np
@@ -57,6 +62,8 @@ __all__ = [
     "RmpcError",
     "RmpcParameterError",
     "RmpcResult",
+    "SolveAborted",
+    "SolveBackend",
     "TargetMotion",
     "check_solution",
     "terminal_law",
@@ -82,6 +89,36 @@ class RmpcError(CoreError):
 
 class RmpcParameterError(RmpcError, ValueError):
     """A per-step parameter (eta0, target motion) is malformed or not finite: do not command."""
+
+
+class SolveAborted(RmpcError):
+    """A :class:`SolveBackend` gave no result for a solve (it exceeded the step's time bound,
+    or the solver process is being restarted): its message is the step's status."""
+
+
+Evaluation = tuple[int, dict[str, Any], np.ndarray, float, np.ndarray]
+"""One evaluation of a compiled solver: (CasADi return flag, the solve's stats entries
+``success``, ``return_status``, ``unified_return_status``, ``iter_count``; x, f, g)."""
+
+
+class SolveBackend(Protocol):
+    """Where the NLP evaluations of :class:`Rmpc` run (``rmpc.solve_isolation``; the shell
+    builds the child-process one, :mod:`companion.control.solve_guard`).
+
+    ``start_step`` is called once per :meth:`Rmpc.solve` (the step's time bound starts);
+    ``evaluate`` solves the NLP ``kind`` ('hard' or 'soft') from the given initial guess,
+    parameters and variable bounds, raises :class:`SolveAborted` when it has no result in
+    time, and ``RuntimeError`` when CasADi raised."""
+
+    def start_step(self) -> None: ...
+
+    def evaluate(self, kind: str, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
+                 ubx: np.ndarray) -> Evaluation: ...
+
+    def close(self) -> None: ...
+
+
+STATS_KEYS = ("success", "return_status", "unified_return_status", "iter_count")
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -180,8 +217,8 @@ class RmpcResult:
     (terminal law clipped to U); ``status``: the return status of the solve that produced the
     result (``hard_status``: that of the hard attempt); ``cost``: its objective;
     ``iterations`` and ``solve_time_s``: summed over the solves of this step (wall time of the
-    compiled solver's evaluation on the shell's ``clock``; NaN if it raised or without a
-    clock); ``u0`` (4,): the input to apply;
+    compiled solver's evaluation on the shell's ``clock``; NaN if it raised, was abandoned
+    (:class:`SolveAborted`) or without a clock); ``u0`` (4,): the input to apply;
     ``eta_pred`` (N+1, 7), ``u_pred`` (N, 4): the predicted trajectory;
     ``max_soft_violation``: largest slack of the recovery solve in the squared-row units
     (0 otherwise); ``active_groups``: constraint groups in the problem; ``target``: the motion
@@ -371,19 +408,35 @@ class _Solver:
         ubx[lay.x_index[0]] = eta0
         return lbx, ubx
 
-    def solve(
-        self, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray
-    ) -> tuple[bool, str, dict[str, Any], np.ndarray, float, int, float]:
-        """Solve; return (accepted, status, stats, w, cost, iterations, t_wall_s)."""
+    def evaluate(self, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
+                 ubx: np.ndarray) -> Evaluation:
+        """One evaluation of the compiled solver in this thread (CasADi's ``RuntimeError``
+        passes through). What a solver process runs for :class:`SolveBackend`."""
         self._w0_in[:] = w0
         self._p_in[:] = par
         self._lbx_in[:] = lbx
         self._ubx_in[:] = ubx
+        self._buf._eval()
+        flag = int(self._buf.ret())
+        # per-solve entries (success, return_status, iter_count) are set by every solve; the
+        # buffer does not reset the cumulative counters and timers, which are not read here
+        st = self._buf.stats() if flag == 0 else {}
+        stats = {k: st[k] for k in STATS_KEYS if k in st}
+        return flag, stats, self._x_out.copy(), float(self._f_out[0]), self._g_out.copy()
+
+    def solve(
+        self, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray,
+        backend: SolveBackend | None = None,
+    ) -> tuple[bool, str, dict[str, Any], np.ndarray, float, int, float]:
+        """Solve (here, or on ``backend``); return (accepted, status, stats, w, cost,
+        iterations, t_wall_s). :class:`SolveAborted` from the backend passes through."""
         self.calls += 1
         t0 = self._clock() if self._clock is not None else math.nan
         try:
-            self._buf._eval()
-            flag = int(self._buf.ret())
+            if backend is None:
+                flag, st, w, cost, g = self.evaluate(w0, par, lbx, ubx)
+            else:
+                flag, st, w, cost, g = backend.evaluate(self.kind, w0, par, lbx, ubx)
         except RuntimeError as exc:  # CasADi raises on internal errors (e.g. evaluation)
             log.warning("RMPC %s solve raised: %s", self.kind, exc)
             return False, f"exception: {exc}", {}, w0, float("nan"), 0, float("nan")
@@ -392,13 +445,7 @@ class _Solver:
             log.warning("RMPC %s solve: evaluation failed (flag %d)", self.kind, flag)
             return False, f"exception: evaluation failed (flag {flag})", {}, w0, float("nan"), \
                 0, float("nan")
-        # per-solve entries (success, return_status, iter_count) are set by every solve; the
-        # buffer does not reset the cumulative counters and timers, which are not read here
-        st = self._buf.stats()
         status = _status_string(st)
-        w = self._x_out.copy()
-        g = self._g_out
-        cost = float(self._f_out[0])
         it = int(st.get("iter_count", 0))
         ok = bool(st.get("success", False))
         if ok and not (np.all(np.isfinite(w)) and np.all(np.isfinite(g)) and np.isfinite(cost)):
@@ -429,11 +476,14 @@ class Rmpc:
     ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
     ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start). ``clock``
     (seconds, e.g. ``time.perf_counter``, given by the shell: the core reads no clock) times
-    each solve for ``RmpcResult.solve_time_s``; without it that is NaN.
+    each solve for ``RmpcResult.solve_time_s``; without it that is NaN. ``backend`` (built
+    from this controller once its solvers are compiled) runs the NLP evaluations elsewhere
+    (:class:`SolveBackend`); :meth:`close` stops it.
     """
 
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None,
+                 backend: Callable[[Rmpc], SolveBackend] | None = None) -> None:
         self.cfg = rmpc
         self.camera = camera
         self.terminal = terminal
@@ -461,6 +511,21 @@ class Rmpc:
         self._se4_scale = float(np.sqrt(np.linalg.inv(np.asarray(terminal.p))[3, 3]))
         self._p_tube = tube_matrix(rmpc, np.asarray(terminal.p, dtype=float))
         self._s4_ref = 0.0  # eta0[3] of the current step (stage_motion's reference yaw)
+        # where the solves run: here (None), or a backend the shell builds for this controller
+        # (a child process bounded by rmpc.max_solve_time_s, companion.control.solve_guard)
+        self.backend: SolveBackend | None = backend(self) if backend is not None else None
+
+    def solver_kinds(self) -> dict[str, tuple[bool, str]]:
+        """The NLPs this controller solves: kind -> (soft, solver name)."""
+        out = {self._hard.kind: (False, self._hard.solver_name)}
+        if self._soft is not None:
+            out[self._soft.kind] = (True, self._soft.solver_name)
+        return out
+
+    def close(self) -> None:
+        """Stop the solve backend (its child process), if any. Idempotent."""
+        if self.backend is not None:
+            self.backend.close()
 
     @property
     def compiled(self) -> tuple[CompiledNlp | None, CompiledNlp | None]:
@@ -489,13 +554,19 @@ class Rmpc:
         par = np.append(target.packed(), e0[3])
         self._s4_ref = float(e0[3])
         eta_g, u_g = self._guess(e0, target)
+        if self.backend is not None:
+            self.backend.start_step()
 
         lay = self._hard.layout
         certificate = self._infeasibility_certificate(e0, target)
         if certificate is None:
             lbx, ubx = self._hard.bounds(e0, target)
             w0 = self._pack(lay, eta_g, u_g)
-            ok, status, _, w, cost, iters, t_wall = self._hard.solve(w0, par, lbx, ubx)
+            try:
+                ok, status, _, w, cost, iters, t_wall = self._hard.solve(w0, par, lbx, ubx,
+                                                                         self.backend)
+            except SolveAborted as exc:
+                return self._aborted(e0, target, str(exc), str(exc), 0, math.nan)
         else:  # provably infeasible: do not spend the solver's iterations on finding out
             ok, status, w, cost, iters, t_wall = False, certificate, np.zeros(0), 0.0, 0, 0.0
         hard_status = status
@@ -510,7 +581,11 @@ class Rmpc:
             slbx, subx = self._soft.bounds(e0, target)
             sw0 = self._pack(slay, eta_g, u_g)
             sw0[slay.slack_index] = self._slack_guess(slay, eta_g, u_g, target)
-            sok, sstatus, _, sw, scost, sit, st_wall = self._soft.solve(sw0, par, slbx, subx)
+            try:
+                sok, sstatus, _, sw, scost, sit, st_wall = self._soft.solve(
+                    sw0, par, slbx, subx, self.backend)
+            except SolveAborted as exc:
+                return self._aborted(e0, target, str(exc), hard_status, iters, math.nan)
             iters += sit
             t_wall += st_wall
             if sok:
@@ -522,6 +597,16 @@ class Rmpc:
                                   self.groups, target)
             status = sstatus
             log.warning("RMPC soft copy failed too (%s): terminal-law fallback", sstatus)
+        eta_f, u_f = self._rollout(e0, target)
+        self._prev = None
+        return RmpcResult(False, "fallback", status, hard_status,
+                          self._objective(eta_f, u_f, target), iters, t_wall,
+                          _ro(u_f[0]), _ro(eta_f), _ro(u_f), 0.0, self.groups, target)
+
+    def _aborted(self, e0: np.ndarray, target: TargetMotion, status: str, hard_status: str,
+                 iters: int, t_wall: float) -> RmpcResult:
+        """The terminal-law fallback of a step whose solve the backend abandoned."""
+        log.warning("RMPC step abandoned (%s): terminal-law fallback", status)
         eta_f, u_f = self._rollout(e0, target)
         self._prev = None
         return RmpcResult(False, "fallback", status, hard_status,

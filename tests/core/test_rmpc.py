@@ -219,8 +219,9 @@ def test_buffer_calls_match_the_dm_call_exactly(fresh: Rmpc) -> None:
     def checked(sv: Any) -> Any:
         orig = sv.solve
 
-        def solve(w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray) -> Any:
-            out = orig(w0, par, lbx, ubx)
+        def solve(w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray,
+                  backend: Any = None) -> Any:
+            out = orig(w0, par, lbx, ubx, backend)
             _, _, st, w, cost, it, _ = out
             ref = sv.solver.call([ca.DM(w0), ca.DM(par), ca.DM(lbx), ca.DM(ubx),
                                   ca.DM(sv.lbg), ca.DM(sv.ubg), ca.DM(), ca.DM()])

@@ -1,0 +1,220 @@
+"""The solve time bound (``rmpc.solve_isolation = "process"``, companion.control.solve_guard):
+a solve that never returns is abandoned, its child process killed and replaced, the step flies
+the finite terminal-law fallback with a 'timeout' status and the steps after the restart solve
+again; SIGTERM stops a companion whose solver is stuck. Real CasADi in a real child process
+(the compiled libraries come from the cache); the stuck solver is the child's own test hook
+(it solves, then spins at 100 % CPU ignoring SIGTERM, like the fatrop restoration loop)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion import ConfigError
+from companion.config import Config, load_config
+from companion.control.factory import build_controller
+from companion.control.solve_guard import ProcessSolveBackend, process_backend
+from companion.core.design import design_terminal
+from companion.core.errors import ParamError
+from companion.core.rmpc import Rmpc, RmpcResult, TargetMotion
+from companion.core.terminal import TerminalDesign
+
+ROOT = Path(__file__).resolve().parents[2]
+ETA0 = np.array([0.0159, -0.2230, 0.6, 0.3927, -0.1307, -0.0541, 0.0])
+READY_S = 120.0  # generous: a cold child on a loaded machine
+
+
+@pytest.fixture(scope="module")
+def cfg() -> Config:
+    return load_config()
+
+
+@pytest.fixture(scope="module")
+def design(cfg: Config) -> TerminalDesign:
+    return design_terminal(cfg.rmpc, cfg.camera)
+
+
+@pytest.fixture(scope="module")
+def mpc(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
+    p = dataclasses.replace(cfg.rmpc, solve_isolation="process")
+    m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
+    yield m
+    m.close()
+
+
+def _backend(m: Rmpc) -> ProcessSolveBackend:
+    b = m.backend
+    assert isinstance(b, ProcessSolveBackend)
+    assert b.wait_ready(READY_S)
+    return b
+
+
+def _motion(cfg: Config) -> TargetMotion:
+    return TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, cfg.rmpc.horizon)
+
+
+def _finite_fallback(res: RmpcResult, cfg: Config) -> None:
+    assert res.mode == "fallback" and not res.success
+    for a in (res.u0, res.eta_pred, res.u_pred):
+        assert np.all(np.isfinite(a))
+    assert np.isfinite(res.cost)
+    assert np.all(np.abs(res.u0) <= np.asarray(cfg.rmpc.u_max) + 1e-12)
+
+
+def test_isolated_solve_equals_the_in_process_one(mpc: Rmpc, cfg: Config,
+                                                  design: TerminalDesign) -> None:
+    """Same compiled solver, same arrays: the child's answer is bit-identical."""
+    _backend(mpc)
+    local = Rmpc(dataclasses.replace(cfg.rmpc, solve_isolation="none"), cfg.camera, design)
+    assert local.backend is None
+    mpc.reset()
+    a, b = mpc.solve(ETA0, _motion(cfg)), local.solve(ETA0, _motion(cfg))
+    assert a.mode == b.mode == "optimal"
+    assert np.array_equal(a.u_pred, b.u_pred) and a.status == b.status
+
+
+def test_a_stuck_solve_times_out_to_the_fallback_and_the_restarted_child_solves(
+        mpc: Rmpc, cfg: Config) -> None:
+    backend = _backend(mpc)
+    mpc.reset()
+    assert mpc.solve(ETA0, _motion(cfg)).mode == "optimal"
+    stuck = backend._proc
+    assert stuck is not None
+    restarts = backend.restarts
+    backend.hang_next_solve()
+    res = mpc.solve(ETA0, _motion(cfg))
+    _finite_fallback(res, cfg)
+    assert res.status.startswith("timeout: hard solve exceeded rmpc.max_solve_time_s")
+    assert res.hard_status == res.status
+    # the stuck child (SIGTERM ignored) was killed, and a new one started
+    assert stuck.exitcode == -signal.SIGKILL
+    assert backend.restarts == restarts + 1 and backend.pid != stuck.pid
+    assert backend.wait_ready(READY_S)
+    again = mpc.solve(ETA0, _motion(cfg))
+    assert again.mode == "optimal" and again.success
+    assert np.all(np.isfinite(again.u_pred))
+
+
+def test_steps_while_the_child_restarts_fly_the_fallback(mpc: Rmpc, cfg: Config) -> None:
+    backend = _backend(mpc)
+    backend._restart("test")
+    # stopped before it can have imported CasADi: it cannot be ready yet
+    pid = backend.pid
+    assert pid is not None
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        assert not backend.ready
+        res = mpc.solve(ETA0, _motion(cfg))
+        _finite_fallback(res, cfg)
+        assert res.status.startswith("solver restarting")
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    assert backend.wait_ready(READY_S)
+    assert mpc.solve(ETA0, _motion(cfg)).mode == "optimal"
+
+
+def test_a_child_that_died_is_replaced(mpc: Rmpc, cfg: Config) -> None:
+    backend = _backend(mpc)
+    dead = backend._proc
+    assert dead is not None
+    os.kill(dead.pid, signal.SIGKILL)  # type: ignore[arg-type]
+    dead.join(READY_S)
+    res = mpc.solve(ETA0, _motion(cfg))
+    _finite_fallback(res, cfg)
+    assert res.status.startswith("solver process lost during the hard solve")
+    assert backend.pid != dead.pid and backend.wait_ready(READY_S)
+    assert mpc.solve(ETA0, _motion(cfg)).mode == "optimal"
+
+
+def test_the_factory_follows_rmpc_solve_isolation(cfg: Config,
+                                                  design: TerminalDesign) -> None:
+    assert cfg.rmpc.solve_isolation == "process"  # config/paper.toml
+    ctrl = build_controller(load_config(overrides=['rmpc.solve_isolation="none"']), design)
+    assert isinstance(ctrl, Rmpc) and ctrl.backend is None
+    ctrl = build_controller(cfg, design)
+    try:
+        assert isinstance(ctrl, Rmpc) and isinstance(ctrl.backend, ProcessSolveBackend)
+        assert ctrl.backend.max_solve_time_s == cfg.rmpc.max_solve_time_s
+    finally:
+        assert isinstance(ctrl, Rmpc)
+        ctrl.close()
+
+
+@pytest.mark.parametrize("bad", ['rmpc.solve_isolation="thread"', "rmpc.max_solve_time_s=0",
+                                 "rmpc.max_solve_time_s=-0.1", "rmpc.max_solve_time_s=inf"])
+def test_bad_settings_are_refused(bad: str) -> None:
+    with pytest.raises((ConfigError, ParamError), match=r"solve_isolation|max_solve_time_s"):
+        load_config(overrides=[bad])
+
+
+SCRIPT = textwrap.dedent("""
+    import asyncio, dataclasses, signal, sys
+    import numpy as np
+    from companion.config import load_config
+    from companion.control.solve_guard import process_backend
+    from companion.core.design import design_terminal
+    from companion.core.rmpc import Rmpc, TargetMotion
+
+    async def main():
+        cfg = load_config()
+        p = dataclasses.replace(cfg.rmpc, solve_isolation="process", max_solve_time_s=3.0)
+        d = design_terminal(p, cfg.camera)
+        m = Rmpc(p, cfg.camera, d, backend=process_backend(p, cfg.camera, d))
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+        eta0 = np.array([0.0159, -0.2230, 0.6, 0.3927, -0.1307, -0.0541, 0.0])
+        tm = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, p.horizon)
+        print("first", m.solve(eta0, tm).mode, flush=True)
+        m.backend.hang_next_solve()
+        print("hanging", m.backend.pid, flush=True)
+        while not stop.is_set():
+            res = m.solve(eta0, tm)
+            print("step", res.mode, res.status, m.backend.pid, flush=True)
+            await asyncio.sleep(0.05)
+        print("stopped", flush=True)
+        m.close()
+
+    asyncio.run(main())
+""")
+
+
+def _gone(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return True
+    return state in ("Z", "X")
+
+
+def test_sigterm_stops_a_companion_whose_solve_is_stuck() -> None:
+    """An asyncio loop (as the runtime's) serves SIGTERM although the solve it ran was stuck:
+    the parent waits at most the bound, the stuck child is killed, nothing is left behind."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", SCRIPT], cwd=ROOT, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:
+        lines.append(line.split())
+        if line.startswith("hanging"):
+            proc.send_signal(signal.SIGTERM)  # while the stuck solve runs
+            break
+    out, err = proc.communicate(timeout=300)
+    lines += [ln.split() for ln in out.splitlines()]
+    assert proc.returncode == 0, err
+    assert lines[0] == ["first", "optimal"]
+    stuck = int(lines[1][1])
+    steps = [ln for ln in lines if ln[0] == "step"]
+    assert steps and steps[0][1] == "fallback" and steps[0][2] == "timeout:"
+    assert lines[-1] == ["stopped"]
+    assert _gone(stuck)
+    assert all(_gone(int(s[-1])) for s in steps)
