@@ -94,6 +94,10 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         "--set", 'control.time_source="autopilot"', "--set", "offboard.arm=true",
         "--set", "offboard.reengage=true", "--set", "logging.block_on_backlog=true",
         "--set", 'logging.timestamps="source"',
+        # lockstep: the emulator waits for every command, so the solve-time bound only has to
+        # catch a solver that never returns; 1 s keeps a busy machine (CI, a campaign beside
+        # it) from cutting slow but finite solves. A user's --set still wins.
+        "--set", "rmpc.max_solve_time_s=1.0",
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",
