@@ -109,13 +109,16 @@ class ProcessSolveBackend:
 
     ``clock``: monotonic seconds (the step's deadline). The constructor blocks until the first
     child is ready (``start_timeout_s``), so the first step solves; it raises
-    :class:`~companion.core.rmpc.RmpcBuildError` if the child cannot load the solvers.
+    :class:`~companion.core.rmpc.RmpcBuildError` if the child cannot load the solvers. With
+    ``defer_ready`` (what the companion uses) it returns at once and the first solve waits
+    for the first child instead (raising the same error), so the child's ~1 s of loading
+    overlaps the companion's connecting and waiting for its first frame.
     """
 
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
                  kinds: dict[str, tuple[bool, str]], max_solve_time_s: float,
                  clock: Callable[[], float] = time.monotonic,
-                 start_timeout_s: float = START_TIMEOUT_S) -> None:
+                 start_timeout_s: float = START_TIMEOUT_S, defer_ready: bool = False) -> None:
         if not (np.isfinite(max_solve_time_s) and max_solve_time_s > 0):
             raise ValueError(f"max_solve_time_s: must be finite and > 0 (got {max_solve_time_s})")
         self._args = (rmpc, camera, terminal, dict(kinds))
@@ -135,9 +138,17 @@ class ProcessSolveBackend:
         self._start()
         self._finalizer = weakref.finalize(self, ProcessSolveBackend._stop_child, self._proc,
                                            self._conn)
-        if not self.wait_ready(start_timeout_s):
+        self._start_timeout_s = float(start_timeout_s)
+        # defer_ready: the first child loads while the companion connects and waits for its
+        # first frame (~1 s of imports and library loading); the first solve waits for it
+        self._first_pending = bool(defer_ready)
+        if not defer_ready:
+            self._wait_first()
+
+    def _wait_first(self) -> None:
+        if not self.wait_ready(self._start_timeout_s):
             self.close()
-            raise RmpcBuildError(f"solver process not ready within {start_timeout_s:g} s")
+            raise RmpcBuildError(f"solver process not ready within {self._start_timeout_s:g} s")
 
     # --- child lifecycle -------------------------------------------------------------------
     def _start(self) -> None:
@@ -233,6 +244,10 @@ class ProcessSolveBackend:
 
     def evaluate(self, kind: str, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
                  ubx: np.ndarray) -> Evaluation:
+        if self._first_pending:  # the first child: wait for it (a failure is a start failure)
+            self._first_pending = False
+            self._wait_first()
+            self._deadline = self._clock() + self.max_solve_time_s
         try:
             ready = self._poll_ready(0.0)
         except RmpcBuildError as exc:  # the new child failed: try again next step
@@ -274,6 +289,6 @@ def process_backend(rmpc: RmpcParams, camera: CameraParams,
 
     def make(mpc: Rmpc) -> ProcessSolveBackend:
         return ProcessSolveBackend(rmpc, camera, terminal, mpc.solver_kinds(),
-                                   rmpc.max_solve_time_s)
+                                   rmpc.max_solve_time_s, defer_ready=True)
 
     return make
