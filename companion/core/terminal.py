@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
 
 def linearised_model(dt: float, z_star: float) -> tuple[np.ndarray, np.ndarray]:
@@ -34,6 +33,8 @@ class LqrTerminal:
 
 def dare_terminal(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> LqrTerminal:
     """Solve the discrete algebraic Riccati equation; ``K = -(R + B'PB)^-1 B'PA``."""
+    import scipy.linalg  # here: the solver's child process loads this module, never solves it
+
     p = scipy.linalg.solve_discrete_are(a, b, q, r)
     p = 0.5 * (p + p.T)
     k = -np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
