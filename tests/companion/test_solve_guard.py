@@ -23,7 +23,6 @@ from companion import ConfigError
 from companion.config import Config, load_config
 from companion.control.factory import build_controller
 from companion.control.solve_guard import ProcessSolveBackend, process_backend
-from companion.core.design import design_terminal
 from companion.core.errors import ParamError
 from companion.core.rmpc import Rmpc, RmpcResult, TargetMotion
 from companion.core.terminal import TerminalDesign
@@ -31,16 +30,6 @@ from companion.core.terminal import TerminalDesign
 ROOT = Path(__file__).resolve().parents[2]
 ETA0 = np.array([0.0159, -0.2230, 0.6, 0.3927, -0.1307, -0.0541, 0.0])
 READY_S = 120.0  # generous: a cold child on a loaded machine
-
-
-@pytest.fixture(scope="module")
-def cfg() -> Config:
-    return load_config()
-
-
-@pytest.fixture(scope="module")
-def design(cfg: Config) -> TerminalDesign:
-    return design_terminal(cfg.rmpc, cfg.camera)
 
 
 @pytest.fixture(scope="module")
