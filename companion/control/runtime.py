@@ -659,6 +659,8 @@ class CompanionApp:
         logged_input = self.recorder.record(logger, t_log, np.asarray(frame.image), frame.t_us,
                                             res.input_region)
         before = self.offboard.phase
+        self.offboard.on_controller(
+            res.setpoint is not None and res.rmpc is not None and res.rmpc.mode == "recovery")
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
         self._log_offboard(before, t_s)
