@@ -68,6 +68,16 @@ class EstimatorParams:
     (ATTITUDE_TARGET) while it reports the vehicle in the air, so the hover thrust is known
     before the first command of ours is flown; a setpoint older than
     ``autopilot_thrust_max_age_s`` is not used.
+
+    ``accelerometer``: also fuse HIGHRES_IMU's horizontal specific force (body x/y) as a
+    measurement of ``d`` (docs/offset-free.md, section 1b); ``accel_noise_m_s2``: std of one
+    sample per axis; ``accel_disturbance_noise_m_s2_sqrt_s``: the random walk of ``d_x``,
+    ``d_y`` while accelerometer samples arrive (at most ``accel_max_age_s`` old);
+    ``accel_bias_noise_m_s2_sqrt_s``/``accel_bias_initial_std_m_s2``: random walk and prior
+    std of the accelerometer's bias state (body x, y), bounded by ``accel_bias_max_m_s2``; the
+    larger the random walk, the more of the accelerometer's slow content the bias takes and
+    the higher the frequency from which the accelerometer, not the velocity, sets ``d``
+    (complementary filtering). A sample beyond ``accel_max_m_s2`` on either axis is refused.
     """
 
     enabled: bool = True
@@ -84,9 +94,9 @@ class EstimatorParams:
     autopilot_thrust: bool = True
     autopilot_thrust_max_age_s: float = 0.25
     accelerometer: bool = False
-    accel_noise_m_s2: float = 0.35
+    accel_noise_m_s2: float = 1.0
     accel_disturbance_noise_m_s2_sqrt_s: float = 0.3
-    accel_bias_noise_m_s2_sqrt_s: float = 0.002
+    accel_bias_noise_m_s2_sqrt_s: float = 0.3
     accel_bias_initial_std_m_s2: float = 0.2
     accel_bias_max_m_s2: float = 1.0
     accel_max_m_s2: float = 30.0
