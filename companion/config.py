@@ -130,10 +130,19 @@ class OffboardConfig:
     # Ask for OFFBOARD again after PX4 left it on its own (failsafe). Off on a real vehicle:
     # the companion must not fight the pilot.
     reengage: bool = False
+    # The pre-flight stream while the controller reports its hard problem infeasible (the
+    # target escaping the view; a 'recovery' solve): OFFBOARD is requested once this much has
+    # been streamed instead of preflight_stream_s. None: always the full stream.
+    preflight_escape_stream_s: float | None = field(default=None, metadata=checked(nonneg))
 
     def __post_init__(self) -> None:
         if self.exit_mode not in ("hold", "position"):
             raise ConfigError(f"offboard.exit_mode: {self.exit_mode!r} is not 'hold' or 'position'")
+        if (self.preflight_escape_stream_s is not None
+                and self.preflight_escape_stream_s > self.preflight_stream_s):
+            raise ConfigError(
+                f"offboard.preflight_escape_stream_s ({self.preflight_escape_stream_s}) must not"
+                f" exceed offboard.preflight_stream_s ({self.preflight_stream_s})")
 
 
 @dataclass(frozen=True)
@@ -460,4 +469,8 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
             raise ConfigError(f"{key}: must have {len(args)} elements (got {len(value)})")
         pairs = enumerate(zip(args, value, strict=True))
         return tuple(_coerce(a, v, f"{key}[{i}]") for i, (a, v) in pairs)
+    args = typing.get_args(tp)
+    if origin in (types.UnionType, typing.Union) and len(args) == 2 and type(None) in args:
+        # ``X | None``: TOML has no null; a key that is present holds an X (absent: None)
+        return _coerce(next(a for a in args if a is not type(None)), value, key)
     raise ConfigError(f"{key}: unsupported type {tp!r}")  # pragma: no cover - programming error

@@ -203,6 +203,10 @@ class Px4:
         self.signals = 0
         self.ignored_setpoints = 0
         self.offboard_losses = 0
+        #: a failsafe action is in force (PX4's vehicle_status.failsafe): set by an offboard
+        #: loss, cleared by a mode a client asks for or by disarming (PX4's failsafe framework
+        #: clears the offboard-loss action on a mode change or disarm)
+        self.failsafe = False
         self.events: list[str] = []
         self._armed_t_s = t_s
         self._landed_since_t_s = t_s if state.on_ground else math.inf
@@ -246,9 +250,13 @@ class Px4:
 
     @property
     def system_status(self) -> int:
+        """HEARTBEAT system_status as PX4's HEARTBEAT.hpp: armed -> CRITICAL while a failsafe
+        is in force, else ACTIVE; disarmed -> STANDBY; TERMINATION overrides."""
         if self.mode is Mode.TERMINATION:
             return STATE_FLIGHT_TERMINATION
-        return STATE_ACTIVE if self.armed else STATE_STANDBY
+        if not self.armed:
+            return STATE_STANDBY
+        return STATE_CRITICAL if self.failsafe else STATE_ACTIVE
 
     @property
     def landed_state(self) -> int:
@@ -279,8 +287,16 @@ class Px4:
 
     def handle_command(self, t_s: float, command: int, params: tuple[float, ...],
                        *, from_self: bool = False) -> CommandResult:
-        """A COMMAND_LONG addressed to the autopilot; ``params`` = param1..param7."""
+        """A COMMAND_LONG addressed to the autopilot; ``params`` = param1..param7. An accepted
+        command that changes the mode (or a DO_SET_MODE) ends a failsafe action."""
         del from_self
+        before = self.mode
+        res = self._command(t_s, command, params)
+        if res.result == ACCEPTED and (self.mode is not before or command == CMD_DO_SET_MODE):
+            self.failsafe = False
+        return res
+
+    def _command(self, t_s: float, command: int, params: tuple[float, ...]) -> CommandResult:
         p1, p2, p3, _p4, _p5, _p6, p7 = (list(params) + [math.nan] * 7)[:7]
         if command == CMD_COMPONENT_ARM_DISARM:
             return self._arm_disarm(t_s, p1, p2)
@@ -392,6 +408,7 @@ class Px4:
 
     def _disarm(self, t_s: float, why: str) -> None:
         self.armed = False
+        self.failsafe = False
         self.events.append(f"{t_s:.3f} disarmed ({why})")
         self._sp = None
 
@@ -420,6 +437,7 @@ class Px4:
                 self._switch(t_s, Mode.POSCTL, "offboard lost")
                 return
             self._switch(t_s, OBL_RC_ACT[act], "offboard lost")
+            self.failsafe = True
         if self.landed:
             if not self.has_flown:
                 if t_s - self._armed_t_s >= self.p.com_disarm_prflt_s > 0:

@@ -4,7 +4,11 @@ Pure logic with explicit time: the runtime feeds it observations (HEARTBEAT mode
 COMMAND_ACK results, whether a setpoint was just streamed) and executes the actions it returns.
 
 Sequence: stream setpoints for ``preflight_stream_s`` -> (optionally) arm -> request OFFBOARD
-(DO_SET_MODE, main mode 6) -> confirm from HEARTBEAT -> ACTIVE. Rejections are retried every
+(DO_SET_MODE, main mode 6) -> confirm from HEARTBEAT -> ACTIVE. While the controller reports
+that it needs authority now (:meth:`OffboardManager.on_controller`: its hard problem is
+infeasible, the target escaping the view), the stream is cut to ``preflight_escape_stream_s``:
+PX4 asks only for a fresh setpoint, and every second of position hold lets the target drive
+on. Rejections are retried every
 ``mode_retry_s``. Leaving: request Hold/Position, then stop streaming. If PX4 leaves OFFBOARD
 on its own (pilot, failsafe), the machine goes to ``LOST`` and does not fight the pilot: it
 re-requests OFFBOARD only when ``reengage`` is set.
@@ -68,6 +72,8 @@ class OffboardManager:
         #: fly the vehicle until a new request is accepted
         self.request_rejected = False
         self.transitions: list[tuple[float, OffboardPhase, str]] = []
+        #: the controller's last word (on_controller): it needs authority now
+        self._escaping = False
 
     @property
     def in_offboard(self) -> bool:
@@ -103,6 +109,12 @@ class OffboardManager:
         if self._stream_start_s is None:
             self._stream_start_s = t_s
 
+    def on_controller(self, needs_authority: bool) -> None:
+        """The last control step's verdict: ``True`` when its hard problem was infeasible
+        (the target escaping the view; an RMPC 'recovery' solve), which shortens the
+        pre-flight stream to ``preflight_escape_stream_s``."""
+        self._escaping = bool(needs_authority)
+
     def on_stream_gap(self) -> None:
         """Streaming stopped (safety silence): the pre-flight stream must start over."""
         self._stream_start_s = None
@@ -116,16 +128,21 @@ class OffboardManager:
         """Actions due at ``t_s``."""
         st = self._status
         acts: list[Action] = []
-        streamed_long_enough = (
-            self._stream_start_s is not None
-            and t_s - self._stream_start_s >= self._cfg.preflight_stream_s
-        )
+        streamed = None if self._stream_start_s is None else t_s - self._stream_start_s
+        streamed_long_enough = streamed is not None and streamed >= self._cfg.preflight_stream_s
+        escape_s = self._cfg.preflight_escape_stream_s
+        escaping = (streamed is not None and escape_s is not None and self._escaping
+                    and streamed >= escape_s)
         due = t_s - self._last_request_s >= self._cfg.mode_retry_s
-        if self.phase is OffboardPhase.PREFLIGHT and streamed_long_enough and st is not None:
+        if (self.phase is OffboardPhase.PREFLIGHT and (streamed_long_enough or escaping)
+                and st is not None):
+            done = ("pre-flight stream done" if streamed_long_enough else
+                    f"pre-flight stream cut to {escape_s:g} s: the controller's hard problem"
+                    " is infeasible (target escaping)")
             if self._cfg.arm and not st.armed:
-                self._go(t_s, OffboardPhase.ARMING, "pre-flight stream done, arming")
+                self._go(t_s, OffboardPhase.ARMING, f"{done}, arming")
             else:
-                self._go(t_s, OffboardPhase.REQUESTING, "pre-flight stream done")
+                self._go(t_s, OffboardPhase.REQUESTING, done)
             due = True
         if self.phase is OffboardPhase.ARMING and st is not None:
             if st.armed:

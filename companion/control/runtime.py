@@ -81,6 +81,10 @@ STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a tim
 EARLY_RECORDS_MAX = 4096
 
 
+#: MAV_STATE names (HEARTBEAT system_status)
+MAV_STATE_NAMES = {0: "UNINIT", 1: "BOOT", 2: "CALIBRATING", 3: "STANDBY", 4: "ACTIVE",
+                   5: "CRITICAL", 6: "EMERGENCY", 7: "POWEROFF", 8: "FLIGHT_TERMINATION"}
+
 class _StopRequested(Exception):
     """A stop was requested (signal, duration) while waiting for a camera frame."""
 
@@ -289,6 +293,8 @@ class CompanionApp:
             raise CompanionError("--inject-fault solver-hang: needs controller.kind an RMPC "
                                  "with rmpc.solve_isolation = \"process\"")
         self.offboard = OffboardManager(cfg.offboard, reengage=cfg.offboard.reengage)
+        #: the autopilot's HEARTBEAT system_status (MAV_STATE) last seen; None before the first
+        self.autopilot_state: int | None = None
         self.rx_count = 0
         self.steps = 0
         self.sent = 0
@@ -439,6 +445,7 @@ class CompanionApp:
                 before = self.offboard.phase
                 self.offboard.on_heartbeat(VehicleStatus(m.armed, m.main_mode, m.sub_mode, t_s))
                 self._log_offboard(before, t_s)
+            self._on_autopilot_state(fields.get("system_status"))
         elif rx.name == "TIMESYNC" and is_autopilot(self.cfg, rx.src_sysid, rx.src_compid):
             answer = self.timesync.on_timesync(int(fields["tc1"]), int(fields["ts1"]),
                                                time.monotonic_ns())
@@ -672,6 +679,8 @@ class CompanionApp:
         logged_input = self.recorder.record(logger, t_log, np.asarray(frame.image), frame.t_us,
                                             res.input_region)
         before = self.offboard.phase
+        self.offboard.on_controller(
+            res.setpoint is not None and res.rmpc is not None and res.rmpc.mode == "recovery")
         for act in self.offboard.step(t_s):
             self._act(act, t_s)
         self._log_offboard(before, t_s)
@@ -731,6 +740,25 @@ class CompanionApp:
         except NoPeerError:
             return
         log.info("offboard: %s (%s) at t=%.2f s", act.kind, act.reason, t_s)
+
+    def _on_autopilot_state(self, state: object) -> None:
+        """Log a change of the autopilot's MAV_STATE: PX4 reports CRITICAL while a failsafe
+        action is in force (e.g. after an offboard loss, until a mode is asked for),
+        EMERGENCY / FLIGHT_TERMINATION beyond it (HEARTBEAT.hpp)."""
+        if not isinstance(state, int) or state == self.autopilot_state:
+            return
+        before, self.autopilot_state = self.autopilot_state, state
+        if self._logger is None or (before is None and state in (3, 4)):
+            return  # the first STANDBY / ACTIVE is no news
+        name = MAV_STATE_NAMES.get(state, f"MAV_STATE {state}")
+        alarm = state in (5, 6, 8)
+        was = "none" if before is None else MAV_STATE_NAMES.get(before, f"MAV_STATE {before}")
+        text = (f"autopilot system status {was} -> {name}"
+                + (": a failsafe is in force on the autopilot" if alarm else ""))
+        (log.warning if alarm else log.info)(text)
+        logger = self._logger
+        self._log_at(self.clock.now_ns(), lambda t: logger.log_text(
+            TOPIC_SAFETY, t, text, level="WARNING" if alarm else "INFO", name="autopilot"))
 
     def _log_offboard(self, before: OffboardPhase, t_s: float) -> None:
         if self.offboard.phase is not before and self._logger is not None:

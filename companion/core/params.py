@@ -155,6 +155,12 @@ class RmpcParams:
     # visibility rows keep recovery_penalty (equal by default; config/paper.toml puts the
     # tube 10x above visibility: docs/visibility.md section 5).
     recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
+    # Input-rate weight of the soft (recovery) copy only: ``w sum_i ((u_i(n+1) - u_i(n)) /
+    # u_max_i)^2`` over the horizon plus the same for u(0) against the input the previous
+    # step applied. The soft copy's cost is dominated by the L1 slacks, which leave its input
+    # nearly free (it flipped r3 between -1.5 and +1.5 m/s^2 on consecutive steps). A runtime
+    # parameter of the compiled soft NLP (no recompilation per value); 0 = off.
+    recovery_input_rate_weight: float = field(default=0.0, metadata=checked(nonneg))
     # How far the target's along-track acceleration is extrapolated over the horizon:
     # "linear" (held for the whole horizon) or "box" (held until the predicted speed reaches
     # the vehicle's velocity bound eta_max[4], or the current speed if that is higher; then

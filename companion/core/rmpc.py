@@ -553,6 +553,9 @@ class Rmpc:
             raise RmpcParameterError(f"target: need a TargetMotion with {self.horizon} rows")
         par = np.append(target.packed(), e0[3])
         self._s4_ref = float(e0[3])
+        # the input the previous step applied (its plan's first input), for the soft copy's
+        # input-rate term; None at the start and after a fallback or a reset
+        prev_u = None if self._prev is None else np.array(self._prev[1][0], dtype=float)
         eta_g, u_g = self._guess(e0, target)
         if self.backend is not None:
             self.backend.start_step()
@@ -579,11 +582,16 @@ class Rmpc:
         if self._soft is not None:
             slay = self._soft.layout
             slbx, subx = self._soft.bounds(e0, target)
+            w_du = self.cfg.recovery_input_rate_weight
+            if prev_u is None:  # nothing applied before (start, after a fallback): no rate term
+                spar = np.concatenate([par, np.zeros(NU), [0.0]])
+            else:
+                spar = np.concatenate([par, prev_u, [w_du]])
             sw0 = self._pack(slay, eta_g, u_g)
             sw0[slay.slack_index] = self._slack_guess(slay, eta_g, u_g, target)
             try:
                 sok, sstatus, _, sw, scost, sit, st_wall = self._soft.solve(
-                    sw0, par, slbx, subx, self.backend)
+                    sw0, spar, slbx, subx, self.backend)
             except SolveAborted as exc:
                 return self._aborted(e0, target, str(exc), hard_status, iters, math.nan)
             iters += sit

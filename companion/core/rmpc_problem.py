@@ -18,6 +18,10 @@ predicted for, used by ``target_motion = "planned_yaw"``, :func:`stage_motion`).
 estimated disturbance acceleration (``companion.core.disturbance``): the input ``u`` is the
 vehicle's acceleration, so the attitude that realises it, and with it the visible area's
 centre ``M``, is the one of the specific force ``u - d``.
+The soft copy has :data:`NP_SOFT_EXTRA` more parameters after ``s4_ref``: ``u_prev`` (4, the
+input the previous step applied) and ``w_du`` (the input-rate weight,
+``rmpc.recovery_input_rate_weight``; 0 when there is no previous input): its cost adds
+``w_du sum_i ((u_i(0) - u_prev_i)^2 + sum_n (u_i(n+1) - u_i(n))^2) / u_max_i^2``.
 
 Groups (RmpcParams switches):
 
@@ -58,6 +62,7 @@ NX = 7
 NU = 4
 NP_STAGE = 8
 GROUPS = ("tube", "visibility", "terminal")
+NP_SOFT_EXTRA = NU + 1  # soft copy only: u_prev (4), w_du
 
 
 @dataclass(frozen=True)
@@ -233,7 +238,7 @@ def build_nlp(
     k_c = corner_gain(rmpc, camera) if corners else 1.0
     xs = [ca.SX.sym(f"x{n}", NX) for n in range(big_n + 1)]
     us = [ca.SX.sym(f"u{n}", NU) for n in range(big_n)]
-    par = ca.SX.sym("p", NP_STAGE * big_n + 1)
+    par = ca.SX.sym("p", NP_STAGE * big_n + 1 + (NP_SOFT_EXTRA if soft else 0))
     s4_ref = par[NP_STAGE * big_n]
 
     w: list[ca.SX] = []
@@ -323,6 +328,14 @@ def build_nlp(
         equality.extend([True] * NX)
         n_g += NX
         path_rows(n, x, u, x_next, d_n)
+    if soft:  # the input-rate term (module docstring): u(0) against u_prev, then stage to stage
+        u_prev = par[NP_STAGE * big_n + 1 : NP_STAGE * big_n + 1 + NU]
+        w_du = par[NP_STAGE * big_n + 1 + NU]
+        inv_u2 = np.diag(1.0 / np.asarray(rmpc.u_max, dtype=float) ** 2)
+        rate = ca.bilin(inv_u2, us[0] - u_prev, us[0] - u_prev)
+        for n in range(big_n - 1):
+            rate = rate + ca.bilin(inv_u2, us[n + 1] - us[n], us[n + 1] - us[n])
+        cost = cost + w_du * rate
     x_index[big_n] = add_w(xs[big_n])
     cost = cost + ca.bilin(p_mat, xs[big_n], xs[big_n])
     path_rows(big_n, xs[big_n], None)

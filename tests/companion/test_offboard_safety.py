@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 
-from companion.config import OffboardConfig, SafetyConfig
+import pytest
+
+from companion import ConfigError
+from companion.config import OffboardConfig, SafetyConfig, load_config
 from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
 from companion.control.safety import Health, SafetyLevel, SafetySupervisor
 
@@ -43,6 +46,60 @@ def test_offboard_waits_for_preflight_stream_then_arms_then_requests_and_confirm
     m.on_heartbeat(_hb(3.3, True, 6))
     assert m.phase is OffboardPhase.ACTIVE
     assert m.step(3.4) == []
+
+
+def _stream(m: OffboardManager, t0: float, t1: float, escaping: bool) -> list[tuple[float, str]]:
+    """Stream one setpoint every 50 ms over [t0, t1) with the controller's verdict; actions."""
+    out = []
+    t = t0
+    while t < t1 - 1e-9:
+        m.on_streamed(t)
+        m.on_controller(escaping)
+        out += [(round(t, 3), a.kind) for a in m.step(t)]
+        t += 0.05
+    return out
+
+
+def test_an_escaping_target_cuts_the_preflight_stream_to_the_escape_time() -> None:
+    cfg = OffboardConfig(preflight_stream_s=1.0, mode_retry_s=1.0, arm=False, exit_mode="hold",
+                         preflight_escape_stream_s=0.25)
+    # the controller's hard problem infeasible throughout: requested at 0.25 s, not at 1 s
+    m = OffboardManager(cfg)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    assert _stream(m, 0.0, 1.2, escaping=True) == [(0.25, "set_mode")]
+    assert m.phase is OffboardPhase.REQUESTING
+    assert "target escaping" in m.transitions[-1][2]
+    # feasible throughout: the full stream
+    m = OffboardManager(cfg)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    assert _stream(m, 0.0, 1.2, escaping=False) == [(1.0, "set_mode")]
+    assert m.transitions[-1][2] == "pre-flight stream done"
+    # infeasible only once the stream is 0.6 s old: requested then (the stream is long enough)
+    m = OffboardManager(cfg)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    acts = _stream(m, 0.0, 0.6, escaping=False) + _stream(m, 0.6, 1.2, escaping=True)
+    assert acts == [(0.6, "set_mode")]
+    # infeasible, then feasible again before 0.25 s: no early request
+    m = OffboardManager(cfg)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    acts = _stream(m, 0.0, 0.2, escaping=True) + _stream(m, 0.2, 1.2, escaping=False)
+    assert acts == [(1.0, "set_mode")]
+    # without the key (None), an escaping target waits for the full stream
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_heartbeat(_hb(0.0, True, 3))
+    assert _stream(m, 0.0, 1.2, escaping=True) == [(1.0, "set_mode")]
+    # a gap in the stream (safety silence) restarts the clock for the cut stream as well
+    m = OffboardManager(cfg)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    assert _stream(m, 0.0, 0.2, escaping=True) == []
+    m.on_stream_gap()
+    assert _stream(m, 0.5, 0.7, escaping=True) == []
+    assert _stream(m, 0.7, 0.8, escaping=True) == [(0.75, "set_mode")]
+
+
+def test_an_escape_stream_longer_than_the_stream_is_refused() -> None:
+    with pytest.raises(ConfigError, match="preflight_escape_stream_s"):
+        OffboardConfig(1.0, 1.0, False, "hold", preflight_escape_stream_s=1.5)
 
 
 def test_offboard_lost_does_not_fight_pilot_unless_reengage() -> None:
@@ -124,3 +181,21 @@ def test_a_refused_offboard_request_does_not_count_as_control_until_the_next_one
     assert m.awaiting_switch
     m.on_heartbeat(_hb(1.4, True, 6))
     assert m.phase is OffboardPhase.ACTIVE
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("offboard.preflight_escape_stream_s=2.0", "must not exceed offboard.preflight_stream_s"),
+    ("offboard.preflight_escape_stream_s=-0.1", "offboard.preflight_escape_stream_s: "),
+    ('offboard.preflight_escape_stream_s="soon"', "must be a number"),
+    ("offboard.preflight_escape_stream_s=nan", "must be finite"),
+])
+def test_a_bad_escape_stream_in_the_config_file_is_a_clear_error(override: str,
+                                                                  message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=[override])
+
+
+def test_the_escape_stream_is_read_from_the_config_file() -> None:
+    assert load_config().offboard.preflight_escape_stream_s == 0.25
+    assert load_config(overrides=["offboard.preflight_escape_stream_s=0.5"]
+                       ).offboard.preflight_escape_stream_s == 0.5

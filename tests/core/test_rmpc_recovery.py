@@ -156,3 +156,38 @@ def test_a_target_accelerating_to_the_velocity_bound_keeps_the_hard_problem_feas
     assert np.hypot(*boxed.v_a_m_s[-1]) == pytest.approx(1.0, abs=1e-9)
     res = mpc.solve(eta0, boxed)
     assert res.mode == "optimal", (res.status, res.hard_status)
+
+
+def test_the_recovery_input_rate_term_pulls_the_first_input_towards_the_previous_one(
+    cfg: Config, design: TerminalDesign
+) -> None:
+    """rmpc.recovery_input_rate_weight (off by default): the soft copy's first input is drawn
+    towards the input the previous step applied, and only when the weight is on. The same
+    logged edge state as above is solved right after a state that asked for the opposite
+    horizontal input (the target mirrored to the other side)."""
+    eta0 = np.array([0.709, -0.512, 0.783, -0.024, -0.013, 0.043, -0.569])
+    mirrored = eta0 * np.array([-1, -1, 1, 1, -1, -1, 1])
+    target = predict_target_motion(np.array([0.527, 0.288, 0.0]), np.array([-0.058, 0.105, 0.0]),
+                                   0.2, 0.521, cfg.rmpc.horizon, cfg.rmpc.dt_s)
+    u0 = {}
+    prev = {}
+    for w in (0.0, 100.0):
+        mpc = Rmpc(dataclasses.replace(cfg.rmpc, jit=False, recovery_input_rate_weight=w),
+                   cfg.camera, design)
+        first = mpc.solve(mirrored, target)
+        prev[w] = first.u0
+        res = mpc.solve(eta0, target)
+        assert res.mode == "recovery", (res.mode, res.status, res.hard_status)
+        assert [v for v in check_solution(res, cfg.rmpc, cfg.camera, design)
+                if v.constraint in ("dynamics", "input")] == []
+        u0[w] = res.u0
+        # without a previous input (a fresh controller) the term has nothing to act on
+        fresh = Rmpc(dataclasses.replace(cfg.rmpc, jit=False, recovery_input_rate_weight=w),
+                     cfg.camera, design).solve(eta0, target)
+        if w == 0.0:
+            assert np.allclose(fresh.u0, res.u0, atol=1e-4)  # off: the previous step is ignored
+    assert np.allclose(prev[0.0], prev[100.0], atol=1e-4)  # the first solve is the same
+    assert prev[0.0][0] < 0.0 < u0[0.0][0]  # the two states ask for opposite r1
+    scale = np.asarray(cfg.rmpc.u_max)
+    dist = {w: float(np.linalg.norm((u0[w] - prev[w]) / scale)) for w in u0}
+    assert dist[100.0] < 0.8 * dist[0.0], dist

@@ -133,3 +133,22 @@ def test_a_stuck_solver_is_cut_and_the_companion_keeps_flying(tmp_path: Path) ->
     for s in steps:  # a silent step is the ladder's choice; every other step sent its command
         assert s["sent"] or s["safety"]["level"] == "silent"
     assert {r["mode"] for t, r in statuses if t > timeouts[-1] + 1e-9}.issuperset({"optimal"})
+
+
+def test_the_autopilot_failsafe_after_our_silence_is_reported(tmp_path: Path) -> None:
+    """Telemetry gone for good: level hover, then silence (safety.silence_after_s); PX4 leaves
+    OFFBOARD COM_OF_LOSS_T later and reports the failsafe in its HEARTBEAT (system_status
+    CRITICAL, HEARTBEAT.hpp); the companion logs that on /control/safety."""
+    # lockstep steps without our setpoint wait lockstep_timeout_s of wall time each: short here
+    _fly(tmp_path, "[sim]\nlockstep_timeout_s = 0.05\n[sim.faults]\n"
+         "telemetry_dropouts = [[3.0, 30.0]]", duration_s=9.0)
+    with LogReader(tmp_path / "flight.mcap") as r:
+        beats = [(m.log_time_ns, m.data["fields"]) for m in
+                 r.messages(topics=["/mavlink/in/HEARTBEAT"])]
+        texts = [(m.log_time_ns, m.data["message"]) for m in
+                 r.messages(topics=["/control/safety"])]
+    critical = [t for t, b in beats if b["system_status"] == 5]
+    assert critical, [b["system_status"] for _, b in beats]
+    assert all((b["custom_mode"] >> 16) & 0xFF != 6 for t, b in beats if t >= critical[0])
+    said = [(t, m) for t, m in texts if "autopilot system status ACTIVE -> CRITICAL" in m]
+    assert len(said) == 1 and said[0][0] >= critical[0]

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from companion.commands.demo import run_demo
-from companion.config import DEFAULT_CONFIG
+from companion.config import DEFAULT_CONFIG, load_config
 from companion.log.reader import LogReader
 
 pytestmark = pytest.mark.slow
@@ -74,6 +74,34 @@ def test_every_controller_kind_flies_through_the_same_companion_and_report(
         assert eng["corner_max_px"] <= _peak(rep)
     assert edge_runs["centroid"]["controller_rmpc"]["visibility"] == "centroid"
     assert edge_runs["constrained"]["controller_rmpc"]["visibility"] == "corners"
+
+
+def _stream_before_request_s(rep: dict) -> tuple[float, str]:
+    """Seconds streamed before OFFBOARD was first requested, and the logged reason."""
+    with LogReader(Path(rep["log"]["path"])) as r:
+        steps = [m.data for m in r.messages(topics=["/control/step"])]
+        why = [m.data["message"] for m in r.messages(topics=["/control/offboard"])]
+    first_sent_t = next(s["t_s"] for s in steps if s["sent"])
+    req = next(s for s in steps if s["offboard"] != "preflight")
+    return req["t_s"] - first_sent_t, why[0]
+
+
+def test_edge_an_escaping_target_is_engaged_after_the_short_stream(
+    edge_runs: dict[str, dict],
+) -> None:
+    """The RMPC's first solves are recovery (the hard problem infeasible: the target escaping),
+    so OFFBOARD is requested after offboard.preflight_escape_stream_s instead of the full
+    stream; the IBVS law has no such verdict and streams the full preflight_stream_s."""
+    off = load_config(DEFAULT_CONFIG).offboard
+    assert off.preflight_escape_stream_s is not None
+    assert off.preflight_escape_stream_s < off.preflight_stream_s
+    streamed, why = _stream_before_request_s(edge_runs["constrained"])
+    assert edge_runs["constrained"]["engaged"]["first_solve_mode"] == "recovery"
+    assert off.preflight_escape_stream_s - 1e-9 <= streamed <= off.preflight_escape_stream_s + 0.1
+    assert "target escaping" in why
+    streamed, why = _stream_before_request_s(edge_runs["ibvs"])
+    assert off.preflight_stream_s - 1e-9 <= streamed <= off.preflight_stream_s + 0.1
+    assert "pre-flight stream done" in why
 
 
 def test_edge_the_ibvs_baseline_loses_corners(edge_runs: dict[str, dict]) -> None:

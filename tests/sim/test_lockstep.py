@@ -100,12 +100,16 @@ def test_offboard_loss_counts_simulated_time(client: MavClient) -> None:
         t_last_ms = stamps[-2]  # the last step we answered
         # silence: every step times out (0.01 s wall each); OFFBOARD ends 1.0 s SIM later
         fallback_ms = None
+        status_after = None
         end = time.monotonic() + 10.0
         while fallback_ms is None and time.monotonic() < end:
             for m in client.recv(0.05):
                 if m.get_type() == "HEARTBEAT" and m.custom_mode == 3 << 16:
                     fallback_ms = rs.call(lambda: int(rs.sim.t_s * 1000))
+                    status_after = m.system_status
         assert fallback_ms is not None
+        # PX4's HEARTBEAT.hpp: armed and a failsafe action in force -> MAV_STATE_CRITICAL (5)
+        assert status_after == 5, status_after
         # PX4 falls back at t_last + COM_OF_LOSS_T (+ one step); the next 1 Hz heartbeat
         # reports it (sent at whole seconds of simulated time)
         assert t_last_ms + 1000 <= fallback_ms <= t_last_ms + 1000 + 1050, (t_last_ms,

@@ -18,6 +18,10 @@ from sim_bridge.physics.vehicle import (
 )
 from sim_bridge.px4 import (
     ACCEPTED,
+    STATE_ACTIVE,
+    STATE_CRITICAL,
+    STATE_FLIGHT_TERMINATION,
+    STATE_STANDBY,
     TEMPORARILY_REJECTED,
     UNSUPPORTED,
     AttitudeTarget,
@@ -102,6 +106,18 @@ def test_offboard_loss_switches_to_com_obl_rc_act_at_once(act: int, mode: Mode,
         assert any("OFFBOARD -> AUTO.RTL" in e for e in r.px4.events)
     else:
         assert r.px4.mode is mode and r.px4.armed is armed
+    # HEARTBEAT system_status as PX4's HEARTBEAT.hpp: CRITICAL while the failsafe action is in
+    # force (armed), STANDBY once disarmed, FLIGHT_TERMINATION for Terminate
+    expected = {6: STATE_FLIGHT_TERMINATION, 7: STATE_STANDBY}.get(act, STATE_CRITICAL)
+    assert r.px4.system_status == expected
+    assert r.px4.failsafe is (act != 7)
+    if act in (6, 7):
+        return
+    # the failsafe holds until a client asks for a mode: then ACTIVE again
+    r.run(0.2)
+    assert r.px4.system_status == STATE_CRITICAL
+    assert r.cmd(176, 1, 3, 0) == ACCEPTED  # Position
+    assert r.px4.system_status == STATE_ACTIVE and not r.px4.failsafe
 
 
 def test_throttle_ignore_is_not_a_signal() -> None:
