@@ -18,9 +18,13 @@ compensation on and, beside it, off:
   compensation on / off;
 - reacquisition reach: the vehicle starts displaced from the AGV with the target out of view;
   the largest tested offset from which the target is seen and tracked again;
-- CPU per control step of the companion process on the default paper flight.
+- CPU per control step of the companion process on the default paper flight;
+- `accel` (not in the default set: six 60 s flights): the realistic world
+  (`config/realistic.toml`, HIGHRES_IMU with 0.35 m/s^2 of noise and a bias) on paper, edge
+  and yaw-offset, the estimator with the accelerometer (`control.estimator.accelerometer`) and
+  without: RMS horizontal / height after settling (issue 12: <= 10 mm).
 
-    python bench/offset_free.py [--duration 60] [--only paper,wind,hover,latency,reach,cpu]
+    python bench/offset_free.py [--duration 60] [--only paper,wind,hover,latency,reach,cpu,accel]
 
 Prints one line per figure with MET / MISSED and a JSON summary (`--json FILE`).
 Wall-clock figures move with the machine's load (printed); CPU time is per step.
@@ -217,6 +221,20 @@ def main() -> int:
               f"{verdict(ok)}] (last 10 s {a['last10s_h_mm']:.1f} / {a['last10s_z_mm']:.1f} mm); "
               f"without the estimator {b['rms_h_mm']} / {b['rms_z_mm']} mm (last 10 s "
               f"{b['last10s_h_mm']:.1f} / {b['last10s_z_mm']:.1f} mm)")
+    if "accel" in only:
+        res["accel"] = {}
+        for sc in ("paper", "edge", "yaw-offset"):
+            sim = sim_variant(tmp, "realistic-patient", "", REALISTIC)
+            a = summary(fly(tmp / f"accel-{sc}-on", sc, dur,
+                            ["control.estimator.accelerometer=true"], sim, config=REALISTIC))
+            b = summary(fly(tmp / f"accel-{sc}-off", sc, dur, [], sim, config=REALISTIC))
+            res["accel"][sc] = {"on": a, "off": b}
+            ok = max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 10
+            print(f"realistic {sc}, accelerometer: RMS after settling horizontal {a['rms_h_mm']}"
+                  f" mm, height {a['rms_z_mm']} mm (settled at {a['settle_s']} s, peak "
+                  f"{a['peak_px']:.0f} px, lost {a['lost']}) [target <= 10 mm: {verdict(ok)}];"
+                  f" without it {b['rms_h_mm']} / {b['rms_z_mm']} mm (settled at "
+                  f"{b['settle_s']} s, peak {b['peak_px']:.0f} px)", flush=True)
     if "wind" in only:
         sim = sim_variant(tmp, "wind", "[sim.disturbance]\nwind_accel_ned_m_s2 = [0.4, 0.3, 0.0]")
         a, b = both("wind", "paper", [], OFF, sim)

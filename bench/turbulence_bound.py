@@ -15,7 +15,10 @@ nothing else:
 - the compensation ``u - d_hat`` with ``d_hat`` from: nothing; the companion's own estimator
   (``DisturbanceEstimator``, fed at 30 Hz with the true velocity, the thrust and the realised
   body axis, as in flight); or an oracle that knows the true disturbance at the control instant
-  (the best any estimate can do); and the oracle without the attitude lag.
+  (the best any estimate can do); and the oracle without the attitude lag;
+- with ``accelerometer``: the estimator also fed, at 50 Hz (PX4's HIGHRES_IMU on an onboard
+  link), the horizontal specific force in body axes as a biased, noisy accelerometer reads it
+  (``--accel-noise``, ``--accel-bias``; the realistic world's 0.35 m/s^2 and (0.1, -0.08)).
 
 The turbulence is the emulator's own generator (``sim_bridge.physics.vehicle.Disturbance``,
 same seed). RMS horizontal and height position errors over ``--duration`` s.
@@ -46,9 +49,22 @@ G = 9.81
 H = 0.5
 
 
+def _rot_from_body_z(bz: np.ndarray) -> np.ndarray:
+    """Body -> NED rotation at yaw 0 whose third column is the unit vector ``bz``."""
+    ez = np.array([0.0, 0.0, 1.0])
+    c = float(ez @ bz)
+    ax = np.cross(ez, bz)
+    s = float(np.linalg.norm(ax))
+    if s < 1e-12:
+        return np.eye(3)
+    kx = np.array([[0.0, -ax[2], ax[1]], [ax[2], 0.0, -ax[0]], [-ax[1], ax[0], 0.0]]) / s
+    return np.eye(3) + s * kx + (1.0 - c) * kx @ kx
+
+
 def fly(mode: str, duration: float, tau: float, seed: int, std: float, corr: float,
         est_params: EstimatorParams | None = None, vel_noise: float = 0.0,
-        score_from_s: float = 20.0) -> dict[str, float]:
+        score_from_s: float = 20.0, accel_noise: float = 0.35,
+        accel_bias: tuple[float, float] = (0.1, -0.08)) -> dict[str, float]:
     cfg = load_config()
     k = design_terminal(cfg.rmpc, cfg.camera).k
     z = cfg.rmpc.desired_depth_m
@@ -58,6 +74,9 @@ def fly(mode: str, duration: float, tau: float, seed: int, std: float, corr: flo
     est = DisturbanceEstimator(est_params or EstimatorParams(), H)
     rng = np.random.default_rng(seed)
     dt, ctrl_every, est_every = 0.0025, 20, 13  # 400 Hz physics, 20 Hz control, ~30 Hz telemetry
+    imu_every = 8  # 50 Hz HIGHRES_IMU
+    use_imu = est.params.accelerometer
+    bias = np.asarray(accel_bias, dtype=float)
     eta = np.zeros(7)
     tb_cmd = np.array([0.0, 0.0, H])  # thrust x body z axis (NED) commanded ...
     tb = tb_cmd.copy()  # ... and flown (the attitude loop's lag)
@@ -68,6 +87,12 @@ def fly(mode: str, duration: float, tau: float, seed: int, std: float, corr: flo
     for i in range(n):
         t = i * dt
         d = np.asarray(dist.accel_ned_m_s2(t), dtype=float)
+        if use_imu and i % imu_every == 0 and i % est_every != 0 and mode == "estimator":
+            thrust = float(np.linalg.norm(tb))
+            rot = _rot_from_body_z(tb / thrust)
+            f_body = rot.T @ (-G / H * tb + d)
+            meas = f_body[:2] + bias + rng.normal(0.0, accel_noise, 2)
+            est.update_accel(t, meas, thrust, tb / thrust, rot)
         if i % est_every == 0 and mode == "estimator":
             thrust = float(np.linalg.norm(tb))
             v = eta[4:7] + (rng.normal(0.0, vel_noise, 3) if vel_noise else 0.0)
@@ -104,7 +129,11 @@ def main() -> int:
     ap.add_argument("--score-from", type=float, default=20.0,
                     help="score from this time (s); with --duration 60 the same turbulence "
                     "as the 60 s flight's 20-60 s (same seed, same generator)")
-    ap.add_argument("--only", default="", help="comma-separated case numbers (0-6)")
+    ap.add_argument("--only", default="", help="comma-separated case numbers (0-10)")
+    ap.add_argument("--accel-noise", type=float, default=0.35,
+                    help="accelerometer white noise per 50 Hz sample (m/s^2)")
+    ap.add_argument("--accel-rw", type=float, default=1.0,
+                    help="the estimator's disturbance random walk with the accelerometer")
     args = ap.parse_args()
     c0 = time.process_time()
     print(f"turbulence std {args.std} m/s^2, correlation {args.corr} s, attitude lag "
@@ -119,13 +148,24 @@ def main() -> int:
         ("estimator (defaults), 0.02 m/s velocity noise", "estimator", None, 0.02),
         ("oracle d (true disturbance at each control step)", "oracle", None, 0.0),
         ("oracle d, no attitude lag", "oracle-no-lag", None, 0.0),
+        ("accelerometer, d random walk 0.3", "estimator",
+         EstimatorParams(accelerometer=True, accel_noise_m_s2=args.accel_noise), 0.0),
+        (f"accelerometer, d random walk {args.accel_rw}", "estimator",
+         EstimatorParams(accelerometer=True, accel_noise_m_s2=args.accel_noise,
+                         accel_disturbance_noise_m_s2_sqrt_s=args.accel_rw), 0.0),
+        (f"accelerometer, d random walk {args.accel_rw}, 0.02 m/s velocity noise",
+         "estimator",
+         EstimatorParams(accelerometer=True, accel_noise_m_s2=args.accel_noise,
+                         accel_disturbance_noise_m_s2_sqrt_s=args.accel_rw), 0.02),
+        ("accelerometer, d random walk 0.3, 0.02 m/s velocity noise", "estimator",
+         EstimatorParams(accelerometer=True, accel_noise_m_s2=args.accel_noise), 0.02),
     ]
     pick = {int(x) for x in args.only.split(",") if x}
     for i, (name, mode, ep, vn) in enumerate(cases):
         if pick and i not in pick:
             continue
         r = fly(mode, args.duration, args.tau, args.seed, args.std, args.corr, ep, vn,
-                args.score_from)
+                args.score_from, args.accel_noise)
         print(f"{name:58s} RMS horizontal {r['rms_h_mm']:6.1f} mm, height {r['rms_z_mm']:6.1f} mm",
               flush=True)
     print(f"CPU {time.process_time() - c0:.1f} s")

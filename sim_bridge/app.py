@@ -45,7 +45,13 @@ from sim_bridge.gcs import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, GcsServices, Par
 from sim_bridge.impairment import LinkImpairment, msgid_of
 from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
-from sim_bridge.physics.vehicle import AttitudeCommand, VehicleState, initial_state, quat_from_euler
+from sim_bridge.physics.vehicle import (
+    G_M_S2,
+    AttitudeCommand,
+    VehicleState,
+    initial_state,
+    quat_from_euler,
+)
 from sim_bridge.px4 import (
     ACCEPTED,
     DENIED,
@@ -67,9 +73,11 @@ SYSTEM_TIME = 2
 ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
+HIGHRES_IMU = 105
 SET_ATTITUDE_TARGET = 82
 ATTITUDE_TARGET = 83
-_STATE_STREAMS = frozenset({30, 31, 32})  # ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED
+# ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED, HIGHRES_IMU: what a telemetry fault hits
+_STATE_STREAMS = frozenset({30, 31, 32, 105})
 GLOBAL_POSITION_INT = 33
 TIMESYNC = 111
 AUTOPILOT_VERSION = 148
@@ -89,6 +97,7 @@ DEFAULT_RATES_HZ: dict[int, float] = {
     ATTITUDE_QUATERNION: 50.0,
     ATTITUDE: 25.0,
     LOCAL_POSITION_NED: 30.0,
+    HIGHRES_IMU: 50.0,
     ATTITUDE_TARGET: 10.0,
     GLOBAL_POSITION_INT: 10.0,
     EXTENDED_SYS_STATE: 5.0,
@@ -104,6 +113,7 @@ DEFAULT_RATES_HZ: dict[int, float] = {
 PX4_ONBOARD_RATES_HZ: dict[int, float] = {
     HEARTBEAT: 1.0,
     TIMESYNC: 10.0,
+    HIGHRES_IMU: 50.0,
     LOCAL_POSITION_NED: 30.0,
     ATTITUDE: 100.0,
     ATTITUDE_QUATERNION: 50.0,
@@ -125,6 +135,7 @@ PX4_NORMAL_RATES_HZ: dict[int, float] = {
     LOCAL_POSITION_NED: 1.0,
     SYS_STATUS: 1.0,
     ATTITUDE_QUATERNION: 0.0,
+    HIGHRES_IMU: 0.0,
     TIMESYNC: 0.0,
     SYSTEM_TIME: 0.0,
     AUTOPILOT_VERSION: 0.0,
@@ -296,6 +307,11 @@ class SimBridge:
         # boundary, as the emulator always did: the client gets the step's exact time.
         self._streams_in_step = self.lockstep and tm.delay_ms > 0
         (self._tx_rng,) = rngs(sim.seed, 1, salt=3)
+        # HIGHRES_IMU: its own generators (accelerometer noise, transport jitter), so that the
+        # other messages draw the same jitter with or without it
+        self._imu_rng, self._imu_tx_rng = rngs(sim.seed, 2, salt=5)
+        self._accel_noise = tm.accel_noise_m_s2
+        self._accel_bias = np.asarray(tm.accel_bias_m_s2, dtype=float)
         self._tx_lines: dict[str, DelayLine[tuple[list[bytes], Address | None]]] = {}
         self._timesync_sent_ns: dict[int, float] = {}
         self._timesync_replies = 0
@@ -458,7 +474,7 @@ class SimBridge:
 
     # ------------------------------------------------------------------ transmit
     def _tx(self, link: MavUdpLink, msg: Any, addr: Address | None = None, *,
-            reply: bool = False) -> None:
+            reply: bool = False, rng: np.random.Generator | None = None) -> None:
         """Send ``msg`` on a vehicle link, through the transport delay (``sim.telemetry``).
         In lockstep a ``reply`` (ACK, requested message, TIMESYNC/PING answer) is not delayed:
         simulated time stands still while the step waits."""
@@ -466,7 +482,7 @@ class SimBridge:
         if delay <= 0 or (reply and self.lockstep):
             link.send(msg, addr)
             return
-        d = delay + jitter * float(self._tx_rng.uniform(-1.0, 1.0))
+        d = delay + jitter * float((rng or self._tx_rng).uniform(-1.0, 1.0))
         self._tx_lines[link.name].push(self.now_s() + max(0.0, d), (link.pack(msg), addr))
 
     def _flush_tx(self, now_s: float) -> None:
@@ -603,6 +619,14 @@ class SimBridge:
             return mav.attitude_target_encode(ms, 0, [float(v) for v in q],
                                               *(float(v) for v in rates),
                                               float(cmd.thrust_norm))
+        if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/wire.md, HIGHRES_IMU)
+            f = self.specific_force_frd(s)
+            if self._accel_noise > 0 or np.any(self._accel_bias):
+                f = f + self._accel_bias + self._accel_noise * self._imu_rng.standard_normal(3)
+            w = s.rates_frd_rad_s
+            return mav.highres_imu_encode(self._us(t), *(float(v) for v in f),
+                                          *(float(v) for v in w), 0.0, 0.0, 0.0, 0.0, 0.0,
+                                          0.0, 0.0, 0b111111)
         if mid == LOCAL_POSITION_NED:
             return mav.local_position_ned_encode(ms, *(float(v) for v in s.pos_ned_m),
                                                  *(float(v) for v in s.vel_ned_m_s))
@@ -637,9 +661,19 @@ class SimBridge:
                                                 0x5EB1D6E0)
         raise SimBridgeError(f"no encoder for message {mid}")  # pragma: no cover
 
+    @staticmethod
+    def specific_force_frd(s: VehicleState) -> np.ndarray:
+        """What an ideal accelerometer reads (m/s^2, body FRD): the vehicle's acceleration
+        less gravity, i.e. thrust, drag, wind and turbulence (``R' (a - g e_z)``); ``-g``
+        along z in a level hover or at rest on the ground."""
+        f_ned = np.asarray(s.acc_ned_m_s2, dtype=float) - np.array([0.0, 0.0, G_M_S2])
+        out: np.ndarray = s.rot_body_to_ned.T @ f_ned
+        return out
+
     def _send_message(self, link: MavUdpLink, mid: int, t: float,
                       addr: Address | None = None, *, reply: bool = False) -> None:
-        self._tx(link, self._encode(link, mid, t), addr, reply=reply)
+        self._tx(link, self._encode(link, mid, t), addr, reply=reply,
+                 rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
 
     def _send_streams(self, t: float) -> None:
         faults = self.cfg.sim.faults
@@ -649,7 +683,8 @@ class SimBridge:
                 if mid in _STATE_STREAMS and faults.dropout(t):
                     continue  # injected telemetry dropout
                 if mid in _STATE_STREAMS and faults.nan(t):
-                    self._tx(link, self._encode_nan(link, mid, t))
+                    self._tx(link, self._encode_nan(link, mid, t),
+                             rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
                     continue
                 self._send_message(link, mid, t)
 
@@ -660,6 +695,9 @@ class SimBridge:
             return mav.attitude_quaternion_encode(ms, nan, nan, nan, nan, nan, nan, nan)
         if mid == ATTITUDE:
             return mav.attitude_encode(ms, nan, nan, nan, nan, nan, nan)
+        if mid == HIGHRES_IMU:
+            return mav.highres_imu_encode(self._us(t), nan, nan, nan, nan, nan, nan, 0.0, 0.0,
+                                          0.0, 0.0, 0.0, 0.0, 0.0, 0b111111)
         p = self.state.pos_ned_m
         return mav.local_position_ned_encode(ms, float(p[0]), float(p[1]), float(p[2]),
                                              nan, nan, nan)

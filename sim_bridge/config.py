@@ -442,11 +442,14 @@ CAMERA_LEVELS: dict[str, dict[str, Any]] = {
 }
 TELEMETRY_LEVELS: dict[str, dict[str, Any]] = {
     "ideal": {},
-    "mild": {"rates": "px4", "delay_ms": 2.0, "delay_jitter_ms": 1.0, "boot_offset_s": 12.0},
+    "mild": {"rates": "px4", "delay_ms": 2.0, "delay_jitter_ms": 1.0, "boot_offset_s": 12.0,
+             "accel_noise_m_s2": 0.15, "accel_bias_m_s2": [0.03, -0.02, 0.05]},
     "realistic": {"rates": "px4", "delay_ms": 4.0, "delay_jitter_ms": 2.0,
-                  "boot_offset_s": 37.25},
+                  "boot_offset_s": 37.25, "accel_noise_m_s2": 0.35,
+                  "accel_bias_m_s2": [0.1, -0.08, 0.15]},
     "harsh": {"rates": "px4", "delay_ms": 20.0, "delay_jitter_ms": 15.0,
-              "boot_offset_s": 1234.5},
+              "boot_offset_s": 1234.5, "accel_noise_m_s2": 1.0,
+              "accel_bias_m_s2": [0.3, -0.25, 0.4]},
 }
 
 
@@ -503,6 +506,9 @@ class TelemetryConfig:
     ``boot_offset_s``: the autopilot booted this long before the simulation started: every
     autopilot stamp (``time_boot_ms``, ``time_usec``, TIMESYNC ``tc1``/``ts1``, the camera's
     ``t_us`` and the ground truth's ``t_us``) is simulation time + this offset.
+    ``accel_noise_m_s2`` (white, std per axis and HIGHRES_IMU sample) and ``accel_bias_m_s2``
+    (body FRD, constant): the accelerometer of HIGHRES_IMU departs from the true specific
+    force by these (docs/wire.md, HIGHRES_IMU).
     """
 
     level: str = field(default="ideal", metadata=_c(_one_of(*TELEMETRY_LEVELS)))
@@ -511,6 +517,11 @@ class TelemetryConfig:
     delay_jitter_ms: float = field(default=0.0, metadata=_c(_nonneg))
     boot_offset_s: float = field(default=0.0, metadata=_c(
         lambda x: None if 0 <= x < 4e6 else "must be in [0, 4e6) (time_boot_ms is a u32)"))
+    accel_noise_m_s2: float = field(default=0.0, metadata=_c(
+        lambda x: None if 0 <= x <= 20 else "must be in [0, 20] m/s^2"))
+    accel_bias_m_s2: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=_c(
+        lambda x: None if len(x) == 3 and all(abs(v) <= 5 for v in x)
+        else "must be 3 values within +-5 m/s^2"))
 
     def __post_init__(self) -> None:
         if self.delay_jitter_ms > self.delay_ms:

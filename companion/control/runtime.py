@@ -46,7 +46,7 @@ from companion.control.recording import FrameRecorder, LogClock
 from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.control.timesync import ActuationDelayMeter, TimeSync
-from companion.link import MavlinkLink, NoPeerError, Received
+from companion.link import AllowRule, MavlinkLink, NoPeerError, Received, default_allow_rules
 from companion.log import schemas as sch
 from companion.log.live import start_live
 from companion.log.writer import McapLogger
@@ -71,7 +71,10 @@ _STAMP_FIELDS = {
     "LOCAL_POSITION_NED": "time_boot_ms",
     "ATTITUDE_TARGET": "time_boot_ms",
     "FOLLOW_TARGET": "timestamp",
+    "HIGHRES_IMU": "time_usec",
 }
+# the stamp's unit (s per count): ms, except HIGHRES_IMU's time_usec (us since boot)
+_STAMP_SCALE = {"HIGHRES_IMU": 1e-6}
 STAMPED_MESSAGES = frozenset(_STAMP_FIELDS)  # the messages TimeBase reads a time from
 
 # records held until the source log clock has its first stamp (a few seconds of traffic)
@@ -158,10 +161,11 @@ class TimeBase:
             if key is None or key not in fields:
                 self.last_excess_s = 0.0
                 return t_rx_ns * 1e-9
-            return self._mapped(name, t_rx_ns * 1e-9, float(fields[key]) * 1e-3)
+            return self._mapped(name, t_rx_ns * 1e-9,
+                                float(fields[key]) * _STAMP_SCALE.get(name, 1e-3))
         key = _STAMP_FIELDS.get(name)
         if key is not None and key in fields:
-            t = float(fields[key]) * 1e-3
+            t = float(fields[key]) * _STAMP_SCALE.get(name, 1e-3)
             self.latest_s = max(self.latest_s, t)
             return t
         return self.latest_s if math.isfinite(self.latest_s) else 0.0
@@ -223,6 +227,14 @@ def new_store(cfg: Config) -> TelemetryStore:
     t = cfg.target
     return TelemetryStore(t.mavlink_sysid, t.origin_lat_deg, t.origin_lon_deg, t.origin_alt_m,
                           autopilot_sysid=cfg.mavlink.target_system)
+
+
+def allow_rules(cfg: Config) -> tuple[AllowRule, ...]:
+    """What the link delivers: the autopilot's telemetry the companion uses (plus HIGHRES_IMU
+    when the estimator fuses the accelerometer) and FOLLOW_TARGET from the AGV."""
+    extra = ("HIGHRES_IMU",) if cfg.control.estimator.accelerometer else ()
+    return default_allow_rules(cfg.mavlink.target_system, cfg.mavlink.target_component,
+                               cfg.target.mavlink_sysid, cfg.target.mavlink_compid, extra)
 
 
 def is_autopilot(cfg: Config, sysid: int, compid: int) -> bool:
@@ -318,6 +330,7 @@ class CompanionApp:
                 self._log_config()
                 link = MavlinkLink.from_config(
                     dataclasses.replace(cfg.mavlink, url=self.mavlink_url), cfg.target,
+                    allow=allow_rules(cfg),
                     on_rx=self._on_rx,
                     on_tx=lambda s: self._log_at(
                         self._tx_log_ns(s), lambda t: logger.log_mavlink("out", s, t)),

@@ -58,6 +58,20 @@ class ThrustSample:
 
 
 @dataclass(frozen=True)
+class AccelSample:
+    """The accelerometer of HIGHRES_IMU: specific force in body FRD (m/s^2), bias-corrected by
+    the autopilot's estimator (PX4: vehicle_imu's delta velocity over its interval less EKF2's
+    accelerometer bias), ``t_s`` its sample time (``time_usec``)."""
+
+    t_s: float
+    f_frd_m_s2: tuple[float, float, float]
+
+
+#: a specific force beyond this (m/s^2, any axis) is not a flying multicopter's
+ACCEL_PLAUSIBLE_M_S2 = 160.0
+
+
+@dataclass(frozen=True)
 class VehicleMode:
     t_s: float
     armed: bool
@@ -71,7 +85,7 @@ class TelemetryStore:
     #: the only messages :meth:`ingest` takes (any other returns False and changes nothing)
     MESSAGES = frozenset({"FOLLOW_TARGET", "ATTITUDE_QUATERNION", "ATTITUDE",
                           "LOCAL_POSITION_NED", "HEARTBEAT", "ATTITUDE_TARGET",
-                          "EXTENDED_SYS_STATE"})
+                          "EXTENDED_SYS_STATE", "HIGHRES_IMU"})
 
     def __init__(
         self,
@@ -94,6 +108,8 @@ class TelemetryStore:
         # link) and its landed state (EXTENDED_SYS_STATE: 2 = in air)
         self.thrust_setpoints: deque[ThrustSample] = deque(maxlen=history)
         self.landed_state: int | None = None
+        # the accelerometer (HIGHRES_IMU, 50 Hz on an onboard link), only when asked for
+        self.accel: deque[AccelSample] = deque(maxlen=history)
         self.rejected: dict[str, int] = {}
 
     # -- ingest -----------------------------------------------------------------------------
@@ -127,6 +143,18 @@ class TelemetryStore:
                     return self._reject("LOCAL_POSITION_NED out of order")
                 self.kinematics = k
                 self.kinematics_history.append(k)
+                return True
+            if name == "HIGHRES_IMU":
+                if self._autopilot_sysid is not None and src_sysid != self._autopilot_sysid:
+                    return self._reject("HIGHRES_IMU not from the autopilot")
+                if not int(fields.get("fields_updated", 0b111)) & 0b111:
+                    return self._reject("HIGHRES_IMU without an accelerometer update")
+                acc = (float(fields["xacc"]), float(fields["yacc"]), float(fields["zacc"]))
+                if not _finite(*acc, t_s) or max(abs(a) for a in acc) > ACCEL_PLAUSIBLE_M_S2:
+                    return self._reject("HIGHRES_IMU accelerometer non-finite or implausible")
+                if self.accel and t_s <= self.accel[-1].t_s:
+                    return self._reject("HIGHRES_IMU out of order")
+                self.accel.append(AccelSample(t_s, acc))
                 return True
             if name in ("ATTITUDE_TARGET", "EXTENDED_SYS_STATE"):
                 if self._autopilot_sysid is not None and src_sysid != self._autopilot_sysid:

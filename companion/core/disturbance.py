@@ -24,6 +24,13 @@ stays the vehicle's *acceleration* in the virtual frame (spec 4); the setpoint m
 asks for the specific force ``r - d_v - g e_z`` (``d_v`` = ``d`` in the virtual frame) with the
 estimated hover thrust, so the vehicle achieves ``r`` and the model holds.
 
+With an accelerometer (``accelerometer = true``, PX4's HIGHRES_IMU, docs/offset-free.md
+section 1b) the filter gains two states, the accelerometer's bias ``b`` in body x and y (a slow
+random walk), and a second measurement: in body axes the thrust has no x/y component, so the
+horizontal specific force measured is ``(R' d)_xy + b + noise`` whatever the thrust model. The
+velocity still pins the steady ``d`` (and so ``b``): a biased accelerometer leaves the steady
+estimate where the velocity puts it, while the fast part of ``d`` is read directly.
+
 Safety: every input is checked (non-finite or implausible data is rejected and counted, the
 estimate is kept); the estimate is clipped to configured bounds after each update; the
 covariance is kept symmetric and bounded; a non-finite result resets the filter. Pure numpy.
@@ -40,6 +47,7 @@ from numpy.typing import ArrayLike
 from companion.core.errors import ParamError
 
 _NX = 7  # v (3), d (3), theta
+_NB = 2  # with the accelerometer: its bias in body x, y (states 7, 8)
 
 
 @dataclass(frozen=True)
@@ -60,6 +68,16 @@ class EstimatorParams:
     (ATTITUDE_TARGET) while it reports the vehicle in the air, so the hover thrust is known
     before the first command of ours is flown; a setpoint older than
     ``autopilot_thrust_max_age_s`` is not used.
+
+    ``accelerometer``: also fuse HIGHRES_IMU's horizontal specific force (body x/y) as a
+    measurement of ``d`` (docs/offset-free.md, section 1b); ``accel_noise_m_s2``: std of one
+    sample per axis; ``accel_disturbance_noise_m_s2_sqrt_s``: the random walk of ``d_x``,
+    ``d_y`` while accelerometer samples arrive (at most ``accel_max_age_s`` old);
+    ``accel_bias_noise_m_s2_sqrt_s``/``accel_bias_initial_std_m_s2``: random walk and prior
+    std of the accelerometer's bias state (body x, y), bounded by ``accel_bias_max_m_s2``; the
+    larger the random walk, the more of the accelerometer's slow content the bias takes and
+    the higher the frequency from which the accelerometer, not the velocity, sets ``d``
+    (complementary filtering). A sample beyond ``accel_max_m_s2`` on either axis is refused.
     """
 
     enabled: bool = True
@@ -75,16 +93,27 @@ class EstimatorParams:
     innovation_gate: float = 400.0
     autopilot_thrust: bool = True
     autopilot_thrust_max_age_s: float = 0.25
+    accelerometer: bool = False
+    accel_noise_m_s2: float = 1.0
+    accel_disturbance_noise_m_s2_sqrt_s: float = 0.3
+    accel_bias_noise_m_s2_sqrt_s: float = 0.3
+    accel_bias_initial_std_m_s2: float = 0.2
+    accel_bias_max_m_s2: float = 1.0
+    accel_max_m_s2: float = 30.0
+    accel_max_age_s: float = 0.5
 
     def __post_init__(self) -> None:
         pos = ("velocity_noise_m_s", "hover_initial_std", "max_dt_s", "innovation_gate",
-               "disturbance_max_m_s2", "autopilot_thrust_max_age_s")
+               "disturbance_max_m_s2", "autopilot_thrust_max_age_s", "accel_noise_m_s2",
+               "accel_bias_initial_std_m_s2", "accel_bias_max_m_s2", "accel_max_m_s2",
+               "accel_max_age_s")
         for name in pos:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ParamError(f"control.estimator.{name}: must be > 0 (got {v!r})")
         for name in ("disturbance_noise_m_s2_sqrt_s", "vertical_disturbance_noise_m_s2_sqrt_s",
-                     "hover_noise_per_sqrt_s"):
+                     "hover_noise_per_sqrt_s", "accel_disturbance_noise_m_s2_sqrt_s",
+                     "accel_bias_noise_m_s2_sqrt_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ParamError(f"control.estimator.{name}: must be >= 0 (got {v!r})")
@@ -97,7 +126,8 @@ class EstimatorParams:
 class DisturbanceEstimate:
     """What the controller uses: ``hover_thrust`` (normalised, within the bounds),
     ``d_ned_m_s2`` (3,), their stds, and bookkeeping (``updates``, ``rejected``, last
-    ``innovation_m_s`` (3,), ``reason`` of the last rejection or ``""``)."""
+    ``innovation_m_s`` (3,), ``reason`` of the last rejection or ``""``). With the
+    accelerometer: its estimated bias (body x, y) and the number of its samples used."""
 
     hover_thrust: float
     d_ned_m_s2: tuple[float, float, float]
@@ -107,21 +137,29 @@ class DisturbanceEstimate:
     rejected: int
     innovation_m_s: tuple[float, float, float]
     reason: str = ""
+    accel_bias_m_s2: tuple[float, float] | None = None
+    accel_updates: int = 0
 
     def to_record(self) -> dict[str, object]:
-        return {
+        rec: dict[str, object] = {
             "hover_thrust": self.hover_thrust, "d_ned_m_s2": list(self.d_ned_m_s2),
             "hover_std": self.hover_std, "d_std_m_s2": list(self.d_std_m_s2),
             "updates": self.updates, "rejected": self.rejected,
             "innovation_m_s": list(self.innovation_m_s), "reason": self.reason,
         }
+        if self.accel_bias_m_s2 is not None:
+            rec["accel_bias_m_s2"] = list(self.accel_bias_m_s2)
+            rec["accel_updates"] = self.accel_updates
+        return rec
 
 
 @dataclass
 class DisturbanceEstimator:
     """The filter. ``update(t_s, v_ned, thrust, body_z_ned)`` once per new velocity sample:
     ``thrust`` and ``body_z_ned`` are the normalised thrust commanded and the body z axis in NED
-    (``R(q) e_z``, measured attitude) over the interval since the previous sample."""
+    (``R(q) e_z``, measured attitude) over the interval since the previous sample.
+    ``update_accel(...)`` once per accelerometer sample (``params.accelerometer``), in time
+    order with the velocity samples."""
 
     params: EstimatorParams
     hover_thrust0: float
@@ -131,8 +169,11 @@ class DisturbanceEstimator:
     t_s: float | None = field(init=False, default=None)
     updates: int = field(init=False, default=0)
     rejected: int = field(init=False, default=0)
+    accel_updates: int = field(init=False, default=0)
     innovation: np.ndarray = field(init=False)
     reason: str = field(init=False, default="")
+    _t_vel: float | None = field(init=False, default=None)  # the last velocity sample's time
+    _t_acc: float | None = field(init=False, default=None)  # the last accelerometer update's
 
     def __post_init__(self) -> None:
         h0 = float(self.hover_thrust0)
@@ -141,15 +182,26 @@ class DisturbanceEstimator:
                 f"control.hover_thrust {h0} is outside control.estimator.hover_min..hover_max")
         self.reset()
 
+    @property
+    def n(self) -> int:
+        """Number of states: 7, or 9 with the accelerometer's bias."""
+        return _NX + (_NB if self.params.accelerometer else 0)
+
     def reset(self) -> None:
-        """Back to the prior: ``d = 0``, hover thrust as configured, velocity unknown."""
+        """Back to the prior: ``d = 0``, hover thrust as configured, velocity unknown,
+        accelerometer bias 0."""
         pr = self.params
         h0 = float(self.hover_thrust0)
-        self.x = np.zeros(_NX)
+        self.x = np.zeros(self.n)
         self.x[6] = 1.0 / h0
         theta_std = pr.hover_initial_std / (h0 * h0)  # d(1/h) = dh / h^2
-        self.p = np.diag([1.0, 1.0, 1.0, 0.05**2, 0.05**2, 0.01**2, theta_std**2])
+        diag = [1.0, 1.0, 1.0, 0.05**2, 0.05**2, 0.01**2, theta_std**2]
+        if pr.accelerometer:
+            diag += [pr.accel_bias_initial_std_m_s2**2] * _NB
+        self.p = np.diag(diag)
         self.t_s = None
+        self._t_vel = None
+        self._t_acc = None
         self.innovation = np.zeros(3)
 
     # ------------------------------------------------------------------------------------------
@@ -162,6 +214,7 @@ class DisturbanceEstimator:
         theta = float(self.x[6])
         theta_std = math.sqrt(max(float(self.p[6, 6]), 0.0))
         d_std = np.sqrt(np.maximum(np.diag(self.p)[3:6], 0.0))
+        bias = (float(self.x[7]), float(self.x[8])) if self.params.accelerometer else None
         return DisturbanceEstimate(
             hover_thrust=1.0 / theta,
             d_ned_m_s2=(float(self.x[3]), float(self.x[4]), float(self.x[5])),
@@ -170,7 +223,7 @@ class DisturbanceEstimator:
             updates=self.updates, rejected=self.rejected,
             innovation_m_s=(float(self.innovation[0]), float(self.innovation[1]),
                             float(self.innovation[2])),
-            reason=self.reason,
+            reason=self.reason, accel_bias_m_s2=bias, accel_updates=self.accel_updates,
         )
 
     def update(self, t_s: float, v_ned_m_s: ArrayLike, thrust_norm: float | None,
@@ -189,63 +242,138 @@ class DisturbanceEstimator:
         if thrust_norm is None or body_z_ned is None:
             self._anchor(t_s, v)
             return True
-        b = np.asarray(body_z_ned, dtype=float).reshape(-1)
-        if (b.shape != (3,) or not np.all(np.isfinite(b)) or not math.isfinite(thrust_norm)
-                or not 0.0 <= thrust_norm <= 1.0 or abs(float(np.linalg.norm(b)) - 1.0) > 1e-3):
+        b = _checked_inputs(thrust_norm, body_z_ned)
+        if b is None:
             return self._reject(f"non-finite or implausible thrust {thrust_norm!r} or body z "
-                                f"{b.tolist()}")
-        if self.t_s is None or t_s - self.t_s > self.params.max_dt_s:
+                                f"{np.asarray(body_z_ned).tolist()}")
+        if self.t_s is None or self._t_vel is None or t_s - self._t_vel > self.params.max_dt_s:
             self._anchor(t_s, v)
             return True
         dt = t_s - self.t_s
-        x_pred, p_pred = self._predict(dt, float(thrust_norm), b)
+        x_pred, p_pred = self._predict(t_s, dt, float(thrust_norm), b)
         # correction with z = v
+        h = np.zeros((3, self.n))
+        h[:, :3] = np.eye(3)
         innov = v - x_pred[:3]
-        s = p_pred[:3, :3] + np.eye(3) * self.params.velocity_noise_m_s**2
-        try:
-            s_inv = np.linalg.inv(s)
-        except np.linalg.LinAlgError:
-            self.reset()
-            return self._reject("singular innovation covariance: filter reset")
-        nis = float(innov @ s_inv @ innov)
-        if not math.isfinite(nis) or nis > self.params.innovation_gate:
-            # an outlier: keep the estimate, re-anchor the velocity so one glitch is not
-            # followed by a string of rejections
-            self._anchor(t_s, v)
-            return self._reject(f"velocity outlier (normalised innovation {nis:.3g})")
-        k = p_pred[:, :3] @ s_inv
-        x_new = x_pred + k @ innov
-        i_kh = np.eye(_NX)
-        i_kh[:, :3] -= k
         r = np.eye(3) * self.params.velocity_noise_m_s**2
-        p_new = i_kh @ p_pred @ i_kh.T + k @ r @ k.T  # Joseph form: stays PSD
-        p_new = 0.5 * (p_new + p_new.T)
-        if not (np.all(np.isfinite(x_new)) and np.all(np.isfinite(p_new))):
-            self.reset()
-            return self._reject("non-finite estimate: filter reset")
-        self.x = self._clip(x_new)
-        self.p = p_new
+        res = self._correct(x_pred, p_pred, h, innov, r)
+        if isinstance(res, str):
+            if res.startswith("outlier"):
+                # an outlier: keep the estimate, re-anchor the velocity so one glitch is not
+                # followed by a string of rejections
+                self._anchor(t_s, v)
+                return self._reject(f"velocity {res}")
+            return self._reject(res)
         self.t_s = t_s
+        self._t_vel = t_s
         self.innovation = innov
         self.updates += 1
         self.reason = ""
         return True
 
+    def update_accel(self, t_s: float, f_body_xy_m_s2: ArrayLike, thrust_norm: float | None,
+                     body_z_ned: ArrayLike | None, r_body_to_ned: ArrayLike) -> bool:
+        """One accelerometer sample at ``t_s``: the specific force measured in body x and y
+        (bias-corrected by the autopilot, our bias state takes the rest) with the attitude
+        ``r_body_to_ned`` at ``t_s``; ``thrust_norm``/``body_z_ned`` as in :meth:`update` for
+        the interval since the filter's last sample. Predicts to ``t_s`` and corrects with
+        ``f_xy = (R' d)_xy + b``. Returns False and leaves the estimate alone when it is not
+        used: accelerometer off, no recent velocity (the filter is not running), a sample not
+        newer than the filter, no known thrust (counted as neither), or bad data (rejected,
+        counted, reason set)."""
+        if not self.params.accelerometer:
+            return False
+        if self.t_s is None or self._t_vel is None:
+            return False
+        f = np.asarray(f_body_xy_m_s2, dtype=float).reshape(-1)
+        rot = np.asarray(r_body_to_ned, dtype=float)
+        if (f.shape != (2,) or not np.all(np.isfinite(f)) or not math.isfinite(float(t_s))
+                or float(np.max(np.abs(f))) > self.params.accel_max_m_s2):
+            return self._reject(f"non-finite or implausible accelerometer sample {f.tolist()}")
+        if (rot.shape != (3, 3) or not np.all(np.isfinite(rot))
+                or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-3)):
+            return self._reject("accelerometer attitude is not a rotation")
+        if t_s < self.t_s:
+            return False  # older than what the filter holds: no update
+        if t_s - self._t_vel > self.params.max_dt_s:
+            return False  # the velocity is stale: the next velocity sample restarts the filter
+        if t_s == self.t_s:  # the instant of the filter's last sample: nothing to predict
+            x_pred, p_pred = self.x, self.p
+        else:
+            if thrust_norm is None or body_z_ned is None:
+                return False  # the thrust that flew is unknown: no prediction, no update
+            b = _checked_inputs(thrust_norm, body_z_ned)
+            if b is None:
+                return self._reject(f"non-finite or implausible thrust {thrust_norm!r} or "
+                                    f"body z {np.asarray(body_z_ned).tolist()}")
+            x_pred, p_pred = self._predict(t_s, t_s - self.t_s, float(thrust_norm), b)
+        h = np.zeros((2, self.n))
+        h[:, 3:6] = rot[:, 0:2].T  # (R' d)_xy
+        h[:, 7:9] = np.eye(2)
+        innov = f - h @ x_pred
+        r = np.eye(2) * self.params.accel_noise_m_s2**2
+        res = self._correct(x_pred, p_pred, h, innov, r)
+        if isinstance(res, str):
+            if res.startswith("outlier"):
+                # keep the prediction (the velocity still holds the filter)
+                self.x, self.p, self.t_s = self._clip(x_pred), p_pred, t_s
+            return self._reject(f"accelerometer {res}")
+        self.t_s = t_s
+        self._t_acc = t_s
+        self.accel_updates += 1
+        return True
+
     # ------------------------------------------------------------------------------------------
 
-    def _predict(self, dt: float, thrust: float, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _correct(self, x_pred: np.ndarray, p_pred: np.ndarray, h: np.ndarray,
+                 innov: np.ndarray, r: np.ndarray) -> str | None:
+        """Kalman correction (Joseph form) into ``self.x``/``self.p``; a reason string (and
+        nothing changed) for an outlier, a singular innovation covariance or a non-finite
+        result (the last two reset the filter)."""
+        s = h @ p_pred @ h.T + r
+        try:
+            s_inv = np.linalg.inv(s)
+        except np.linalg.LinAlgError:
+            self.reset()
+            return "singular innovation covariance: filter reset"
+        nis = float(innov @ s_inv @ innov)
+        if not math.isfinite(nis) or nis > self.params.innovation_gate:
+            return f"outlier (normalised innovation {nis:.3g})"
+        k = p_pred @ h.T @ s_inv
+        x_new = x_pred + k @ innov
+        i_kh = np.eye(self.n) - k @ h
+        p_new = i_kh @ p_pred @ i_kh.T + k @ r @ k.T  # Joseph form: stays PSD
+        p_new = 0.5 * (p_new + p_new.T)
+        if not (np.all(np.isfinite(x_new)) and np.all(np.isfinite(p_new))):
+            self.reset()
+            return "non-finite estimate: filter reset"
+        self.x = self._clip(x_new)
+        self.p = p_new
+        return None
+
+    def _predict(self, t_s: float, dt: float, thrust: float,
+                 b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pr = self.params
         g = self.g_m_s2
-        f = np.eye(_NX)
+        n = self.n
+        f = np.eye(n)
         f[0:3, 3:6] = np.eye(3) * dt
         f[0:3, 6] = -dt * g * thrust * b
         x = f @ self.x
         x[2] += g * dt
         h = self.hover_thrust
-        q = np.zeros((_NX, _NX))
-        q[3, 3] = q[4, 4] = pr.disturbance_noise_m_s2_sqrt_s**2 * dt
+        q = np.zeros((n, n))
+        # with a recent accelerometer sample the horizontal disturbance may move faster: it is
+        # measured directly, not only through the velocity's derivative
+        q_d = pr.disturbance_noise_m_s2_sqrt_s
+        if (pr.accelerometer and self._t_acc is not None
+                and t_s - self._t_acc <= pr.accel_max_age_s):
+            q_d = pr.accel_disturbance_noise_m_s2_sqrt_s
+        q[3, 3] = q[4, 4] = q_d**2 * dt
         q[5, 5] = pr.vertical_disturbance_noise_m_s2_sqrt_s**2 * dt
         q[6, 6] = (pr.hover_noise_per_sqrt_s / (h * h)) ** 2 * dt
+        if pr.accelerometer:
+            q[7, 7] = q[8, 8] = pr.accel_bias_noise_m_s2_sqrt_s**2 * dt
         # the velocity also integrates the disturbance's random walk over the interval
         p = f @ self.p @ f.T + q
         return x, p
@@ -256,18 +384,30 @@ class DisturbanceEstimator:
         self.p[:, :3] = 0.0
         self.p[:3, :3] = np.eye(3) * self.params.velocity_noise_m_s**2
         self.t_s = t_s
+        self._t_vel = t_s
 
     def _clip(self, x: np.ndarray) -> np.ndarray:
         pr = self.params
         out = x.copy()
         out[3:6] = np.clip(out[3:6], -pr.disturbance_max_m_s2, pr.disturbance_max_m_s2)
         out[6] = float(np.clip(out[6], 1.0 / pr.hover_max, 1.0 / pr.hover_min))
+        if pr.accelerometer:
+            out[7:9] = np.clip(out[7:9], -pr.accel_bias_max_m_s2, pr.accel_bias_max_m_s2)
         return out
 
     def _reject(self, why: str) -> bool:
         self.rejected += 1
         self.reason = why
         return False
+
+
+def _checked_inputs(thrust_norm: float, body_z_ned: ArrayLike) -> np.ndarray | None:
+    """The body z axis as an array, or None when it or the thrust is non-finite/implausible."""
+    b = np.asarray(body_z_ned, dtype=float).reshape(-1)
+    if (b.shape != (3,) or not np.all(np.isfinite(b)) or not math.isfinite(thrust_norm)
+            or not 0.0 <= thrust_norm <= 1.0 or abs(float(np.linalg.norm(b)) - 1.0) > 1e-3):
+        return None
+    return b
 
 
 def compensated_input(u: ArrayLike, d_ned_m_s2: ArrayLike, yaw_rad: float) -> np.ndarray:

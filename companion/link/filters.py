@@ -71,12 +71,16 @@ AUTOPILOT_TELEMETRY: frozenset[str] = frozenset(
 
 
 def default_allow_rules(
-    autopilot_sysid: int, autopilot_compid: int, agv_sysid: int, agv_compid: int | None
+    autopilot_sysid: int, autopilot_compid: int, agv_sysid: int, agv_compid: int | None,
+    extra_autopilot: Sequence[str] = (),
 ) -> tuple[AllowRule, ...]:
     """Autopilot telemetry from (sysid, compid) plus FOLLOW_TARGET (and HEARTBEAT) from the AGV.
-    ``autopilot_compid`` 0 means any component of the autopilot's system."""
+    ``autopilot_compid`` 0 means any component of the autopilot's system. ``extra_autopilot``:
+    more autopilot messages to deliver (HIGHRES_IMU when the estimator uses the
+    accelerometer; otherwise PX4's 50 Hz stream is counted as unused and dropped)."""
     return (
-        AllowRule(autopilot_sysid, autopilot_compid or None, AUTOPILOT_TELEMETRY),
+        AllowRule(autopilot_sysid, autopilot_compid or None,
+                  AUTOPILOT_TELEMETRY | frozenset(extra_autopilot)),
         AllowRule(agv_sysid, agv_compid or None, frozenset({"FOLLOW_TARGET", "HEARTBEAT"})),
     )
 
