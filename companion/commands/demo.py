@@ -95,9 +95,10 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         "--set", "offboard.reengage=true", "--set", "logging.block_on_backlog=true",
         "--set", 'logging.timestamps="source"',
         # lockstep: the emulator waits for every command, so the solve-time bound only has to
-        # catch a solver that never returns; 1 s keeps a busy machine (CI, a campaign beside
-        # it) from cutting slow but finite solves. A user's --set still wins.
-        "--set", "rmpc.max_solve_time_s=1.0",
+        # catch a solver that never returns: 1 s of the solver's own CPU time, so that a busy
+        # machine (CI, a campaign beside it) never cuts a slow but finite solve (at load 8-15 a
+        # 1 s wall bound did). A user's --set still wins.
+        "--set", "rmpc.max_solve_time_s=1.0", "--set", 'rmpc.solve_time_clock="cpu"',
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",

@@ -21,6 +21,13 @@ law (:class:`~companion.core.rmpc.SolveAborted` -> ``mode='fallback'``, status `
 ...``); steps while the new child starts fly the fallback too (status ``solver restarting``).
 The parent never blocks longer than the step's bound, so SIGTERM/SIGINT are served by the
 event loop at the next step boundary.
+
+``rmpc.solve_time_clock = "cpu"`` (what lockstep simulations use): the bound counts the solver
+process's own CPU time instead, per solve. The child arms ``ITIMER_PROF`` with the bound before
+each solve (SIGPROF's default action terminates the process, also inside the C call) and
+disarms it after; the parent waits only up to a wall-time backstop
+(:func:`cpu_clock_wall_backstop_s`) and reports a child killed by SIGPROF as a timeout. A
+machine so busy that a 2 ms solve takes a second of wall time then no longer cuts it.
 """
 
 from __future__ import annotations
@@ -73,6 +80,7 @@ def _child_main(conn: multiprocessing.connection.Connection, rmpc: RmpcParams,
     if os.getppid() != parent_pid:  # the parent died before prctl took effect
         return
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    signal.signal(signal.SIGPROF, signal.SIG_DFL)  # the CPU-time bound ends the process
     from companion.core.rmpc import _Solver  # the core's solver wrapper, same cache
 
     try:
@@ -89,8 +97,10 @@ def _child_main(conn: multiprocessing.connection.Connection, rmpc: RmpcParams,
             return
         if msg[0] != "solve":
             return
-        _, kind, w0, par, lbx, ubx, hang = msg
+        _, kind, w0, par, lbx, ubx, hang, cpu_limit_s, stall_s = msg
         reply: tuple[str, Any, float]
+        if cpu_limit_s > 0.0:  # SIGPROF (default action: terminate) after that much CPU
+            signal.setitimer(signal.ITIMER_PROF, cpu_limit_s)
         try:
             out: Any = solvers[kind].evaluate(w0, par, lbx, ubx)
             reply = ("ok", out, time.process_time())
@@ -100,7 +110,17 @@ def _child_main(conn: multiprocessing.connection.Connection, rmpc: RmpcParams,
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
             while True:
                 pass
+        if stall_s > 0.0:  # test hook: a solve descheduled on a busy machine (no CPU used)
+            time.sleep(stall_s)
+        if cpu_limit_s > 0.0:
+            signal.setitimer(signal.ITIMER_PROF, 0.0)
         conn.send(reply)
+
+
+def cpu_clock_wall_backstop_s(max_solve_time_s: float) -> float:
+    """With ``solve_time_clock = "cpu"``: how long (wall) the parent waits for a step's solves
+    before it kills the child anyway (a child that gets no CPU at all, or is stopped)."""
+    return max(10.0, 20.0 * max_solve_time_s)
 
 
 class ProcessSolveBackend:
@@ -118,11 +138,19 @@ class ProcessSolveBackend:
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
                  kinds: dict[str, tuple[bool, str]], max_solve_time_s: float,
                  clock: Callable[[], float] = time.monotonic,
-                 start_timeout_s: float = START_TIMEOUT_S, defer_ready: bool = False) -> None:
+                 start_timeout_s: float = START_TIMEOUT_S, defer_ready: bool = False,
+                 time_clock: str = "wall") -> None:
         if not (np.isfinite(max_solve_time_s) and max_solve_time_s > 0):
             raise ValueError(f"max_solve_time_s: must be finite and > 0 (got {max_solve_time_s})")
+        if time_clock not in ("wall", "cpu"):
+            raise ValueError(f"time_clock: {time_clock!r} is not 'wall' or 'cpu'")
         self._args = (rmpc, camera, terminal, dict(kinds))
         self.max_solve_time_s = float(max_solve_time_s)
+        self.time_clock = time_clock
+        # the parent's wait per step: the bound itself (wall), or only a backstop (cpu)
+        self._wait_s = (self.max_solve_time_s if time_clock == "wall"
+                        else cpu_clock_wall_backstop_s(self.max_solve_time_s))
+        self._stall_next_s = 0.0
         self._clock = clock
         self._ctx = multiprocessing.get_context("spawn")
         self._proc: BaseProcess | None = None
@@ -234,7 +262,7 @@ class ProcessSolveBackend:
 
     # --- SolveBackend ------------------------------------------------------------------------
     def start_step(self) -> None:
-        self._deadline = self._clock() + self.max_solve_time_s
+        self._deadline = self._clock() + self._wait_s
 
     def hang_next_solve(self, on: bool = True) -> None:
         """Test hook: the child's next solve (the next one sent to a ready child) computes its
@@ -242,12 +270,17 @@ class ProcessSolveBackend:
         stuck fatrop solve. ``on=False`` withdraws a pending request."""
         self._hang_next = on
 
+    def stall_next_solve(self, seconds: float) -> None:
+        """Test hook: the child's next solve sleeps ``seconds`` (no CPU) before answering, as
+        a solve descheduled on a busy machine."""
+        self._stall_next_s = float(seconds)
+
     def evaluate(self, kind: str, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
                  ubx: np.ndarray) -> Evaluation:
         if self._first_pending:  # the first child: wait for it (a failure is a start failure)
             self._first_pending = False
             self._wait_first()
-            self._deadline = self._clock() + self.max_solve_time_s
+            self._deadline = self._clock() + self._wait_s
         try:
             ready = self._poll_ready(0.0)
         except RmpcBuildError as exc:  # the new child failed: try again next step
@@ -262,16 +295,28 @@ class ProcessSolveBackend:
                                f"rmpc.max_solve_time_s = {self.max_solve_time_s:g} s")
         assert self._conn is not None
         hang, self._hang_next = self._hang_next, False
+        stall, self._stall_next_s = self._stall_next_s, 0.0
+        cpu_limit = self.max_solve_time_s if self.time_clock == "cpu" else 0.0
         try:
-            self._conn.send(("solve", kind, w0, par, lbx, ubx, hang))
+            self._conn.send(("solve", kind, w0, par, lbx, ubx, hang, cpu_limit, stall))
             if not self._conn.poll(remaining):
                 self.timeouts += 1
-                self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} s")
+                what = ("s" if self.time_clock == "wall" else
+                        f"s of CPU: no answer within the {self._wait_s:g} s wall backstop")
+                self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} {what}")
                 raise SolveAborted(f"timeout: {kind} solve exceeded rmpc.max_solve_time_s = "
-                                   f"{self.max_solve_time_s:g} s (solver process restarted)")
+                                   f"{self.max_solve_time_s:g} {what} (solver process restarted)")
             status, payload, self._cpu_live_s = self._conn.recv()
         except (EOFError, OSError) as exc:
-            code = self._proc.exitcode if self._proc is not None else None
+            assert self._proc is not None
+            self._proc.join(1.0)  # the exit code says whether the CPU-time bound ended it
+            code = self._proc.exitcode
+            if self.time_clock == "cpu" and code == -signal.SIGPROF:
+                self.timeouts += 1
+                self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} s of CPU")
+                raise SolveAborted(f"timeout: {kind} solve exceeded rmpc.max_solve_time_s = "
+                                   f"{self.max_solve_time_s:g} s of CPU (solver process "
+                                   "restarted)") from exc
             self._restart(f"lost (exit code {code})")
             raise SolveAborted(f"solver process lost during the {kind} solve (exit code "
                                f"{code}; restarted)") from exc
@@ -289,6 +334,7 @@ def process_backend(rmpc: RmpcParams, camera: CameraParams,
 
     def make(mpc: Rmpc) -> ProcessSolveBackend:
         return ProcessSolveBackend(rmpc, camera, terminal, mpc.solver_kinds(),
-                                   rmpc.max_solve_time_s, defer_ready=True)
+                                   rmpc.max_solve_time_s, defer_ready=True,
+                                   time_clock=rmpc.solve_time_clock)
 
     return make

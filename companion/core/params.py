@@ -177,6 +177,12 @@ class RmpcParams:
     # Wall-time bound of one RMPC step's solves (hard problem plus soft copy), seconds. A step
     # that exceeds it is abandoned and flies the terminal law ('fallback', status 'timeout').
     max_solve_time_s: float = field(default=0.25, metadata=checked(positive))
+    # What max_solve_time_s counts: "wall" (real time: on a vehicle a late command is a missed
+    # deadline) or "cpu" (the solver process's own CPU time, per solve: a lockstep simulation
+    # waits for every command, so only a solver that never returns must be cut, and a busy
+    # machine's descheduling must not cut a finite solve; the wall wait is then only a backstop,
+    # max(10 s, 20 x max_solve_time_s)).
+    solve_time_clock: str = "wall"
 
     def __post_init__(self) -> None:
         if self.visibility_pairing not in ("spec", "causal"):
@@ -190,6 +196,7 @@ class RmpcParams:
             ("target_speed_extrapolation", self.target_speed_extrapolation,
              ("linear", "box")),
             ("solve_isolation", self.solve_isolation, ("process", "none")),
+            ("solve_time_clock", self.solve_time_clock, ("wall", "cpu")),
         ):
             if value not in allowed:
                 raise ParamError(

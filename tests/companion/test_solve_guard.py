@@ -22,7 +22,11 @@ import pytest
 from companion import ConfigError
 from companion.config import Config, load_config
 from companion.control.factory import build_controller
-from companion.control.solve_guard import ProcessSolveBackend, process_backend
+from companion.control.solve_guard import (
+    ProcessSolveBackend,
+    cpu_clock_wall_backstop_s,
+    process_backend,
+)
 from companion.core.errors import ParamError
 from companion.core.rmpc import Rmpc, RmpcResult, TargetMotion
 from companion.core.terminal import TerminalDesign
@@ -124,6 +128,57 @@ def test_a_child_that_died_is_replaced(mpc: Rmpc, cfg: Config) -> None:
     assert mpc.solve(ETA0, _motion(cfg)).mode == "optimal"
 
 
+@pytest.fixture(scope="module")
+def mpc_cpu(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
+    """The lockstep flavour: the bound counts the solver process's CPU time (0.25 s)."""
+    p = dataclasses.replace(cfg.rmpc, solve_isolation="process", solve_time_clock="cpu")
+    m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
+    yield m
+    m.close()
+
+
+def test_a_descheduled_solve_is_cut_by_wall_time_but_not_by_cpu_time(
+        mpc: Rmpc, mpc_cpu: Rmpc, cfg: Config) -> None:
+    """A solve that waits 0.5 s without using CPU (a busy machine): past the 0.25 s wall bound
+    it is abandoned; with the CPU-time clock it is a normal, optimal solve."""
+    assert cfg.rmpc.max_solve_time_s < 0.5
+    wall, cpu = _backend(mpc), _backend(mpc_cpu)
+    assert (wall.time_clock, cpu.time_clock) == ("wall", "cpu")
+    mpc.reset()
+    wall.stall_next_solve(0.5)
+    res = mpc.solve(ETA0, _motion(cfg))
+    _finite_fallback(res, cfg)
+    assert res.status.startswith("timeout: hard solve exceeded")
+    mpc_cpu.reset()
+    restarts = cpu.restarts
+    cpu.stall_next_solve(0.5)
+    res = mpc_cpu.solve(ETA0, _motion(cfg))
+    assert res.mode == "optimal" and res.success, res.status
+    assert cpu.restarts == restarts and cpu.timeouts == 0
+
+
+def test_with_the_cpu_clock_a_stuck_solve_is_ended_by_its_cpu_time(
+        mpc_cpu: Rmpc, cfg: Config) -> None:
+    """The stuck child (100 % CPU, SIGTERM ignored) is ended by its own CPU-time bound (SIGPROF)
+    well before the wall backstop; the step flies the fallback with a 'timeout' status and the
+    restarted child solves again."""
+    backend = _backend(mpc_cpu)
+    assert cpu_clock_wall_backstop_s(cfg.rmpc.max_solve_time_s) >= 10.0
+    mpc_cpu.reset()
+    assert mpc_cpu.solve(ETA0, _motion(cfg)).mode == "optimal"
+    stuck = backend._proc
+    assert stuck is not None
+    backend.hang_next_solve()
+    res = mpc_cpu.solve(ETA0, _motion(cfg))
+    _finite_fallback(res, cfg)
+    assert res.status.startswith("timeout: hard solve exceeded rmpc.max_solve_time_s")
+    assert "of CPU" in res.status
+    assert stuck.exitcode == -signal.SIGPROF
+    assert backend.timeouts == 1 and backend.pid != stuck.pid
+    assert backend.wait_ready(READY_S)
+    assert mpc_cpu.solve(ETA0, _motion(cfg)).mode == "optimal"
+
+
 def test_the_factory_follows_rmpc_solve_isolation(cfg: Config,
                                                   design: TerminalDesign) -> None:
     assert cfg.rmpc.solve_isolation == "process"  # config/paper.toml
@@ -139,9 +194,11 @@ def test_the_factory_follows_rmpc_solve_isolation(cfg: Config,
 
 
 @pytest.mark.parametrize("bad", ['rmpc.solve_isolation="thread"', "rmpc.max_solve_time_s=0",
+                                 'rmpc.solve_time_clock="gpu"',
                                  "rmpc.max_solve_time_s=-0.1", "rmpc.max_solve_time_s=inf"])
 def test_bad_settings_are_refused(bad: str) -> None:
-    with pytest.raises((ConfigError, ParamError), match=r"solve_isolation|max_solve_time_s"):
+    with pytest.raises((ConfigError, ParamError),
+                       match=r"solve_isolation|max_solve_time_s|solve_time_clock"):
         load_config(overrides=[bad])
 
 
