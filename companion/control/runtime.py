@@ -85,6 +85,7 @@ EARLY_RECORDS_MAX = 4096
 MAV_STATE_NAMES = {0: "UNINIT", 1: "BOOT", 2: "CALIBRATING", 3: "STANDBY", 4: "ACTIVE",
                    5: "CRITICAL", 6: "EMERGENCY", 7: "POWEROFF", 8: "FLIGHT_TERMINATION"}
 
+
 class _StopRequested(Exception):
     """A stop was requested (signal, duration) while waiting for a camera frame."""
 
