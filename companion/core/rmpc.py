@@ -553,9 +553,6 @@ class Rmpc:
             raise RmpcParameterError(f"target: need a TargetMotion with {self.horizon} rows")
         par = np.append(target.packed(), e0[3])
         self._s4_ref = float(e0[3])
-        # the input the previous step applied (its plan's first input), for the soft copy's
-        # input-rate term; None at the start and after a fallback or a reset
-        prev_u = None if self._prev is None else np.array(self._prev[1][0], dtype=float)
         eta_g, u_g = self._guess(e0, target)
         if self.backend is not None:
             self.backend.start_step()
@@ -582,11 +579,14 @@ class Rmpc:
         if self._soft is not None:
             slay = self._soft.layout
             slbx, subx = self._soft.bounds(e0, target)
-            w_du = self.cfg.recovery_input_rate_weight
-            if prev_u is None:  # nothing applied before (start, after a fallback): no rate term
+            # the soft copy's input-rate term: against the input the previous step applied (its
+            # plan's first input; a failed hard solve leaves _prev alone); off at the start and
+            # after a fallback or a reset (no previous input)
+            if self._prev is None:
                 spar = np.concatenate([par, np.zeros(NU), [0.0]])
             else:
-                spar = np.concatenate([par, prev_u, [w_du]])
+                spar = np.concatenate([par, self._prev[1][0],
+                                       [self.cfg.recovery_input_rate_weight]])
             sw0 = self._pack(slay, eta_g, u_g)
             sw0[slay.slack_index] = self._slack_guess(slay, eta_g, u_g, target)
             try:
