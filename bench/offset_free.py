@@ -19,12 +19,16 @@ compensation on and, beside it, off:
 - reacquisition reach: the vehicle starts displaced from the AGV with the target out of view;
   the largest tested offset from which the target is seen and tracked again;
 - CPU per control step of the companion process on the default paper flight;
+- `realistic` (not in the default set: six 60 s flights): `config/realistic.toml` on paper,
+  edge and yaw-offset with its RMPC tuning (stiffer weights, eps 0.4) and, beside it, with the
+  paper's weights (PAPER_WEIGHTS): RMS horizontal / height after settling (issue 12: <= 10 mm),
+  peak corner, frames lost, fallbacks;
 - `accel` (not in the default set: six 60 s flights): the realistic world
   (`config/realistic.toml`, HIGHRES_IMU with 0.35 m/s^2 of noise and a bias) on paper, edge
   and yaw-offset, the estimator with the accelerometer (`control.estimator.accelerometer`) and
   without: RMS horizontal / height after settling (issue 12: <= 10 mm).
 
-    python bench/offset_free.py [--duration 60] [--only paper,wind,hover,latency,reach,cpu,accel]
+    python bench/offset_free.py [--duration 60] [--only paper,wind,hover,latency,reach,cpu,realistic,accel]
 
 Prints one line per figure with MET / MISSED and a JSON summary (`--json FILE`).
 Wall-clock figures move with the machine's load (printed); CPU time is per step.
@@ -63,6 +67,9 @@ NO_AP = ["control.estimator.autopilot_thrust=false"]
 # step can take longer than the default 0.5 s and the flight would stop being lockstep.
 PATIENT = "[sim]\nlockstep_timeout_s = 10.0\n"
 LAT_OFF = ["control.latency.enabled=false"]
+# config/realistic.toml's [rmpc] tuning undone: the paper's weights, eps and soft-copy weight
+PAPER_WEIGHTS = ["rmpc.q_diag=[5e-3,5e-3,1e-3,1e-3,5e-3,5e-3,1e-3]", "rmpc.eps=0.15",
+                 "rmpc.recovery_penalty=1e3"]
 
 
 def sim_variant(tmp: Path, name: str, body: str, base: Path = PAPER) -> Path:
@@ -221,6 +228,23 @@ def main() -> int:
               f"{verdict(ok)}] (last 10 s {a['last10s_h_mm']:.1f} / {a['last10s_z_mm']:.1f} mm); "
               f"without the estimator {b['rms_h_mm']} / {b['rms_z_mm']} mm (last 10 s "
               f"{b['last10s_h_mm']:.1f} / {b['last10s_z_mm']:.1f} mm)")
+    if "realistic" in only:
+        res["realistic"] = {}
+        for sc in ("paper", "edge", "yaw-offset"):
+            sim = sim_variant(tmp, "realistic-patient", "", REALISTIC)
+            a = summary(fly(tmp / f"realistic-{sc}-tuned", sc, dur, [], sim, config=REALISTIC))
+            b = summary(fly(tmp / f"realistic-{sc}-paper-weights", sc, dur, PAPER_WEIGHTS, sim,
+                            config=REALISTIC))
+            res["realistic"][sc] = {"tuned": a, "paper_weights": b}
+            ok = (max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 10 and a["lost"] == 0
+                  and a["fallbacks"] == 0)
+            print(f"realistic {sc}: RMS after settling horizontal {a['rms_h_mm']:.1f} mm, height "
+                  f"{a['rms_z_mm']:.1f} mm (settled at {a['settle_s']} s, peak "
+                  f"{a['peak_px']:.0f} px, lost {a['lost']}, fallbacks {a['fallbacks']}) "
+                  f"[target <= 10 mm, in view, no fallback: {verdict(ok)}]; the paper's weights "
+                  f"{b['rms_h_mm']:.1f} / {b['rms_z_mm']:.1f} mm (settled at {b['settle_s']} s, "
+                  f"peak {b['peak_px']:.0f} px, lost {b['lost']}, fallbacks {b['fallbacks']})",
+                  flush=True)
     if "accel" in only:
         res["accel"] = {}
         for sc in ("paper", "edge", "yaw-offset"):

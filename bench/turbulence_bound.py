@@ -23,7 +23,7 @@ nothing else:
 The turbulence is the emulator's own generator (``sim_bridge.physics.vehicle.Disturbance``,
 same seed). RMS horizontal and height position errors over ``--duration`` s.
 
-    python bench/turbulence_bound.py [--duration 600] [--tau 0.1]
+    python bench/turbulence_bound.py [--duration 600] [--tau 0.1] [--config config/realistic.toml]
 """
 
 from __future__ import annotations
@@ -64,8 +64,9 @@ def _rot_from_body_z(bz: np.ndarray) -> np.ndarray:
 def fly(mode: str, duration: float, tau: float, seed: int, std: float, corr: float,
         est_params: EstimatorParams | None = None, vel_noise: float = 0.0,
         score_from_s: float = 20.0, accel_noise: float = 0.35,
-        accel_bias: tuple[float, float] = (0.1, -0.08)) -> dict[str, float]:
-    cfg = load_config()
+        accel_bias: tuple[float, float] = (0.1, -0.08),
+        config: Path | None = None) -> dict[str, float]:
+    cfg = load_config(config)
     k = design_terminal(cfg.rmpc, cfg.camera).k
     z = cfg.rmpc.desired_depth_m
     umax = np.asarray(cfg.rmpc.u_max, dtype=float)
@@ -130,6 +131,9 @@ def main() -> int:
                     help="score from this time (s); with --duration 60 the same turbulence "
                     "as the 60 s flight's 20-60 s (same seed, same generator)")
     ap.add_argument("--only", default="", help="comma-separated case numbers (0-10)")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="the companion's config whose weights give K (default: the paper's; "
+                    "config/realistic.toml: the stiffer tuning, docs/offset-free.md section 4)")
     ap.add_argument("--accel-noise", type=float, default=0.35,
                     help="accelerometer white noise per 50 Hz sample (m/s^2)")
     ap.add_argument("--accel-rw", type=float, default=1.0,
@@ -137,7 +141,7 @@ def main() -> int:
     args = ap.parse_args()
     c0 = time.process_time()
     print(f"turbulence std {args.std} m/s^2, correlation {args.corr} s, attitude lag "
-          f"{args.tau} s, {args.duration:.0f} s, paper weights (terminal gain K)")
+          f"{args.tau} s, {args.duration:.0f} s, terminal gain K of {args.config or 'the paper weights'}")
     cases: list[tuple[str, str, EstimatorParams | None, float]] = [
         ("no compensation", "none", None, 0.0),
         ("companion's estimator (defaults)", "estimator", None, 0.0),
@@ -165,7 +169,7 @@ def main() -> int:
         if pick and i not in pick:
             continue
         r = fly(mode, args.duration, args.tau, args.seed, args.std, args.corr, ep, vn,
-                args.score_from, args.accel_noise)
+                args.score_from, args.accel_noise, config=args.config)
         print(f"{name:58s} RMS horizontal {r['rms_h_mm']:6.1f} mm, height {r['rms_z_mm']:6.1f} mm",
               flush=True)
     print(f"CPU {time.process_time() - c0:.1f} s")

@@ -60,3 +60,28 @@ def test_lmi_feasible_variant_fails_only_theorem1_cond2_and_is_feasible_at_paper
     assert list(d["failed"]) == ["cond2"]
     assert d["feasibility"]["feasible"] is True
     assert d["theorem1"]["cond3"]["ok"] and d["theorem2"]["ok"]
+
+
+def test_realistic_weights_are_stiffer_and_keep_the_acceleration_bounds_on_omega() -> None:
+    """config/realistic.toml's RMPC tuning says: a horizontal stiffness like PX4's position loop
+    (1.71 m/s^2 per m) where the paper's is ~0.34, eps as large as K's acceleration bounds on
+    Omega allow, and the paper start still feasible."""
+    from companion.core.design import design_terminal
+
+    paper, real = load_config(CONFIG_DIR / "paper.toml"), load_config(CONFIG_DIR / "realistic.toml")
+    z = real.rmpc.desired_depth_m
+
+    def stiffness(cfg: object) -> float:  # m/s^2 of r1 per m of horizontal error (s1 = x / z*)
+        return float(design_terminal(cfg.rmpc, cfg.camera).k[0, 0]) / z  # type: ignore[attr-defined]
+
+    assert stiffness(paper) < 0.4 and 1.5 < stiffness(real) < 2.2, (stiffness(paper), stiffness(real))
+    p = subprocess.run(
+        [sys.executable, "-m", "companion", "certify", "--config",
+         str(CONFIG_DIR / "realistic.toml"), "--json"],
+        capture_output=True, text=True, timeout=300,
+    )
+    d = json.loads(p.stdout)
+    a2 = d["assumption2"]
+    assert all(a2[f"input{i}"]["ok"] for i in (1, 2, 3)), a2
+    assert a2["input1"]["lhs"] > 0.9 * a2["input1"]["rhs"]  # eps about as large as they allow
+    assert d["feasibility"]["feasible"] is True

@@ -161,6 +161,15 @@ class RmpcParams:
     # nearly free (it flipped r3 between -1.5 and +1.5 m/s^2 on consecutive steps). A runtime
     # parameter of the compiled soft NLP (no recompilation per value); 0 = off.
     recovery_input_rate_weight: float = field(default=0.0, metadata=checked(nonneg))
+    # The soft (recovery) copy's own stage weights and terminal level (None: the hard
+    # problem's q_diag and eps). Its terminal ingredients (P, K) are then designed from them
+    # (rmpc.terminal.method), so its tube, terminal and visibility rows are those of that
+    # design. A stiff q_diag shrinks the terminal set and stretches P's metric, and the soft
+    # copy, whose slacks are measured in it, then chases harder from a start it cannot hold;
+    # softer weights here keep the engagement as gentle as theirs (config/realistic.toml,
+    # docs/offset-free.md section 4).
+    recovery_q_diag: tuple[float, float, float, float, float, float, float] | None = None
+    recovery_eps: float | None = None
     # How far the target's along-track acceleration is extrapolated over the horizon:
     # "linear" (held for the whole horizon) or "box" (held until the predicted speed reaches
     # the vehicle's velocity bound eta_max[4], or the current speed if that is higher; then
@@ -206,14 +215,17 @@ class RmpcParams:
             raise ParamError(
                 "rmpc.visibility: 'corners' needs the target's corners (from [target])"
             )
-        for name in ("q_diag", "r_diag", "eta_max", "u_max"):
-            for i, v in enumerate(getattr(self, name)):
+        for name in ("q_diag", "r_diag", "eta_max", "u_max", "recovery_q_diag"):
+            for i, v in enumerate(getattr(self, name) or ()):
                 if not v > 0:
                     raise ParamError(f"rmpc.{name}[{i}]: must be > 0 (got {v})")
         if not (math.isfinite(self.max_solve_time_s) and self.max_solve_time_s > 0):
             raise ParamError(
                 f"rmpc.max_solve_time_s: must be a finite time > 0 s (got {self.max_solve_time_s})"
             )
+        if self.recovery_eps is not None and not (
+                math.isfinite(self.recovery_eps) and self.recovery_eps > 0):
+            raise ParamError(f"rmpc.recovery_eps: must be > 0 (got {self.recovery_eps})")
         if self.solver not in ("fatrop", "ipopt"):
             raise ParamError(f"rmpc.solver: {self.solver!r} is not 'fatrop' or 'ipopt'")
         if self.tube_h < 1:

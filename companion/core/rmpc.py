@@ -24,6 +24,7 @@ The problem layout is in :mod:`companion.core.rmpc_problem`, the compiled-code c
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -313,6 +314,23 @@ def planned_motion(rmpc: RmpcParams, eta: np.ndarray, u: np.ndarray, target: Tar
     return np.asarray(va, dtype=float), np.asarray(vd, dtype=float), float(pd)
 
 
+def recovery_design(rmpc: RmpcParams, camera: CameraParams,
+                    terminal: TerminalDesign) -> tuple[RmpcParams, TerminalDesign]:
+    """The parameters and terminal ingredients the soft copy is built from: the hard
+    problem's, or its own ``rmpc.recovery_q_diag`` / ``rmpc.recovery_eps`` with P, K designed
+    from them (``rmpc.terminal.method``)."""
+    if rmpc.recovery_q_diag is None and rmpc.recovery_eps is None:
+        return rmpc, terminal
+    from companion.core.design import design_terminal
+
+    soft = dataclasses.replace(
+        rmpc,
+        q_diag=rmpc.recovery_q_diag if rmpc.recovery_q_diag is not None else rmpc.q_diag,
+        eps=rmpc.recovery_eps if rmpc.recovery_eps is not None else rmpc.eps,
+        recovery_q_diag=None, recovery_eps=None)
+    return soft, design_terminal(soft, camera)
+
+
 class _Solver:
     """One compiled NLP (hard or soft) with its bounds template."""
 
@@ -321,6 +339,8 @@ class _Solver:
         solver: str, clock: Callable[[], float] | None = None,
     ) -> None:
         self._clock = clock
+        if soft:
+            rmpc, terminal = recovery_design(rmpc, camera, terminal)
         nlp, layout = build_nlp(rmpc, camera, terminal, soft)
         self.layout: Layout = layout
         self.kind = "soft" if soft else "hard"
