@@ -191,3 +191,38 @@ def test_the_recovery_input_rate_term_pulls_the_first_input_towards_the_previous
     scale = np.asarray(cfg.rmpc.u_max)
     dist = {w: float(np.linalg.norm((u0[w] - prev[w]) / scale)) for w in u0}
     assert dist[100.0] < 0.8 * dist[0.0], dist
+
+
+def test_the_soft_copy_can_have_its_own_weights_and_terminal_level(
+    cfg: Config, design: TerminalDesign
+) -> None:
+    """rmpc.recovery_q_diag / recovery_eps (config/realistic.toml): the soft copy is built from
+    its own weights, with P designed from them, while the hard problem keeps the stiff ones.
+    Unset, the soft copy is the hard problem's (the same objects)."""
+    from companion.core.design import design_terminal
+    from companion.core.rmpc import recovery_design
+
+    rmpc, terminal = recovery_design(cfg.rmpc, cfg.camera, design)
+    assert rmpc is cfg.rmpc and terminal is design
+    stiff = dataclasses.replace(cfg.rmpc, q_diag=(0.15, 0.15, 0.01, 1e-3, 0.05, 0.05, 3e-3),
+                                eps=0.4, recovery_q_diag=cfg.rmpc.q_diag, recovery_eps=0.15)
+    soft_rmpc, soft_terminal = recovery_design(stiff, cfg.camera,
+                                               design_terminal(stiff, cfg.camera))
+    assert soft_rmpc.q_diag == cfg.rmpc.q_diag and soft_rmpc.eps == 0.15
+    assert np.allclose(soft_terminal.p, design.p) and np.allclose(soft_terminal.k, design.k)
+    # the stiff P really is another metric (the reason for the option)
+    assert not np.allclose(design_terminal(stiff, cfg.camera).p, design.p, rtol=0.5)
+    # flown: the same edge state is a recovery step whose first input follows the soft
+    # copy's weights: the paper-weighted soft copy of the stiff controller gives the paper
+    # controller's own recovery input
+    eta0 = np.array([0.709, -0.512, 0.783, -0.024, -0.013, 0.043, -0.569])
+    target = predict_target_motion(np.array([0.527, 0.288, 0.0]), np.array([-0.058, 0.105, 0.0]),
+                                   0.2, 0.521, cfg.rmpc.horizon, cfg.rmpc.dt_s)
+    paper = Rmpc(dataclasses.replace(cfg.rmpc, jit=False), cfg.camera, design).solve(eta0, target)
+    stiff_jit = dataclasses.replace(stiff, jit=False)
+    mixed = Rmpc(stiff_jit, cfg.camera, design_terminal(stiff_jit, cfg.camera)).solve(eta0, target)
+    assert paper.mode == mixed.mode == "recovery", (paper.mode, mixed.mode)
+    assert np.allclose(mixed.u0, paper.u0, atol=1e-3), (mixed.u0, paper.u0)
+    alone = dataclasses.replace(stiff_jit, recovery_q_diag=None, recovery_eps=None)
+    own = Rmpc(alone, cfg.camera, design_terminal(alone, cfg.camera)).solve(eta0, target)
+    assert own.mode == "recovery" and not np.allclose(own.u0, paper.u0, atol=1e-2), own.u0
