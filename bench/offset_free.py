@@ -28,7 +28,8 @@ compensation on and, beside it, off:
   and yaw-offset, the estimator with the accelerometer (`control.estimator.accelerometer`) and
   without: RMS horizontal / height after settling (issue 12: <= 10 mm).
 
-    python bench/offset_free.py [--duration 60] [--only paper,wind,hover,latency,reach,cpu,realistic,accel]
+    python bench/offset_free.py [--duration 60]
+        [--only paper,wind,hover,latency,reach,cpu,realistic,accel]
 
 Prints one line per figure with MET / MISSED and a JSON summary (`--json FILE`).
 Wall-clock figures move with the machine's load (printed); CPU time is per step.

@@ -141,7 +141,8 @@ def main() -> int:
     args = ap.parse_args()
     c0 = time.process_time()
     print(f"turbulence std {args.std} m/s^2, correlation {args.corr} s, attitude lag "
-          f"{args.tau} s, {args.duration:.0f} s, terminal gain K of {args.config or 'the paper weights'}")
+          f"{args.tau} s, {args.duration:.0f} s, "
+          f"terminal gain K of {args.config or 'the paper weights'}")
     cases: list[tuple[str, str, EstimatorParams | None, float]] = [
         ("no compensation", "none", None, 0.0),
         ("companion's estimator (defaults)", "estimator", None, 0.0),

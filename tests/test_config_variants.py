@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from companion import ConfigError
-from companion.config import load_config
+from companion.config import Config, load_config
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 
@@ -74,10 +74,11 @@ def test_realistic_weights_are_stiffer_and_keep_the_acceleration_bounds_on_omega
     paper, real = load_config(CONFIG_DIR / "paper.toml"), load_config(CONFIG_DIR / "realistic.toml")
     z = real.rmpc.desired_depth_m
 
-    def stiffness(cfg: object) -> float:  # m/s^2 of r1 per m of horizontal error (s1 = x / z*)
-        return float(design_terminal(cfg.rmpc, cfg.camera).k[0, 0]) / z  # type: ignore[attr-defined]
+    def stiffness(cfg: Config) -> float:  # m/s^2 of r1 per m of horizontal error (s1 = x / z*)
+        return float(design_terminal(cfg.rmpc, cfg.camera).k[0, 0]) / z
 
-    assert stiffness(paper) < 0.4 and 1.5 < stiffness(real) < 2.2, (stiffness(paper), stiffness(real))
+    k_paper, k_real = stiffness(paper), stiffness(real)
+    assert k_paper < 0.4 and 1.5 < k_real < 2.2, (k_paper, k_real)
     p = subprocess.run(
         [sys.executable, "-m", "companion", "certify", "--config",
          str(CONFIG_DIR / "realistic.toml"), "--json"],
