@@ -7,7 +7,8 @@ telemetry stamp (``time_source = "autopilot"``), so a setpoint acts a whole roun
 the "now" it is stamped with. Measured (this flight with ``auto_delay = false``, i.e. the
 constant 0): the hover estimate wanders over 0.549-0.597 (std 0.013) within the 10 s and the
 thrust over 0.546-0.600, the start of the oscillation the stress campaign saw pinned at the
-estimate's bound in 30 s flights. With the delay measured (~0.12 s): 0.564-0.576, std 0.0015.
+estimate's bound in 30 s flights. With the delay measured (~0.12 s): 0.564-0.576, std 0.0015
+(the paper's weights; with config/realistic.toml's stiffer tuning, std 0.0030).
 """
 
 from __future__ import annotations
@@ -50,4 +51,9 @@ def test_the_delay_is_measured_and_the_hover_estimate_stays_put(tmp_path: Path) 
     thrust = np.array([s["setpoint"]["thrust"] for s in ours if s.get("setpoint")])
     assert float(hover.std()) < 0.005, (hover.min(), hover.max(), hover.std())
     assert float(np.ptp(hover)) < 0.03, (hover.min(), hover.max())
-    assert float(thrust.std()) < 0.008, thrust.std()
+    # the thrust once the descent from the start is flown (the second 5 s): the oscillation this
+    # guards against is ~0.12 throughout; the descent itself moves the thrust more with the
+    # realistic tuning's stiffer height loop (first 5 s: std 0.012, 0.005 with the paper's
+    # weights), the hover after it 0.0016 (0.0010)
+    late = thrust[len(thrust) // 2:]
+    assert float(late.std()) < 0.008, (late.std(), thrust.std())
