@@ -99,6 +99,9 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         # machine (CI, a campaign beside it) never cuts a slow but finite solve (at load 8-15 a
         # 1 s wall bound did). A user's --set still wins.
         "--set", "rmpc.max_solve_time_s=1.0", "--set", 'rmpc.solve_time_clock="cpu"',
+        # ... which then cuts only a solver that never returns: no stand-by solver process
+        # (its ~0.7 s of CPU per flight adds up over a campaign or the test suite)
+        "--set", "rmpc.solver_spare=false",
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",

@@ -22,6 +22,11 @@ law (:class:`~companion.core.rmpc.SolveAborted` -> ``mode='fallback'``, status `
 The parent never blocks longer than the step's bound, so SIGTERM/SIGINT are served by the
 event loop at the next step boundary.
 
+``rmpc.solver_spare`` (a vehicle's default): a second child is started once the first is ready
+and waits, loaded, beside it (~60 MB, ~0.7 s of CPU once). A timeout or a lost child then
+promotes the spare, so the next step solves instead of flying the fallback for the ~0.6-1 s a
+fresh child takes to load; a new spare is started once the promoted one answers.
+
 ``rmpc.solve_time_clock = "cpu"`` (what lockstep simulations use): the bound counts the solver
 process's own CPU time instead, per solve. The child arms ``ITIMER_PROF`` with the bound before
 each solve (SIGPROF's default action terminates the process, also inside the C call) and
@@ -139,7 +144,7 @@ class ProcessSolveBackend:
                  kinds: dict[str, tuple[bool, str]], max_solve_time_s: float,
                  clock: Callable[[], float] = time.monotonic,
                  start_timeout_s: float = START_TIMEOUT_S, defer_ready: bool = False,
-                 time_clock: str = "wall") -> None:
+                 time_clock: str = "wall", spare: bool = False) -> None:
         if not (np.isfinite(max_solve_time_s) and max_solve_time_s > 0):
             raise ValueError(f"max_solve_time_s: must be finite and > 0 (got {max_solve_time_s})")
         if time_clock not in ("wall", "cpu"):
@@ -156,6 +161,12 @@ class ProcessSolveBackend:
         self._proc: BaseProcess | None = None
         self._conn: multiprocessing.connection.Connection | None = None
         self._ready = False
+        self._use_spare = bool(spare)
+        # the loaded stand-by child (started once the current one is ready) and its finalizer
+        self._spare: tuple[BaseProcess, multiprocessing.connection.Connection] | None = None
+        self._spare_finalizer: weakref.finalize[Any, Any] | None = None
+        self.promotions = 0
+        """Restarts served by the warm spare (a subset of :attr:`restarts`)."""
         self._deadline = 0.0
         self._hang_next = False
         self.restarts = 0
@@ -179,12 +190,24 @@ class ProcessSolveBackend:
             raise RmpcBuildError(f"solver process not ready within {self._start_timeout_s:g} s")
 
     # --- child lifecycle -------------------------------------------------------------------
-    def _start(self) -> None:
+    def _spawn(self, name: str) -> tuple[BaseProcess, multiprocessing.connection.Connection]:
         parent, child = self._ctx.Pipe(duplex=True)
         proc = self._ctx.Process(target=_child_main, args=(child, *self._args, os.getpid()),
-                                 name="rmpc-solver", daemon=True)
+                                 name=name, daemon=True)
         proc.start()
         child.close()
+        return proc, parent
+
+    def _start(self, promote: bool = False) -> None:
+        if promote and self._spare is not None:  # the loaded spare takes over
+            proc, parent = self._spare
+            self._spare = None
+            if self._spare_finalizer is not None:
+                self._spare_finalizer.detach()
+                self._spare_finalizer = None
+            self.promotions += 1
+        else:
+            proc, parent = self._spawn("rmpc-solver")
         self._proc, self._conn, self._ready = proc, parent, False
         if hasattr(self, "_finalizer"):
             self._finalizer.detach()
@@ -201,14 +224,24 @@ class ProcessSolveBackend:
             proc.kill()
             proc.join(5.0)
 
+    def _start_spare(self) -> None:
+        if not self._use_spare or self._spare is not None:
+            return
+        self._spare = self._spawn("rmpc-solver-spare")
+        self._spare_finalizer = weakref.finalize(self, ProcessSolveBackend._stop_child,
+                                                 *self._spare)
+
     def _restart(self, why: str) -> None:
-        log.error("RMPC solver process %s: killing pid %s and starting a fresh one", why,
-                  self._proc.pid if self._proc is not None else None)
+        spare = self._spare is not None
+        log.error("RMPC solver process %s: killing pid %s and %s", why,
+                  self._proc.pid if self._proc is not None else None,
+                  f"promoting the spare (pid {self._spare[0].pid})" if self._spare is not None
+                  else "starting a fresh one")
         self._stop_child(self._proc, self._conn)
         self.restarts += 1
         self._cpu_dead_s += self._cpu_live_s
         self._cpu_live_s = 0.0
-        self._start()
+        self._start(promote=spare)
 
     @property
     def pid(self) -> int | None:
@@ -242,6 +275,7 @@ class ProcessSolveBackend:
             raise RmpcBuildError(f"solver process could not load the solvers: {msg[1]}")
         self._ready = True
         log.info("RMPC solver process ready (pid %s)", msg[1])
+        self._start_spare()  # the next one loads while this one solves
         return True
 
     def wait_ready(self, timeout_s: float) -> bool:
@@ -253,11 +287,20 @@ class ProcessSolveBackend:
             if self._clock() >= end:
                 return False
 
+    @property
+    def spare_pid(self) -> int | None:
+        """The stand-by child's pid (None: no spare, or not started yet)."""
+        return self._spare[0].pid if self._spare is not None else None
+
     def close(self) -> None:
-        if self._conn is not None:
-            with contextlib.suppress(OSError):
-                self._conn.send(("close",))
+        for conn in (self._conn, self._spare[1] if self._spare is not None else None):
+            if conn is not None:
+                with contextlib.suppress(OSError):
+                    conn.send(("close",))
         self._finalizer()
+        if self._spare_finalizer is not None:
+            self._spare_finalizer()
+        self._spare, self._spare_finalizer = None, None
         self._ready = False
 
     # --- SolveBackend ------------------------------------------------------------------------
@@ -335,6 +378,7 @@ def process_backend(rmpc: RmpcParams, camera: CameraParams,
     def make(mpc: Rmpc) -> ProcessSolveBackend:
         return ProcessSolveBackend(rmpc, camera, terminal, mpc.solver_kinds(),
                                    rmpc.max_solve_time_s, defer_ready=True,
-                                   time_clock=rmpc.solve_time_clock)
+                                   time_clock=rmpc.solve_time_clock,
+                                   spare=rmpc.solver_spare)
 
     return make

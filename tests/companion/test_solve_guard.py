@@ -38,7 +38,8 @@ READY_S = 120.0  # generous: a cold child on a loaded machine
 
 @pytest.fixture(scope="module")
 def mpc(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
-    p = dataclasses.replace(cfg.rmpc, solve_isolation="process")
+    """Without the stand-by process: a restart loads a fresh child."""
+    p = dataclasses.replace(cfg.rmpc, solve_isolation="process", solver_spare=False)
     m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
     yield m
     m.close()
@@ -126,6 +127,71 @@ def test_a_child_that_died_is_replaced(mpc: Rmpc, cfg: Config) -> None:
     assert res.status.startswith("solver process lost during the hard solve")
     assert backend.pid != dead.pid and backend.wait_ready(READY_S)
     assert mpc.solve(ETA0, _motion(cfg)).mode == "optimal"
+
+
+@pytest.fixture(scope="module")
+def mpc_spare(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
+    """config/paper.toml's default: a loaded stand-by process beside the solving one."""
+    assert cfg.rmpc.solver_spare
+    p = dataclasses.replace(cfg.rmpc, solve_isolation="process")
+    m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
+    yield m
+    m.close()
+
+
+def _spare_ready(backend: ProcessSolveBackend) -> int:
+    """Wait until the stand-by child exists and has loaded; its pid."""
+    import time
+
+    end = time.monotonic() + READY_S
+    while backend._spare is None and time.monotonic() < end:
+        time.sleep(0.05)
+    assert backend._spare is not None, "no spare started"
+    proc, conn = backend._spare
+    assert conn.poll(READY_S), "the spare never loaded"
+    assert proc.pid is not None
+    return proc.pid
+
+
+def test_a_stuck_solve_promotes_the_loaded_spare_and_the_next_step_solves(
+        mpc_spare: Rmpc, cfg: Config) -> None:
+    """With the spare the step after a timeout solves (no 'solver restarting' steps), and a
+    new spare is started behind the promoted one; stuck and stand-by processes are distinct."""
+    backend = _backend(mpc_spare)
+    mpc_spare.reset()
+    assert mpc_spare.solve(ETA0, _motion(cfg)).mode == "optimal"
+    spare_pid = _spare_ready(backend)
+    stuck = backend._proc
+    assert stuck is not None and stuck.pid != spare_pid
+    promotions = backend.promotions
+    backend.hang_next_solve()
+    res = mpc_spare.solve(ETA0, _motion(cfg))
+    _finite_fallback(res, cfg)
+    assert res.status.startswith("timeout: hard solve exceeded rmpc.max_solve_time_s")
+    assert stuck.exitcode == -signal.SIGKILL
+    assert backend.pid == spare_pid and backend.promotions == promotions + 1
+    # at once: no wait for a fresh child to load
+    again = mpc_spare.solve(ETA0, _motion(cfg))
+    assert again.mode == "optimal" and again.success, again.status
+    new_spare = _spare_ready(backend)
+    assert new_spare not in (spare_pid, stuck.pid)
+    # a lost child is replaced by the spare the same way
+    os.kill(spare_pid, signal.SIGKILL)
+    lost = mpc_spare.solve(ETA0, _motion(cfg))
+    assert lost.status.startswith("solver process lost during the hard solve")
+    assert backend.pid == new_spare
+    assert mpc_spare.solve(ETA0, _motion(cfg)).mode == "optimal"
+
+
+def test_closing_stops_the_spare_too(cfg: Config, design: TerminalDesign) -> None:
+    p = dataclasses.replace(cfg.rmpc, solve_isolation="process")
+    m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
+    backend = _backend(m)
+    assert m.solve(ETA0, _motion(cfg)).mode == "optimal"
+    pids = (backend.pid, _spare_ready(backend))
+    m.close()
+    for pid in pids:
+        assert pid is not None and _gone(pid), pid
 
 
 @pytest.fixture(scope="module")
