@@ -312,6 +312,9 @@ class SimBridge:
         self._imu_rng, self._imu_tx_rng = rngs(sim.seed, 2, salt=5)
         self._accel_noise = tm.accel_noise_m_s2
         self._accel_bias = np.asarray(tm.accel_bias_m_s2, dtype=float)
+        # LOCAL_POSITION_NED's velocity noise: its own generator too
+        (self._vel_rng,) = rngs(sim.seed, 1, salt=7)
+        self._vel_noise = tm.velocity_noise_m_s
         self._tx_lines: dict[str, DelayLine[tuple[list[bytes], Address | None]]] = {}
         self._timesync_sent_ns: dict[int, float] = {}
         self._timesync_replies = 0
@@ -628,8 +631,11 @@ class SimBridge:
                                           *(float(v) for v in w), 0.0, 0.0, 0.0, 0.0, 0.0,
                                           0.0, 0.0, 0b111111)
         if mid == LOCAL_POSITION_NED:
+            vel = s.vel_ned_m_s
+            if self._vel_noise > 0:
+                vel = vel + self._vel_noise * self._vel_rng.standard_normal(3)
             return mav.local_position_ned_encode(ms, *(float(v) for v in s.pos_ned_m),
-                                                 *(float(v) for v in s.vel_ned_m_s))
+                                                 *(float(v) for v in vel))
         if mid == GLOBAL_POSITION_INT:
             lat, lon, alt = self._ned_to_global(s.pos_ned_m)
             rel = float(px4.home_ned_m[2] - s.pos_ned_m[2])

@@ -508,7 +508,10 @@ class TelemetryConfig:
     ``t_us`` and the ground truth's ``t_us``) is simulation time + this offset.
     ``accel_noise_m_s2`` (white, std per axis and HIGHRES_IMU sample) and ``accel_bias_m_s2``
     (body FRD, constant): the accelerometer of HIGHRES_IMU departs from the true specific
-    force by these (docs/wire.md, HIGHRES_IMU).
+    force by these (docs/wire.md, HIGHRES_IMU). ``velocity_noise_m_s`` (white, std per axis
+    and LOCAL_POSITION_NED sample; 0 at every level): the velocity estimate departs from the
+    truth by this, as an EKF's does (a white model: EKF2's output is smoother, so this is the
+    harsher case for a given std).
     """
 
     level: str = field(default="ideal", metadata=_c(_one_of(*TELEMETRY_LEVELS)))
@@ -522,6 +525,8 @@ class TelemetryConfig:
     accel_bias_m_s2: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=_c(
         lambda x: None if len(x) == 3 and all(abs(v) <= 5 for v in x)
         else "must be 3 values within +-5 m/s^2"))
+    velocity_noise_m_s: float = field(default=0.0, metadata=_c(
+        lambda x: None if 0 <= x <= 5 else "must be in [0, 5] m/s"))
 
     def __post_init__(self) -> None:
         if self.delay_jitter_ms > self.delay_ms:

@@ -114,3 +114,22 @@ def test_realistic_accelerometer_has_its_bias_and_noise(client: MavClient) -> No
     assert np.all(np.abs(err) < 4 * 0.35 / math.sqrt(n)), err  # hovering: truth ~ (0, 0, -g)
     std = a.std(axis=0)
     assert np.all((std > 0.25) & (std < 0.45)), std
+
+
+def test_velocity_noise_scatters_local_position_ned_only(client: MavClient) -> None:
+    """``sim.telemetry.velocity_noise_m_s``: LOCAL_POSITION_NED's velocity scatters about the
+    truth (a hovering vehicle: ~0) with that std; its position and the other streams do not."""
+    tm = dataclasses.replace(TelemetryConfig(), velocity_noise_m_s=0.05)
+    with sim_with_client(client, telemetry=tm):
+        msgs = client.collect(3.0)
+    lp = [m for m in msgs if m.get_type() == "LOCAL_POSITION_NED"]
+    assert len(lp) >= 40, len(lp)
+    v = np.array([[m.vx, m.vy, m.vz] for m in lp])
+    std = v.std(axis=0)
+    assert np.all((std > 0.035) & (std < 0.065)), std
+    assert np.all(np.abs(v.mean(axis=0)) < 4 * 0.05 / math.sqrt(len(lp)) + 0.01), v.mean(axis=0)
+    pos = np.array([[m.x, m.y, m.z] for m in lp])
+    assert np.all(pos.std(axis=0) < 0.01), pos.std(axis=0)  # a hover: the position is still
+    imu = _imu(msgs)
+    a = np.array([[m.xacc, m.yacc, m.zacc] for m in imu])
+    assert np.all(a.std(axis=0) < 0.05), a.std(axis=0)  # the accelerometer stays noise-free
