@@ -68,9 +68,10 @@ NO_AP = ["control.estimator.autopilot_thrust=false"]
 # step can take longer than the default 0.5 s and the flight would stop being lockstep.
 PATIENT = "[sim]\nlockstep_timeout_s = 10.0\n"
 LAT_OFF = ["control.latency.enabled=false"]
-# config/realistic.toml's [rmpc] tuning undone: the paper's weights and eps (its soft copy
+# config/realistic.toml's [rmpc] tuning undone: paper.toml's weights and eps (its soft copy
 # already flies them: recovery_q_diag, recovery_eps)
-PAPER_WEIGHTS = ["rmpc.q_diag=[5e-3,5e-3,1e-3,1e-3,5e-3,5e-3,1e-3]", "rmpc.eps=0.15"]
+_PAPER_RMPC = load_config(PAPER).rmpc
+PAPER_WEIGHTS = [f"rmpc.q_diag={list(_PAPER_RMPC.q_diag)}", f"rmpc.eps={_PAPER_RMPC.eps}"]
 
 
 def sim_variant(tmp: Path, name: str, body: str, base: Path = PAPER) -> Path:

@@ -232,7 +232,6 @@ class ProcessSolveBackend:
                                                  *self._spare)
 
     def _restart(self, why: str) -> None:
-        spare = self._spare is not None
         log.error("RMPC solver process %s: killing pid %s and %s", why,
                   self._proc.pid if self._proc is not None else None,
                   f"promoting the spare (pid {self._spare[0].pid})" if self._spare is not None
@@ -241,7 +240,7 @@ class ProcessSolveBackend:
         self.restarts += 1
         self._cpu_dead_s += self._cpu_live_s
         self._cpu_live_s = 0.0
-        self._start(promote=spare)
+        self._start(promote=True)  # the spare if there is one, else a fresh child
 
     @property
     def pid(self) -> int | None:
@@ -286,11 +285,6 @@ class ProcessSolveBackend:
                 return True
             if self._clock() >= end:
                 return False
-
-    @property
-    def spare_pid(self) -> int | None:
-        """The stand-by child's pid (None: no spare, or not started yet)."""
-        return self._spare[0].pid if self._spare is not None else None
 
     def close(self) -> None:
         for conn in (self._conn, self._spare[1] if self._spare is not None else None):

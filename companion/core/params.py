@@ -168,12 +168,12 @@ class RmpcParams:
     # copy, whose slacks are measured in it, then chases harder from a start it cannot hold;
     # softer weights here keep the engagement as gentle as theirs (config/realistic.toml,
     # docs/offset-free.md section 4).
+    recovery_q_diag: tuple[float, float, float, float, float, float, float] | None = None
+    recovery_eps: float | None = None
     # A second, loaded solver process on stand-by (solve_isolation = "process"): a timeout or
     # a lost solver process promotes it, so the next step solves instead of flying the
     # terminal law while a fresh process loads (~0.6-1 s). ~60 MB and ~0.7 s of CPU once.
     solver_spare: bool = False
-    recovery_q_diag: tuple[float, float, float, float, float, float, float] | None = None
-    recovery_eps: float | None = None
     # How far the target's along-track acceleration is extrapolated over the horizon:
     # "linear" (held for the whole horizon) or "box" (held until the predicted speed reaches
     # the vehicle's velocity bound eta_max[4], or the current speed if that is higher; then

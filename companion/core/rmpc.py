@@ -35,6 +35,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from companion.core.design import design_terminal
 from companion.core.dynamics import S_REF, euler_step, input_error, terminal_feedforward
 from companion.core.errors import CoreError
 from companion.core.params import CameraParams, RmpcParams
@@ -321,8 +322,6 @@ def recovery_design(rmpc: RmpcParams, camera: CameraParams,
     from them (``rmpc.terminal.method``)."""
     if rmpc.recovery_q_diag is None and rmpc.recovery_eps is None:
         return rmpc, terminal
-    from companion.core.design import design_terminal
-
     soft = dataclasses.replace(
         rmpc,
         q_diag=rmpc.recovery_q_diag if rmpc.recovery_q_diag is not None else rmpc.q_diag,
