@@ -28,8 +28,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.commands.demo import run_demo  # noqa: E402
 from companion.config import DEFAULT_CONFIG  # noqa: E402
+from companion.flight import run_demo  # noqa: E402
 from companion.log.reader import LogReader  # noqa: E402
 
 

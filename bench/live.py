@@ -35,8 +35,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.commands.demo import free_port, run_demo  # noqa: E402
 from companion.config import DEFAULT_CONFIG  # noqa: E402
+from companion.flight import free_port, run_demo  # noqa: E402
 from companion.log.live import LiveServer  # noqa: E402
 from companion.log.reader import LogReader  # noqa: E402
 from companion.log.writer import McapLogger  # noqa: E402

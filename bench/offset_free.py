@@ -53,8 +53,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from companion import CompanionError  # noqa: E402
-from companion.commands.demo import run_demo  # noqa: E402
 from companion.config import load_config  # noqa: E402
+from companion.flight import run_demo  # noqa: E402
 from companion.log.reader import LogReader  # noqa: E402
 from companion.report.files import build_report  # noqa: E402
 

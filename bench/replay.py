@@ -26,8 +26,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from companion.commands.demo import run_demo  # noqa: E402
 from companion.config import DEFAULT_CONFIG  # noqa: E402
+from companion.flight import run_demo  # noqa: E402
 from companion.log.reader import LogReader  # noqa: E402
 from companion.replay import replay  # noqa: E402
 

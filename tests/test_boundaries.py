@@ -114,3 +114,17 @@ def test_repository_stands_alone() -> None:
         text = path.read_text(errors="ignore")
         hits += [f"{name}:{i + 1}" for i, line in enumerate(text.splitlines()) if needle in line]
     assert not hits, f"references outside the repository: {hits[:10]}"
+
+
+def test_nothing_imports_the_commands() -> None:
+    """``companion/commands`` are the CLI's thin entry points: a library (the campaign, the
+    flight orchestration), a bench or a test reaching up into one would make the CLI a
+    dependency; what they share lives in a module below (``companion/flight.py``). The CLI's
+    dispatcher (``companion/cli.py``) loads them by name, not by import."""
+    files = [*_files("companion"), *_files("bench"), *_files("tests")]
+    for f in files:
+        if f.is_relative_to(ROOT / "companion" / "commands"):
+            continue
+        bad = {m for m in _imports(f)
+               if m == "companion.commands" or m.startswith("companion.commands.")}
+        assert not bad, f"{f.relative_to(ROOT)} imports {bad}: use companion.flight"

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion.commands.demo import demo_commands
+from companion.flight import demo_commands
 from companion.log.reader import LogReader
 
 ROOT = Path(__file__).resolve().parents[2]

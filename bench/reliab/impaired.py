@@ -18,7 +18,7 @@ from bench.reliab.common import (
     flight_figures,
     load_avg,
 )
-from companion.commands.demo import run_demo
+from companion.flight import run_demo
 
 IMPAIRED = ROOT / "config" / "impaired-link.toml"
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.reliab.common import PAPER, ROOT, ProbeResult, children_cpu_s, load_avg
-from companion.commands.demo import demo_commands
+from companion.flight import demo_commands
 from companion.log.reader import LogReader
 from companion.replay import replay
 

@@ -172,7 +172,7 @@ def run_flight(spec: RunSpec) -> dict[str, Any]:
     done = finished_result(spec)
     if done is not None:
         return done
-    from companion.commands.demo import run_demo
+    from companion.flight import run_demo
 
     out = Path(spec.out_dir)
     out.mkdir(parents=True, exist_ok=True)

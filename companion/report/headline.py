@@ -47,13 +47,13 @@ def _judge(ok: bool | None) -> str:
 
 def headline(report: Mapping[str, Any]) -> list[Verdict]:
     """The headline rows of a report (see the module docstring)."""
-    vis = report.get("visibility") or {}
-    trk = report.get("tracking") or {}
-    sol = report.get("solver") or {}
-    lat = report.get("latency") or {}
-    saf = report.get("safety") or {}
-    rows: list[Verdict] = []
+    return [*_view_rows(report), *_tracking_rows(report), *_health_rows(report)]
 
+
+def _view_rows(report: Mapping[str, Any]) -> list[Verdict]:
+    """Visibility: kept in view over the flight and once engaged, the worst corner, time lost."""
+    vis = report.get("visibility") or {}
+    rows: list[Verdict] = []
     frames = _num(vis.get("frames"))
     outside = _num(vis.get("frames_outside_bound"))
     lost = _num(vis.get("frames_target_lost"))
@@ -104,15 +104,19 @@ def headline(report: Mapping[str, Any]) -> list[Verdict]:
         "time_lost", "Time without the target",
         "n/a" if lost_s is None else f"{lost_s:.1f} s", "0 s",
         _judge(None if lost is None else lost == 0)))
+    return rows
 
+
+def _tracking_rows(report: Mapping[str, Any]) -> list[Verdict]:
+    """Tracking: the settling time and the steady errors after it."""
+    trk = report.get("tracking") or {}
     settle = _num(trk.get("settle_time_s"))
     have_track = bool(trk)
-    rows.append(Verdict(
+    rows = [Verdict(
         "settle", "Settling time",
         ("never settled" if have_track else "n/a") if settle is None else f"{settle:.1f} s",
         f"< {SETTLE_TARGET_S:.0f} s",
-        _judge(None if not have_track else (settle is not None and settle < SETTLE_TARGET_S))))
-
+        _judge(None if not have_track else (settle is not None and settle < SETTLE_TARGET_S)))]
     for key, label, field in (
         ("steady_horizontal", "Steady horizontal error (RMS after settling)",
          "rms_horizontal_error_after_settle_m"),
@@ -124,7 +128,14 @@ def headline(report: Mapping[str, Any]) -> list[Verdict]:
             key, label, "n/a" if v is None else f"{v * 100:.1f} cm",
             f"<= {STEADY_ERROR_TARGET_M * 100:.0f} cm",
             _judge(None if v is None else v <= STEADY_ERROR_TARGET_M)))
+    return rows
 
+
+def _health_rows(report: Mapping[str, Any]) -> list[Verdict]:
+    """The solver's health, the safety events and the frame -> command latency."""
+    sol = report.get("solver") or {}
+    lat = report.get("latency") or {}
+    saf = report.get("safety") or {}
     solves = _num(sol.get("solves"))
     fails = _num(sol.get("failures"))
     fallbacks = _num(sol.get("fallbacks"))
@@ -136,10 +147,10 @@ def headline(report: Mapping[str, Any]) -> list[Verdict]:
                f"{frac * 100:.1f} % recovery")
     else:
         ok, fig = None, "n/a"
-    rows.append(Verdict(
+    rows = [Verdict(
         "solver", "Solver health", fig,
         f"0 failures, 0 fallbacks, <= {RECOVERY_FRACTION_TARGET * 100:.0f} % recovery",
-        _judge(ok)))
+        _judge(ok))]
 
     transitions = saf.get("transitions")
     n_tr = len(transitions) if isinstance(transitions, list) else None
@@ -156,3 +167,60 @@ def headline(report: Mapping[str, Any]) -> list[Verdict]:
         _judge(None if med is None or p95 is None else
                med <= LATENCY_MEDIAN_TARGET_MS and p95 <= LATENCY_P95_TARGET_MS)))
     return rows
+
+
+# -- text for people ---------------------------------------------------------------------------
+
+
+def headline_lines(report: Mapping[str, Any], skip_na: bool = False) -> list[str]:
+    """The headline as aligned text lines: ``PASS  label  figure  (target ...)``; with
+    ``skip_na`` the rows without data are left out (a replay has no ground truth)."""
+    rows = [r for r in headline(report) if not (skip_na and r.verdict == "n/a")]
+    width = max((len(r.label) for r in rows), default=0)
+    return [f"  {r.verdict.upper():4}  {r.label.ljust(width)}  {r.figure}"
+            + ("" if r.target == "n/a" else f"  (target: {r.target})") for r in rows]
+
+
+def verdict_line(report: Mapping[str, Any]) -> str:
+    """One line: how many headline targets were met."""
+    rows = [r for r in headline(report) if r.verdict != "n/a"]
+    missed = [r.label for r in rows if r.verdict == "miss"]
+    if not missed:
+        return f"every headline target met ({len(rows)} judged)"
+    return f"{len(missed)} of {len(rows)} headline targets missed: {', '.join(missed)}"
+
+
+def _ms(v: Any) -> str:
+    x = _num(v)
+    return "-" if x is None else f"{x:.1f} ms"
+
+
+def _cm(v: Any) -> str:
+    x = _num(v)
+    return "-" if x is None else f"{x * 100:.1f} cm"
+
+
+def demo_summary(report: Mapping[str, Any]) -> list[str]:
+    """What ``companion demo`` prints at its end: time, the headline with verdicts, the
+    tracking errors over the whole flight, the solve times and the CPU, rounded and with
+    units (every raw figure stays in ``report.json``)."""
+    sim_t, wall = _num(report.get("sim_time_s")), _num(report.get("wall_time_s"))
+    rtf = _num(report.get("real_time_factor"))
+    lines = [f"  {sim_t or 0.0:.1f} s simulated in {wall or 0.0:.1f} s wall"
+             + ("" if rtf is None else f" ({rtf:.1f}x real time)")
+             + f", controller {report.get('controller') or '-'}"]
+    lines += headline_lines(report)
+    trk = report.get("tracking") or {}
+    lines.append(f"  tracking over the whole flight (RMS): horizontal "
+                 f"{_cm(trk.get('rms_horizontal_error_m'))}, height "
+                 f"{_cm(trk.get('rms_height_error_m'))}")
+    sol = report.get("solver") or {}
+    lines.append(f"  solve time: median {_ms(sol.get('median_ms'))}, p95 "
+                 f"{_ms(sol.get('p95_ms'))}, max {_ms(sol.get('max_ms'))}")
+    cpu, emu = report.get("companion_cpu_ms_per_step"), report.get("emulator_cpu_ms_per_step")
+    load = _num(report.get("load_1min"))
+    lines.append(f"  CPU per step (getrusage): companion {_ms(cpu)} (its threads and solver "
+                 f"process), emulator {_ms(emu)}"
+                 + ("" if load is None else f"; load average {load:.1f}"))
+    lines.append(f"  {verdict_line(report)}")
+    return lines

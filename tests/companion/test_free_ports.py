@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import socket
 
-from companion.commands.demo import free_ports
+from companion.flight import free_ports
 
 
 def test_ports_picked_together_are_distinct_and_bindable() -> None:

@@ -85,3 +85,27 @@ def test_engaged_figures_start_one_second_after_offboard() -> None:
     assert eng["frames_outside_bound"] == 0 and eng["corner_max_px"] < 500.0
     assert rep["visibility"]["frames_outside_bound"] == 30
     assert eng["recovery_fraction"] == pytest.approx(10 / 50)
+
+
+def test_demo_summary_is_rounded_text_with_verdicts() -> None:
+    """What ``companion demo`` prints: no Python list/dict repr, figures rounded with units,
+    each headline row with its verdict, and a last line counting the misses."""
+    from companion.report.headline import demo_summary
+
+    rep = _rep(tracking={"settle_time_s": 4.0, "rms_se": [0.00925537222372309, 0.0225, 0.1, 0.2],
+                         "rms_horizontal_error_m": 0.10261644096588553,
+                         "rms_height_error_m": 0.30182155871236904,
+                         "rms_horizontal_error_after_settle_m": 0.004,
+                         "rms_height_error_after_settle_m": 0.012},
+               wall_time_s=54.41788417800001, real_time_factor=0.18376, controller="rmpc",
+               companion_cpu_ms_per_step=13.3849, emulator_cpu_ms_per_step=7.499544,
+               load_1min=5.56103515625)
+    rep["solver"] = {**rep["solver"], "median_ms": 3.0245570000033695, "p95_ms": 20.68}
+    text = "\n".join(demo_summary(rep))
+    for raw in ("[", "{", "0.00925", "3.02455", "13.3849"):
+        assert raw not in text, raw
+    assert "10.0 s simulated in 54.4 s wall (0.2x real time)" in text
+    assert "horizontal 10.3 cm, height 30.2 cm" in text
+    assert "median 3.0 ms" in text and "companion 13.4 ms" in text
+    assert "MISS  Steady height error" in text and "PASS  Settling time" in text
+    assert text.splitlines()[-1].strip().startswith("1 of ")

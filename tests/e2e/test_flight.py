@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG, load_config
+from companion.flight import run_demo
 from companion.log.reader import LogReader
 from companion.replay import replay
 

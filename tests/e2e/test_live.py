@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.commands.demo import demo_commands, free_port
 from companion.config import DEFAULT_CONFIG
+from companion.flight import demo_commands, free_port
 from companion.log.reader import LogReader, decode_protobuf_image
 from tests.foxglove_ws import Capture, capture
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG
+from companion.flight import run_demo
 from companion.log.tlog import export_tlog
 
 pytestmark = pytest.mark.slow

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG
+from companion.flight import run_demo
 from companion.log.reader import LogReader
 
 pytestmark = pytest.mark.slow

@@ -19,8 +19,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG
+from companion.flight import run_demo
 from companion.log.reader import LogReader
 from companion.replay import ReplayError, replay
 

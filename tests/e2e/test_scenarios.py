@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.commands.demo import run_demo
 from companion.config import DEFAULT_CONFIG, load_config
+from companion.flight import run_demo
 from companion.log.reader import LogReader
 
 pytestmark = pytest.mark.slow
