@@ -28,17 +28,10 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, load_config, with_overrides
-from companion.control.recording import TOPIC_INPUT
-from companion.control.runtime import (
-    STAMPED_MESSAGES,
-    TOPIC_FRAME,
-    TOPIC_STEP,
-    TOPIC_TRUTH,
-    TimeBase,
-    new_pipeline,
-    new_store,
-)
+from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP, TOPIC_TRUTH
 from companion.control.telemetry import TelemetryStore
+from companion.control.timebase import STAMPED_MESSAGES, TimeBase
+from companion.control.wiring import new_pipeline, new_store
 from companion.log import schemas as sch
 from companion.log.reader import LogReader
 from companion.log.writer import McapLogger

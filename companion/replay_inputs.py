@@ -32,14 +32,12 @@ import numpy as np
 
 from companion import CompanionError
 from companion.config import Config, config_from_dict
-from companion.control.recording import TOPIC_INPUT
+from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP
 from companion.log.reader import LogReader, image_from_raw
 from companion.perception import Perception, PerceptionResult
 
 log = logging.getLogger(__name__)
 
-TOPIC_FRAME = "/camera/image"
-TOPIC_STEP = "/control/step"
 LOOKAHEAD = 3  # frames decoded ahead of the step that uses them
 _BATCH = 64  # results per message from the worker process
 

@@ -9,7 +9,8 @@ import time
 from pathlib import Path
 
 from companion.config import load_config
-from companion.control.runtime import CompanionApp, FaultWindow
+from companion.control.faults import FaultWindow
+from companion.control.runtime import CompanionApp
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

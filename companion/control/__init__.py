@@ -5,5 +5,10 @@
 - :mod:`~companion.control.pipeline`: ``ControlPipeline.step`` (no I/O, no clock: replay-exact)
 - :mod:`~companion.control.safety`: the safety ladder (tracking -> terminal -> hover -> ...)
 - :mod:`~companion.control.offboard`: PX4 offboard engagement (proof of life, mode, hand-back)
-- :mod:`~companion.control.runtime`: the asyncio process wiring camera, link, pipeline and log
+- :mod:`~companion.control.runtime`: the asyncio process wiring camera, link, pipeline and log,
+  with its rooms :mod:`~companion.control.vehicle` (the autopilot as the companion sees it:
+  store, offboard, TIMESYNC), :mod:`~companion.control.timebase` (one time base for every
+  input), :mod:`~companion.control.recording` (what is logged, at which log time),
+  :mod:`~companion.control.faults` (fault injection) and :mod:`~companion.control.wiring`
+  (what a flight is built from, shared with the replay)
 """

@@ -2,7 +2,7 @@
 
 Fed with decoded MAVLink messages as ``(name, fields, t_s)``: ``fields`` is the message's field
 dict (pymavlink ``to_dict()`` live, the logged JSON in replay), ``t_s`` the message's time on
-the companion's time base (see :class:`companion.control.pipeline.TimeBase`). The same store
+the companion's time base (see :class:`companion.control.timebase.TimeBase`). The same store
 serves the live process and the replay, so both compute identical commands from identical inputs.
 
 Pure bookkeeping: no sockets, no clocks.

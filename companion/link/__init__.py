@@ -5,7 +5,10 @@
 - :mod:`~companion.link.filters`: whitelist per source and value limits (receive path)
 - :mod:`~companion.link.signing`: MAVLink 2 signing keys and signature verification
 - :mod:`~companion.link.messages`: accepted and sent frames as values
-- :mod:`~companion.link.link`: :class:`MavlinkLink`, the asyncio transports and receive path
+- :mod:`~companion.link.transport`: UDP sockets (batched reads, per-source sockets), TCP, serial
+- :mod:`~companion.link.receive`: the receive path (what is accepted, what is rejected and why)
+- :mod:`~companion.link.commands`: what the companion sends (setpoint, commands, heartbeat)
+- :mod:`~companion.link.link`: :class:`MavlinkLink`, the asyncio link tying them together
 """
 
 from __future__ import annotations

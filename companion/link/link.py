@@ -5,78 +5,53 @@ truncated datagram poisons the following good frames (docs/pitfalls.md, pymavlin
 datagram is parsed by a fresh robust parser; streams (TCP, serial) keep one robust parser.
 pymavlink is used only as the codec (``pymavlink.dialects.v20.common``).
 
-Receive path, in order (each rejection increments ``counters[reason]``):
-``bad_data`` / ``unknown_msgid`` (robust parser pseudo-messages), ``incomplete`` (bytes left in a
-datagram), ``mavlink1`` (MAVLink 2 only), ``unused`` (a message a known source may send but we
-do not use, e.g. PX4's other streams: counted, not passed to ``on_reject``), ``not_whitelisted``
-(any other source; see :class:`AllowRule`), signing
-(``unsigned``, ``bad_signature``, ``old_timestamp``, ``stale_stream``), ``duplicate`` (same bytes
-as one of the last frames of that source), values (``non_finite``, ``quaternion_norm``,
-``speed``, ``angular_rate``). Accepted frames become :class:`Received` objects in a bounded queue
-that drops the oldest (``queue_overflow``); iterate with ``async for rx in link``.
+The receive path (:mod:`companion.link.receive`) decides, frame by frame and in order, what is
+accepted; each rejection increments ``counters[reason]``. Accepted frames become
+:class:`Received` objects in a bounded queue that drops the oldest (``queue_overflow``); iterate
+with ``async for rx in link``. The sockets and the serial device are
+:mod:`companion.link.transport`'s.
 
 Signing: the key file holds the 32-byte secret either as exactly 32 raw bytes or as 64 hex
-characters (surrounding whitespace ignored). Incoming signatures are verified HERE, not by
-pymavlink, because pymavlink 2.4.50 stores a frame's timestamp before checking its signature:
-one forged frame stamped 2^48-2 would block every later legitimate frame of that stream. We check
-the signature first and only then update the stream's timestamp (as the C library does).
+characters (surrounding whitespace ignored); incoming signatures are verified by the receive
+path (not by pymavlink: see :mod:`companion.link.receive`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import errno
 import logging
-import math
 import os
 import socket
-import termios
 import time
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.link.endpoints import Endpoint, parse_connection_string
+from companion.link.commands import LinkCommands
+from companion.link.endpoints import parse_connection_string
 from companion.link.errors import LinkError, NoPeerError
-from companion.link.filters import AllowRule, ValueLimits, check_values, default_allow_rules
+from companion.link.filters import AllowRule, ValueLimits, default_allow_rules
 from companion.link.guard import GuardParams, SourceGuard
 from companion.link.messages import Received, Sent
-from companion.link.px4 import (
-    ARM_FORCE_MAGIC,
-    ATTITUDE_THRUST_TYPE_MASK,
-    MAV_AUTOPILOT_INVALID,
-    MAV_CMD_COMPONENT_ARM_DISARM,
-    MAV_CMD_DO_SET_MODE,
-    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-    MAV_STATE_ACTIVE,
-    MAV_TYPE_ONBOARD_CONTROLLER,
-    MAVLINK2_MAGIC,
-)
+from companion.link.receive import ReceivePath, new_parser
 from companion.link.signing import SignatureVerifier, load_signing_key, signing_timestamp_now
+from companion.link.transport import (
+    StreamProtocol,
+    bound_udp_socket,
+    connected_udp_socket,
+    open_serial,
+)
 
 log = logging.getLogger(__name__)
 
 
-
 _CLOSED = object()
-_DEDUP_WINDOW = 64
 
 
-class _StreamProtocol(asyncio.Protocol):
-    def __init__(self, link: MavlinkLink) -> None:
-        self._link = link
-
-    def data_received(self, data: bytes) -> None:
-        self._link._on_stream_data(data)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self._link._on_connection_lost(exc)
-
-
-class MavlinkLink:
+class MavlinkLink(LinkCommands):
     """An async MAVLink 2 link: ``async with MavlinkLink(url, ...) as link: async for rx in link``.
 
     Parameters
@@ -136,7 +111,6 @@ class MavlinkLink:
         rules = (
             allow if allow is not None else (AllowRule(target_system, target_component or None),)
         )
-        self._rules = [(r.sysid, r.compid, r.msgids()) for r in rules]
         self.guard_params = guard or GuardParams()
         identities: list[tuple[int, int | None, str | None]] = [
             (target_system, target_component or None, "HEARTBEAT")]
@@ -144,14 +118,12 @@ class MavlinkLink:
             if r.sysid != target_system and all(r.sysid != i[0] for i in identities):
                 identities.append((r.sysid, r.compid, None))
         self.guard = SourceGuard(self.guard_params, identities)
-        self._reject_tokens = 5.0 * self.guard_params.reject_log_per_s  # 5 s burst
-        self._t_reject_ns = 0
         self._sock: socket.socket | None = None
         # udpin: one socket connected to each pinned source (see _attach_pinned)
         self._pinned_socks: dict[tuple[str, int], socket.socket] = {}
         self.limits = limits or ValueLimits()
         self._clock_ns = clock_ns
-        self._on_rx, self._on_tx, self._on_reject = on_rx, on_tx, on_reject
+        self._on_rx, self._on_tx = on_rx, on_tx
         self._queue_size = queue_size
         self.counters: Counter[str] = Counter()
         self._verifier = (
@@ -164,8 +136,9 @@ class MavlinkLink:
             self._enc.signing.sign_outgoing = True
             self._enc.signing.link_id = signing_link_id
             self._enc.signing.timestamp = signing_timestamp_now()
+        self._rx = ReceivePath(rules, self.guard, self.guard_params, self.limits,
+                               self._verifier, self._enc, self.counters, on_reject)
         self._stream_parser: Any = None
-        self._recent: dict[tuple[int, int], deque[bytes]] = {}
         self._queue: asyncio.Queue[Any] | None = None
         self._transport: Any = None
         self._serial_fd: int | None = None
@@ -233,13 +206,14 @@ class MavlinkLink:
                 self._peer = (socket.gethostbyname(ep.host), ep.port)
                 self._open_udp(("0.0.0.0", 0))
             elif ep.kind == "tcp":
-                self._stream_parser = self._new_parser()
+                self._stream_parser = new_parser()
                 self._transport, _ = await self._loop.create_connection(
-                    lambda: _StreamProtocol(self), ep.host, ep.port
-                )
+                    lambda: StreamProtocol(self._on_stream_data, self._on_connection_lost),
+                    ep.host, ep.port)
             else:
-                self._stream_parser = self._new_parser()
-                self._open_serial(ep)
+                self._stream_parser = new_parser()
+                self._serial_fd = open_serial(ep)
+                self._loop.add_reader(self._serial_fd, self._on_serial_readable)
         except OSError as e:
             raise LinkError(f"cannot open MAVLink link {ep}: {e}") from e
         log.info("MAVLink link open: %s (local %s)", ep, self.local_address)
@@ -249,33 +223,9 @@ class MavlinkLink:
         datagram transport reads one datagram per loop iteration: under a flood the kernel
         buffer overflows and drops the real vehicle's datagrams with the garbage)."""
         assert self._loop is not None
-        if local[1] != 0:
-            # our sockets share the port (SO_REUSEADDR) with each other only: refuse a port
-            # another program (or another link) holds, as a plain bind would
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-                probe.bind(local)
-        sock = self._udp_socket()
-        try:
-            sock.bind(local)
-        except OSError:
-            sock.close()
-            raise
+        sock = bound_udp_socket(local, self.guard_params.recv_buffer_bytes)
         self._sock = sock
         self._loop.add_reader(sock.fileno(), self._on_udp_readable, sock)
-
-    def _udp_socket(self) -> socket.socket:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            # SO_REUSEADDR: the per-source sockets of _attach_pinned share the bound port
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF,
-                                self.guard_params.recv_buffer_bytes)
-            sock.setblocking(False)
-        except OSError:
-            sock.close()
-            raise
-        return sock
 
     def _attach_pinned(self, addr: tuple[str, int]) -> None:
         """Give a pinned source its own socket, bound to our port and connected to it: the
@@ -287,12 +237,9 @@ class MavlinkLink:
             return
         for old in [a for a in self._pinned_socks if not self.guard.is_pinned_address(a)]:
             self._detach_pinned(old)
-        sock = self._udp_socket()
         try:
-            sock.bind(self._sock.getsockname())
-            sock.connect(addr)
+            sock = connected_udp_socket(self._sock, addr, self.guard_params.recv_buffer_bytes)
         except OSError as e:
-            sock.close()
             self._count("pinned_socket_error")
             log.warning("MAVLink: no dedicated socket for %s:%d (%s); sharing the bound one",
                         *addr, e)
@@ -319,38 +266,6 @@ class MavlinkLink:
                 continue
             self._on_datagram(data, addr)
         self._count("batch_limit")  # more waiting: read on the next loop iteration
-
-    def _open_serial(self, ep: Endpoint) -> None:
-        assert self._loop is not None
-        fd = os.open(ep.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        try:
-            attrs = termios.tcgetattr(fd)
-            speed = getattr(termios, f"B{ep.baud}")
-            # raw mode (cfmakeraw), 8N1, no flow control
-            attrs[0] &= ~(
-                termios.IGNBRK
-                | termios.BRKINT
-                | termios.PARMRK
-                | termios.ISTRIP
-                | termios.INLCR
-                | termios.IGNCR
-                | termios.ICRNL
-                | termios.IXON
-                | termios.IXOFF
-            )
-            attrs[1] &= ~termios.OPOST
-            attrs[2] &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | termios.CRTSCTS)
-            attrs[2] |= termios.CS8 | termios.CREAD | termios.CLOCAL
-            attrs[3] &= ~(
-                termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN
-            )
-            attrs[4] = attrs[5] = speed
-            termios.tcsetattr(fd, termios.TCSANOW, attrs)
-        except (termios.error, OSError) as e:
-            os.close(fd)
-            raise LinkError(f"cannot configure serial device {ep.device}: {e}") from e
-        self._serial_fd = fd
-        self._loop.add_reader(fd, self._on_serial_readable)
 
     def close(self) -> None:
         """Close the transport; a pending ``async for`` ends."""
@@ -440,12 +355,6 @@ class MavlinkLink:
             q.get_nowait()
         q.put_nowait(item)
 
-    @staticmethod
-    def _new_parser() -> Any:
-        p = mavlink2.MAVLink(None)
-        p.robust_parsing = True
-        return p
-
     def _on_datagram(self, data: bytes, addr: Any) -> None:
         if self._closed:
             return
@@ -455,13 +364,13 @@ class MavlinkLink:
         addr = (addr[0], addr[1])
         why = self.guard.admit(data, addr, t)
         if why is not None:
-            self._reject(why, data, t)
+            self._rx.reject(why, data, t)
             return
-        parser = self._new_parser()  # fresh per datagram: one bad datagram cannot poison others
+        parser = new_parser()  # fresh per datagram: one bad datagram cannot poison others
         for m in self._parse(parser, data):
             self._handle(m, t, addr)
         if parser.buf_len() > 0:
-            self._reject("incomplete", bytes(parser.buf[parser.buf_index :]), t)
+            self._rx.reject("incomplete", bytes(parser.buf[parser.buf_index :]), t)
 
     def _on_stream_data(self, data: bytes) -> None:
         if self._closed:
@@ -493,83 +402,21 @@ class MavlinkLink:
         try:
             return parser.parse_buffer(data) or []
         except Exception as e:  # hostile input must never unwind the event loop
-            self._reject("parser_error", data, self._clock_ns())
+            self._rx.reject("parser_error", data, self._clock_ns())
             log.debug("pymavlink parser raised %r", e)
             # a stream parser in an unknown state is replaced
             if parser is self._stream_parser:
-                self._stream_parser = self._new_parser()
+                self._stream_parser = new_parser()
             return []
 
-    def _reject(self, reason: str, raw: bytes, t_ns: int) -> None:
-        self._count(reason)
-        self._count("rejected")
-        if self._on_reject is None:
-            return
-        rate = self.guard_params.reject_log_per_s
-        dt = max(t_ns - self._t_reject_ns, 0) * 1e-9
-        self._t_reject_ns = t_ns
-        self._reject_tokens = min(5.0 * rate, self._reject_tokens + dt * rate)
-        if self._reject_tokens < 1.0:
-            self._count("reject_log_suppressed")
-            return
-        self._reject_tokens -= 1.0
-        self._on_reject(reason, raw[:512], t_ns)
-
-    def _from_known_system(self, sysid: int, compid: int) -> bool:
-        """The frame names a source some rule accepts messages from (the autopilot, the AGV)."""
-        return any(s == sysid and (c is None or c == compid) for s, c, _ in self._rules)
-
-    def _allowed(self, sysid: int, compid: int, msgid: int) -> bool:
-        for s, c, ids in self._rules:
-            if s == sysid and (c is None or c == compid) and (ids is None or msgid in ids):
-                return True
-        return False
-
     def _handle(self, m: Any, t_ns: int, addr: Any) -> None:
-        name = m.get_type()
-        raw = bytes(m.get_msgbuf())
-        if name == "BAD_DATA":
-            self._reject("bad_data", raw, t_ns)
+        rx = self._rx.accept(m, t_ns, addr)
+        if rx is None:
             return
-        if name.startswith("UNKNOWN_"):
-            self._reject("unknown_msgid", raw, t_ns)
-            return
-        if not raw or raw[0] != MAVLINK2_MAGIC:
-            self._reject("mavlink1", raw, t_ns)
-            return
-        sysid, compid, msgid = m.get_srcSystem(), m.get_srcComponent(), m.get_msgId()
-        if not self._allowed(sysid, compid, msgid):
-            if self._from_known_system(sysid, compid):
-                # PX4's own streams we do not use (an onboard link carries dozens: HIGHRES_IMU,
-                # ODOMETRY, VFR_HUD, ...): counted, never delivered, not logged as an attack
-                self._count("unused")
-                return
-            self._reject("not_whitelisted", raw, t_ns)
-            return
-        if not self.guard.frame_source_ok(sysid, compid, addr, t_ns):
-            self._reject("spoofed_source", raw, t_ns)
-            return
-        if self._verifier is not None:
-            why = self._verifier.check(raw, sysid, compid, msgid)
-            if why is not None:
-                self._reject(why, raw, t_ns)
-                return
-            # keep our outgoing timestamps ahead of what we have seen (MAVLink signing rule)
-            self._enc.signing.timestamp = max(
-                self._enc.signing.timestamp, self._verifier.max_timestamp_10us + 1
-            )
-        recent = self._recent.setdefault((sysid, compid), deque(maxlen=_DEDUP_WINDOW))
-        if raw in recent:
-            self._reject("duplicate", raw, t_ns)
-            return
-        why = check_values(m, self.limits)
-        if why is not None:
-            self._reject(why, raw, t_ns)
-            return
-        recent.append(raw)
+        sysid, compid = rx.src_sysid, rx.src_compid
         is_autopilot = sysid == self.target_system and (
             self.target_component == 0 or compid == self.target_component)
-        if addr is not None and self.guard.on_valid(sysid, compid, name, addr, t_ns):
+        if addr is not None and self.guard.on_valid(sysid, compid, rx.name, addr, t_ns):
             self._attach_pinned(addr)
         if self.endpoint.kind == "udpin" and addr is not None and is_autopilot:
             if not self.guard_params.pin_source:
@@ -578,17 +425,6 @@ class MavlinkLink:
                 self._peer = self.guard.pinned(sysid)
             elif self._peer is None:
                 self._peer = (addr[0], addr[1])  # telemetry before the first HEARTBEAT
-        rx = Received(
-            msg=m,
-            raw=raw,
-            t_rx_ns=t_ns,
-            src_sysid=sysid,
-            src_compid=compid,
-            msgid=msgid,
-            name=name,
-            seq=m.get_seq(),
-            signed=self._verifier is not None and bool(raw[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
-        )
         self._count("rx_accepted")
         if self._on_rx is not None:
             self._on_rx(rx)
@@ -645,82 +481,3 @@ class MavlinkLink:
                 )
             )
         return raw
-
-    def encode_attitude_target(
-        self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
-    ) -> Any:
-        """SET_ATTITUDE_TARGET with type_mask 7 (attitude + thrust, body rates ignored).
-
-        ``q_wxyz``: attitude of body FRD w.r.t. NED, w,x,y,z (normalised here; norm must be
-        within 10 % of 1); ``thrust_norm`` in [0, 1] along body -z.
-        """
-        q = [float(x) for x in q_wxyz]
-        thrust = float(thrust_norm)
-        if len(q) != 4 or not all(math.isfinite(x) for x in q):
-            raise LinkError(f"attitude setpoint q_wxyz must be 4 finite numbers, got {q_wxyz!r}")
-        n = math.sqrt(sum(x * x for x in q))
-        if not 0.9 <= n <= 1.1:
-            raise LinkError(f"attitude setpoint quaternion norm {n:.3f} is not ~1")
-        if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
-            raise LinkError(f"thrust_norm {thrust_norm!r} not in [0, 1]")
-        t_ms = self.boot_time_ms() if time_boot_ms is None else time_boot_ms
-        return self._enc.set_attitude_target_encode(
-            t_ms,
-            self.target_system,
-            self.target_component,
-            ATTITUDE_THRUST_TYPE_MASK,
-            [x / n for x in q],
-            0.0,
-            0.0,
-            0.0,
-            thrust,
-        )
-
-    def send_attitude_target(
-        self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
-    ) -> bytes:
-        """Send SET_ATTITUDE_TARGET (see :meth:`encode_attitude_target`); returns the bytes."""
-        return self.send(self.encode_attitude_target(q_wxyz, thrust_norm, time_boot_ms))
-
-    def send_command_long(
-        self, command: int, params: Sequence[float] = (), confirmation: int = 0
-    ) -> bytes:
-        """COMMAND_LONG to the target; ``params`` up to 7 values, the rest 0."""
-        if len(params) > 7:
-            raise LinkError("COMMAND_LONG takes at most 7 params")
-        p = [float(x) for x in params] + [0.0] * (7 - len(params))
-        return self.send(
-            self._enc.command_long_encode(
-                self.target_system, self.target_component, command, confirmation, *p
-            )
-        )
-
-    def send_set_mode(self, main_mode: int, sub_mode: int = 0, confirmation: int = 0) -> bytes:
-        """MAV_CMD_DO_SET_MODE: param1 = 1 (custom mode enabled), param2 = PX4 main mode,
-        param3 = sub mode (e.g. ``send_set_mode(PX4_MAIN_OFFBOARD)``)."""
-        return self.send_command_long(
-            MAV_CMD_DO_SET_MODE,
-            (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main_mode, sub_mode),
-            confirmation,
-        )
-
-    def send_arm(self, arm: bool = True, force: bool = False, confirmation: int = 0) -> bytes:
-        """MAV_CMD_COMPONENT_ARM_DISARM: param1 1 arm / 0 disarm, param2 21196 forces."""
-        return self.send_command_long(
-            MAV_CMD_COMPONENT_ARM_DISARM,
-            (1.0 if arm else 0.0, float(ARM_FORCE_MAGIC) if force else 0.0),
-            confirmation,
-        )
-
-    def send_timesync(self, tc1: int, ts1: int) -> bytes:
-        """TIMESYNC (#111): a request is ``tc1 = 0, ts1 = local ns``; a reply to the
-        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/wire.md)."""
-        return self.send(self._enc.timesync_encode(int(tc1), int(ts1)))
-
-    def send_heartbeat(self) -> bytes:
-        """HEARTBEAT as an onboard controller (type 18, autopilot INVALID 8, state ACTIVE)."""
-        return self.send(
-            self._enc.heartbeat_encode(
-                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
-            )
-        )

@@ -18,8 +18,8 @@ import pytest
 
 from companion.config import load_config
 from companion.control.pipeline import ControlPipeline
-from companion.control.runtime import new_store
 from companion.control.telemetry import TelemetryStore
+from companion.control.wiring import new_store
 
 H_TRUE = 0.5
 AUTOPILOT = 1  # [mavlink] target_system of the default config

@@ -16,8 +16,8 @@ import numpy as np
 
 from companion.config import load_config
 from companion.control.pipeline import ControlPipeline, StepResult
-from companion.control.runtime import new_store
 from companion.control.telemetry import TelemetryStore
+from companion.control.wiring import new_store
 from companion.core.geometry import rectangle_corners_m
 from companion.core.latency import predict_error_state
 from companion.core.rmpc import RmpcResult, TargetMotion

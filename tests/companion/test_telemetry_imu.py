@@ -11,8 +11,9 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.config import load_config
-from companion.control.runtime import TimeBase, allow_rules
 from companion.control.telemetry import TelemetryStore
+from companion.control.timebase import TimeBase
+from companion.control.wiring import allow_rules
 from companion.link.filters import msgid_of
 
 AUTOPILOT = 1

@@ -12,7 +12,7 @@ import pytest
 from companion import ConfigError
 from companion.config import load_config
 from companion.control.pipeline import ControlPipeline, StepResult
-from companion.control.runtime import new_store
+from companion.control.wiring import new_store
 from companion.core.errors import ParamError
 from companion.core.lead import LeadParams, TiltLead
 from companion.core.rmpc import RmpcResult, TargetMotion

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from companion.control.runtime import DelayFloor, TimeBase
+from companion.control.timebase import DelayFloor, TimeBase
 
 
 def test_steady_stream_has_no_excess_and_jitter_stays_small() -> None:

@@ -1,0 +1,119 @@
+"""What the companion sends: the attitude setpoint, commands, TIMESYNC, its HEARTBEAT.
+
+:class:`LinkCommands` builds each message with the link's encoder (our ids, signing) and
+sends it with :meth:`~companion.link.link.MavlinkLink.send`; the checks that keep a command
+built from bad data off the wire are here (a non-finite or non-unit quaternion, a thrust
+outside [0, 1]).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from companion.link.errors import LinkError
+from companion.link.px4 import (
+    ARM_FORCE_MAGIC,
+    ATTITUDE_THRUST_TYPE_MASK,
+    MAV_AUTOPILOT_INVALID,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+    MAV_STATE_ACTIVE,
+    MAV_TYPE_ONBOARD_CONTROLLER,
+)
+
+
+class LinkCommands:
+    """The messages the companion sends, on top of the link's ``send`` (a mixin of
+    :class:`~companion.link.link.MavlinkLink`)."""
+
+    _enc: Any
+    target_system: int
+    target_component: int
+
+    def send(self, msg: Any) -> bytes:
+        raise NotImplementedError
+
+    def boot_time_ms(self) -> int:
+        raise NotImplementedError
+
+    def encode_attitude_target(
+        self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
+    ) -> Any:
+        """SET_ATTITUDE_TARGET with type_mask 7 (attitude + thrust, body rates ignored).
+
+        ``q_wxyz``: attitude of body FRD w.r.t. NED, w,x,y,z (normalised here; norm must be
+        within 10 % of 1); ``thrust_norm`` in [0, 1] along body -z.
+        """
+        q = [float(x) for x in q_wxyz]
+        thrust = float(thrust_norm)
+        if len(q) != 4 or not all(math.isfinite(x) for x in q):
+            raise LinkError(f"attitude setpoint q_wxyz must be 4 finite numbers, got {q_wxyz!r}")
+        n = math.sqrt(sum(x * x for x in q))
+        if not 0.9 <= n <= 1.1:
+            raise LinkError(f"attitude setpoint quaternion norm {n:.3f} is not ~1")
+        if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
+            raise LinkError(f"thrust_norm {thrust_norm!r} not in [0, 1]")
+        t_ms = self.boot_time_ms() if time_boot_ms is None else time_boot_ms
+        return self._enc.set_attitude_target_encode(
+            t_ms,
+            self.target_system,
+            self.target_component,
+            ATTITUDE_THRUST_TYPE_MASK,
+            [x / n for x in q],
+            0.0,
+            0.0,
+            0.0,
+            thrust,
+        )
+
+    def send_attitude_target(
+        self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
+    ) -> bytes:
+        """Send SET_ATTITUDE_TARGET (see :meth:`encode_attitude_target`); returns the bytes."""
+        return self.send(self.encode_attitude_target(q_wxyz, thrust_norm, time_boot_ms))
+
+    def send_command_long(
+        self, command: int, params: Sequence[float] = (), confirmation: int = 0
+    ) -> bytes:
+        """COMMAND_LONG to the target; ``params`` up to 7 values, the rest 0."""
+        if len(params) > 7:
+            raise LinkError("COMMAND_LONG takes at most 7 params")
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        return self.send(
+            self._enc.command_long_encode(
+                self.target_system, self.target_component, command, confirmation, *p
+            )
+        )
+
+    def send_set_mode(self, main_mode: int, sub_mode: int = 0, confirmation: int = 0) -> bytes:
+        """MAV_CMD_DO_SET_MODE: param1 = 1 (custom mode enabled), param2 = PX4 main mode,
+        param3 = sub mode (e.g. ``send_set_mode(PX4_MAIN_OFFBOARD)``)."""
+        return self.send_command_long(
+            MAV_CMD_DO_SET_MODE,
+            (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main_mode, sub_mode),
+            confirmation,
+        )
+
+    def send_arm(self, arm: bool = True, force: bool = False, confirmation: int = 0) -> bytes:
+        """MAV_CMD_COMPONENT_ARM_DISARM: param1 1 arm / 0 disarm, param2 21196 forces."""
+        return self.send_command_long(
+            MAV_CMD_COMPONENT_ARM_DISARM,
+            (1.0 if arm else 0.0, float(ARM_FORCE_MAGIC) if force else 0.0),
+            confirmation,
+        )
+
+    def send_timesync(self, tc1: int, ts1: int) -> bytes:
+        """TIMESYNC (#111): a request is ``tc1 = 0, ts1 = local ns``; a reply to the
+        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/wire.md)."""
+        return self.send(self._enc.timesync_encode(int(tc1), int(ts1)))
+
+    def send_heartbeat(self) -> bytes:
+        """HEARTBEAT as an onboard controller (type 18, autopilot INVALID 8, state ACTIVE)."""
+        return self.send(
+            self._enc.heartbeat_encode(
+                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE
+            )
+        )

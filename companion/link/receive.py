@@ -1,0 +1,147 @@
+"""The link's receive path: is a parsed frame one we accept? (hostile input, in order).
+
+Each rejection increments ``counters[reason]``: ``bad_data`` / ``unknown_msgid`` (robust parser
+pseudo-messages), ``mavlink1`` (MAVLink 2 only), ``unused`` (a message a known source may send
+but we do not use, e.g. PX4's other streams: counted, not passed to ``on_reject``),
+``not_whitelisted`` (any other source; see :class:`~companion.link.filters.AllowRule`),
+``spoofed_source``, signing (``unsigned``, ``bad_signature``, ``old_timestamp``,
+``stale_stream``), ``duplicate`` (same bytes as one of the last frames of that source), values
+(``non_finite``, ``quaternion_norm``, ``speed``, ``angular_rate``). The transports add
+``incomplete`` and ``parser_error`` through :meth:`ReceivePath.reject`.
+
+Signatures are verified HERE, not by pymavlink, because pymavlink 2.4.50 stores a frame's
+timestamp before checking its signature: one forged frame stamped 2^48-2 would block every
+later legitimate frame of that stream. We check the signature first and only then update the
+stream's timestamp (as the C library does).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.link.filters import AllowRule, ValueLimits, check_values
+from companion.link.guard import GuardParams, SourceGuard
+from companion.link.messages import Received
+from companion.link.px4 import MAVLINK2_MAGIC
+from companion.link.signing import SignatureVerifier
+
+log = logging.getLogger(__name__)
+
+_DEDUP_WINDOW = 64
+
+
+def new_parser() -> Any:
+    """A robust pymavlink parser (bad bytes become BAD_DATA pseudo-messages)."""
+    p = mavlink2.MAVLink(None)
+    p.robust_parsing = True
+    return p
+
+
+class ReceivePath:
+    """The accept/reject decision for parsed frames (see the module docstring).
+
+    ``enc``: the link's encoder, whose signing timestamp is kept ahead of every verified
+    incoming one (MAVLink signing rule); ``counters``: the link's counters;
+    ``on_reject(reason, raw, t_ns)``: at most ``guard.reject_log_per_s`` per second (a 5 s
+    burst), every rejection being counted."""
+
+    def __init__(self, rules: Sequence[AllowRule], guard: SourceGuard, params: GuardParams,
+                 limits: ValueLimits, verifier: SignatureVerifier | None, enc: Any,
+                 counters: Counter[str],
+                 on_reject: Callable[[str, bytes, int], None] | None) -> None:
+        self.rules = [(r.sysid, r.compid, r.msgids()) for r in rules]
+        self.guard, self.params, self.limits = guard, params, limits
+        self.verifier, self._enc, self.counters = verifier, enc, counters
+        self.on_reject = on_reject
+        self._reject_tokens = 5.0 * params.reject_log_per_s  # 5 s burst
+        self._t_reject_ns = 0
+        self._recent: dict[tuple[int, int], deque[bytes]] = {}
+
+    def reject(self, reason: str, raw: bytes, t_ns: int) -> None:
+        self.counters[reason] += 1
+        self.counters["rejected"] += 1
+        if self.on_reject is None:
+            return
+        rate = self.params.reject_log_per_s
+        dt = max(t_ns - self._t_reject_ns, 0) * 1e-9
+        self._t_reject_ns = t_ns
+        self._reject_tokens = min(5.0 * rate, self._reject_tokens + dt * rate)
+        if self._reject_tokens < 1.0:
+            self.counters["reject_log_suppressed"] += 1
+            return
+        self._reject_tokens -= 1.0
+        self.on_reject(reason, raw[:512], t_ns)
+
+    def from_known_system(self, sysid: int, compid: int) -> bool:
+        """The frame names a source some rule accepts messages from (the autopilot, the AGV)."""
+        return any(s == sysid and (c is None or c == compid) for s, c, _ in self.rules)
+
+    def allowed(self, sysid: int, compid: int, msgid: int) -> bool:
+        for s, c, ids in self.rules:
+            if s == sysid and (c is None or c == compid) and (ids is None or msgid in ids):
+                return True
+        return False
+
+    def _framing(self, name: str, raw: bytes) -> str | None:
+        if name == "BAD_DATA":
+            return "bad_data"
+        if name.startswith("UNKNOWN_"):
+            return "unknown_msgid"
+        if not raw or raw[0] != MAVLINK2_MAGIC:
+            return "mavlink1"
+        return None
+
+    def _signed_ok(self, raw: bytes, sysid: int, compid: int, msgid: int) -> str | None:
+        if self.verifier is None:
+            return None
+        why = self.verifier.check(raw, sysid, compid, msgid)
+        if why is None:
+            # keep our outgoing timestamps ahead of what we have seen (MAVLink signing rule)
+            self._enc.signing.timestamp = max(
+                self._enc.signing.timestamp, self.verifier.max_timestamp_10us + 1)
+        return why
+
+    def accept(self, m: Any, t_ns: int, addr: tuple[str, int] | None) -> Received | None:
+        """The parsed frame ``m`` (received at ``t_ns`` from ``addr``, None on a stream) as a
+        :class:`Received`, or ``None`` when it is rejected (counted, maybe reported)."""
+        name = m.get_type()
+        raw = bytes(m.get_msgbuf())
+        why = self._framing(name, raw)
+        if why is not None:
+            self.reject(why, raw, t_ns)
+            return None
+        sysid, compid, msgid = m.get_srcSystem(), m.get_srcComponent(), m.get_msgId()
+        if not self.allowed(sysid, compid, msgid):
+            if self.from_known_system(sysid, compid):
+                # PX4's own streams we do not use (an onboard link carries dozens: HIGHRES_IMU,
+                # ODOMETRY, VFR_HUD, ...): counted, never delivered, not logged as an attack
+                self.counters["unused"] += 1
+                return None
+            self.reject("not_whitelisted", raw, t_ns)
+            return None
+        if not self.guard.frame_source_ok(sysid, compid, addr, t_ns):
+            self.reject("spoofed_source", raw, t_ns)
+            return None
+        why = self._signed_ok(raw, sysid, compid, msgid)
+        if why is not None:
+            self.reject(why, raw, t_ns)
+            return None
+        recent = self._recent.setdefault((sysid, compid), deque(maxlen=_DEDUP_WINDOW))
+        if raw in recent:
+            self.reject("duplicate", raw, t_ns)
+            return None
+        why = check_values(m, self.limits)
+        if why is not None:
+            self.reject(why, raw, t_ns)
+            return None
+        recent.append(raw)
+        return Received(
+            msg=m, raw=raw, t_rx_ns=t_ns, src_sysid=sysid, src_compid=compid, msgid=msgid,
+            name=name, seq=m.get_seq(),
+            signed=self.verifier is not None and bool(raw[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
+        )
