@@ -1,9 +1,15 @@
 """The per-frame control computation, shared by the live process and the offline replay.
 
-``ControlPipeline.step(image, t_s, store)`` runs: perception (pixels -> target corners) ->
-virtual-camera moments and error state (core) -> safety supervision -> RMPC or a fallback law
--> attitude/thrust setpoint (spec 5). It does no I/O and reads no clock: given the same frames
-and telemetry in the same order it returns the same commands, which is what makes replay exact.
+``ControlPipeline.step(image, t_s, store)`` reads as the data flow, one named stage each
+(their values are :mod:`companion.control.stages`):
+
+perceive (pixels -> target corners) -> state at the frame's time (attitude, kinematics,
+virtual-camera moments and error state) -> predict to the command's effect (latency
+compensation, the target's motion) -> plan (RMPC or a fallback law) -> decide (the safety
+ladder) -> command (attitude/thrust setpoint, spec 5, or the hover).
+
+It does no I/O and reads no clock: given the same frames and telemetry in the same order it
+returns the same commands, which is what makes replay exact.
 
 The vehicle is never sent a command computed from bad data: every value that reaches a
 setpoint passed a finiteness check, and a setpoint that fails one is replaced by the level
@@ -16,14 +22,23 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from companion.config import Config
+from companion.control.estimator_feed import EstimatorFeed
 from companion.control.safety import Health, SafetyDecision, SafetyLevel, SafetySupervisor
 from companion.control.seams import Controller, Perceiver
+from companion.control.stages import (
+    Command,
+    FrameState,
+    Plan,
+    Predicted,
+    Sighting,
+    StepResult,
+    VelocityEstimate,
+)
 from companion.control.telemetry import KinematicsSample, TelemetryStore
 from companion.core.design import design_terminal
 from companion.core.disturbance import (
@@ -36,7 +51,6 @@ from companion.core.geometry import (
     camera_to_body_rotation,
     euler_zyx_from_quat,
     rectangle_corners_m,
-    rotation_from_quat,
     wrap_pi,
 )
 from companion.core.latency import Prediction, predict_error_state
@@ -53,90 +67,6 @@ from companion.perception import PerceptionResult
 log = logging.getLogger(__name__)
 
 YAW_RESYNC_RAD = 0.2
-PX4_MAIN_OFFBOARD = 6  # PX4 custom main mode (companion/link/px4.py; core-side copy)
-
-
-@dataclass(frozen=True)
-class VelocityEstimate:
-    """The target's velocity used this step and where it came from."""
-
-    v_a_ned_m_s: np.ndarray
-    a_a_ned_m_s2: np.ndarray
-    yaw_rate_rad_s: float
-    source: str  # "follow_target" | "image_estimator" | "none"
-
-
-@dataclass(frozen=True)
-class StepResult:
-    """Everything one control step computed (logged as ``/control/step``)."""
-
-    t_s: float
-    perception_status: str
-    perception_reason: str
-    corners_px: np.ndarray | None
-    error_state: ErrorState | None
-    target_velocity: VelocityEstimate | None
-    rmpc: Any | None  # companion.core.rmpc.RmpcResult
-    safety: SafetyDecision
-    u: np.ndarray | None  # (r1, r2, r3, psidot_q) actually commanded
-    setpoint: AttitudeSetpoint | None
-    notes: tuple[str, ...] = ()
-    timings_ms: dict[str, float] = field(default_factory=dict)
-    estimator: DisturbanceEstimate | None = None  # what the command used (None: disabled)
-    prediction: Prediction | None = None  # latency compensation (None: not applied)
-    t_now_s: float | None = None  # "now" on the frame's time base when the step ran
-    in_control: bool | None = None  # the runtime's view: our setpoints fly the vehicle
-    #: ``(x0, y0, x1, y1)`` pixels (end exclusive) of the image perception read, when known
-    input_region: tuple[int, int, int, int] | None = None
-    #: tilt-lag lead term added to the horizontal command (2,) NED m/s^2 (None: not led)
-    lead_m_s2: np.ndarray | None = None
-    #: the actuation delay (s) the step placed its command and prediction with
-    actuation_delay_s: float | None = None
-
-    def to_record(self) -> dict[str, Any]:
-        """JSON-ready record for the log."""
-        es = self.error_state
-        r = self.rmpc
-        return {
-            "t_s": self.t_s,
-            "perception": {"status": self.perception_status, "reason": self.perception_reason,
-                           "corners_px": _lst(self.corners_px)},
-            "eta_e": _lst(es.eta_e) if es else None,
-            "s": _lst(es.s) if es else None,
-            "p_e": _lst(es.eta_e[:2] / es.s[2]) if es else None,
-            "attitude_rpy_rad": [es.roll_rad, es.pitch_rad, es.yaw_rad] if es else None,
-            "target_velocity": None if self.target_velocity is None else {
-                "v_a_ned_m_s": _lst(self.target_velocity.v_a_ned_m_s),
-                "source": self.target_velocity.source,
-            },
-            "rmpc": None if r is None else {
-                "mode": r.mode, "success": bool(r.success), "status": str(r.status),
-                "cost": _f(r.cost), "iterations": int(r.iterations),
-                "solve_time_s": _f(r.solve_time_s), "u0": _lst(r.u0),
-                "eta_pred": _lst(r.eta_pred), "u_pred": _lst(r.u_pred),
-            },
-            "safety": {"level": self.safety.level.value, "reason": self.safety.reason,
-                       "changed": self.safety.changed},
-            "u": _lst(self.u),
-            "setpoint": None if self.setpoint is None else {
-                "q_wxyz": _lst(self.setpoint.q_wxyz), "thrust": self.setpoint.thrust_norm,
-                "roll_rad": self.setpoint.roll_rad, "pitch_rad": self.setpoint.pitch_rad,
-                "yaw_rad": self.setpoint.yaw_rad,
-            },
-            "notes": list(self.notes),
-            "timings_ms": self.timings_ms,
-            "t_now_s": self.t_now_s,
-            "in_control": self.in_control,
-            "estimator": None if self.estimator is None else self.estimator.to_record(),
-            "lead_m_s2": _lst(self.lead_m_s2),
-            "actuation_delay_s": self.actuation_delay_s,
-            "latency": None if self.prediction is None else {
-                "frame_age_s": self.prediction.t_to_s - self.prediction.t_from_s,
-                "horizon_s": self.prediction.horizon_s,
-                "clipped": self.prediction.clipped,
-                "eta_pred": _lst(self.prediction.eta_e),
-            },
-        }
 
 
 class ControlPipeline:
@@ -170,7 +100,8 @@ class ControlPipeline:
             if est.enabled else None)
         # (t_effect_s, u: the vehicle's acceleration/yaw rate asked for (4,), thrust sent)
         self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)
-        self._control_since: float | None = None  # since when our setpoints fly the vehicle
+        self._feed = (None if self._dist is None
+                      else EstimatorFeed(cfg, self._dist, self._commands))
         self._lead = TiltLead(cfg.control.lead)
         self.force_solver_failure = False
         # Optional stage timing (seconds clock, e.g. time.perf_counter): measurement only,
@@ -191,131 +122,153 @@ class ControlPipeline:
         (the runtime knows OFFBOARD was requested before the 1 Hz HEARTBEAT confirms it;
         default: the HEARTBEAT's mode). ``perceived``: the perception result of that frame
         computed elsewhere (a replay from logged detections); ``image`` is then not looked at."""
-        cfg = self.cfg
         t_now = t_s if t_now_s is None or not math.isfinite(t_now_s) else max(t_s, t_now_s)
-        notes: list[str] = []
         clock = self._timer
         marks: list[tuple[str, float]] = [("start", clock())] if clock else []
-        # 1. perception
-        corners = None
-        points_m = None
+        seen = self.perceive(image, perceived)
+        if clock:
+            marks.append(("detect", clock()))
+        state = self.state_at_frame(seen, t_s, store, in_control, t_now)
+        if clock:
+            marks.append(("moments", clock()))
+        delay_s = self._actuation_delay(actuation_delay_s)
+        predicted = self.predict(state, t_s, t_now, delay_s)
+        plan = self.plan(predicted)
+        if clock:
+            marks.append(("solve", clock()))
+        decision = self.decide(t_s, store, state, plan)
+        cmd = self.command(decision, state, predicted, plan, store, in_control, t_now + delay_s,
+                           t_now)
+        if clock:
+            marks.append(("command", clock()))
+        timings = {name: (t - marks[i][1]) * 1e3 for i, (name, t) in enumerate(marks[1:])}
+        return StepResult(
+            timings_ms=timings,
+            t_s=t_s, perception_status=state.perception_status,
+            perception_reason=state.perception_reason, corners_px=seen.corners_px,
+            error_state=state.error_state, target_velocity=state.velocity, rmpc=plan.result,
+            safety=decision, u=cmd.u, setpoint=cmd.setpoint,
+            notes=(() if predicted is None else predicted.notes) + cmd.notes,
+            estimator=cmd.estimate,
+            prediction=None if predicted is None else predicted.prediction, t_now_s=t_now,
+            in_control=in_control, input_region=seen.region, lead_m_s2=cmd.lead_m_s2,
+            actuation_delay_s=delay_s,
+        )
+
+    # -- the stages, in the order of the data flow ----------------------------------------------
+
+    def perceive(self, image: np.ndarray | None,
+                 perceived: PerceptionResult | None = None) -> Sighting:
+        """Pixels -> the target's corners (or ``perceived``, computed elsewhere)."""
         region = None
         if perceived is None and image is not None:
             perceived = self.perception.process(image)
             region = getattr(self.perception, "last_region", None)
         if perceived is None:
-            p_status, p_reason = "lost", "no image"
-        else:
-            pr = perceived
-            p_status, p_reason = pr.status, pr.reason
-            if pr.status == "ok":
-                corners, points_m = pr.corners_px, pr.points_m
-        if clock:
-            marks.append(("detect", clock()))
-        # 2. telemetry at the frame's time
+            return Sighting("lost", "no image", region=region)
+        if perceived.status != "ok":
+            return Sighting(perceived.status, perceived.reason, region=region)
+        return Sighting(perceived.status, perceived.reason, perceived.corners_px,
+                        perceived.points_m, region)
+
+    def state_at_frame(self, seen: Sighting, t_s: float, store: TelemetryStore,
+                       in_control: bool | None, t_now: float) -> FrameState:
+        """The attitude and kinematics at the frame's time, the disturbance estimator fed up
+        to now, and (with a target) the virtual-camera moments and the error state."""
         att = store.attitude_at(t_s)
         kin = store.kinematics
-        self._update_estimator(store, in_control, t_now)
-        lat = cfg.control.latency
-        delay_s = lat.actuation_delay_s
-        if actuation_delay_s is not None and math.isfinite(actuation_delay_s):
-            delay_s = min(max(float(actuation_delay_s), 0.0), 1.0)
-        kin_cap = store.kinematics_at(t_s) if lat.enabled else kin
-        finite = True
-        es: ErrorState | None = None
-        vel: VelocityEstimate | None = None
+        if self._feed is not None:
+            self._feed.update(store, in_control, t_now)
+        kin_cap = store.kinematics_at(t_s) if self.cfg.control.latency.enabled else kin
+        yaw: float | None = None
         if att is not None:
             roll, pitch, yaw = euler_zyx_from_quat(att.q_wxyz)
             self._last_yaw = yaw if math.isfinite(yaw) else self._last_yaw
-        if points_m is not None and att is not None and kin is not None:
-            vel = self._target_velocity(t_s, store)
-            try:
-                es = build_error_state(
-                    points_m, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
-                    yaw_rate_rad_s=att.yaw_rate_rad_s,
-                    v_q_ned_m_s=(kin_cap or kin).vel_ned_m_s,
-                    v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
-                    psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
-                    lam=cfg.camera.focal_length_m,
-                    # folded: a target turning faster than the yaw-rate bound must not wind
-                    # s4 up (its period: pi for the moments, 2 pi for ordered corners)
-                    s4_prev_rad=fold_s4(self._s4_prev, 2.0 * math.pi
-                                        if cfg.target.pattern == "aruco" else math.pi),
-                    # a square marker's moments carry no orientation: use its corner order
-                    heading_from_corners=cfg.target.pattern == "aruco",
-                    cam_to_body=self._cam_to_body,
-                )
-            except (MeasurementError, DegenerateTargetError) as exc:
-                finite = not isinstance(exc, MeasurementError)
-                p_status, p_reason = "rejected", f"moments: {exc}"
-                es = None
-            if es is not None:
-                self._s4_prev = float(es.s[3])
-                self._last_seen_s = t_s
-                if vel.source != "follow_target":
-                    vel = VelocityEstimate(
-                        self._estimator.update(t_s, es.s, es.v_q_v_m_s, yaw, att.yaw_rate_rad_s),
-                        np.zeros(3), 0.0, "image_estimator")
-                else:
-                    self._estimator.update(t_s, es.s, es.v_q_v_m_s, yaw, att.yaw_rate_rad_s)
-        if clock:
-            marks.append(("moments", clock()))
-        # 3. solve while the state is valid
-        rmpc_res = None
-        solver_ok = True
-        motion: TargetMotion | None = None
-        pred: Prediction | None = None
-        eta0: np.ndarray | None = None
-        if es is not None and vel is not None:
-            motion = predict_target_motion(
-                vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
-                cfg.rmpc.horizon, cfg.rmpc.dt_s,
-                None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2),
-                cfg.rmpc.eta_max[4] if cfg.rmpc.target_speed_extrapolation == "box" else None)
-            eta0 = es.eta_e
-            if lat.enabled:
-                v_a, vdot_a, psidot_a = motion.stage(0)
-                pred = predict_error_state(
-                    es.eta_e, t_s, t_now + delay_s,
-                    [(t, u) for t, u, _ in self._commands], v_a, vdot_a, psidot_a,
-                    cfg.rmpc.desired_depth_m, lat)
-                if np.all(np.isfinite(pred.eta_e)):
-                    eta0 = pred.eta_e
-                    if pred.clipped:
-                        notes.append(f"latency: frame {t_now - t_s:.3f} s old, predicted "
-                                     f"{pred.horizon_s:.3f} s only")
-                else:
-                    notes.append("latency: non-finite prediction, measured state used")
-                    pred = None
-            if self.force_solver_failure:
-                rmpc_res = self._fallback(eta0, motion, "injected failure")
-            else:
-                rmpc_res = self.rmpc.solve(eta0, motion)
-            solver_ok = rmpc_res.mode != "fallback"
-        if clock:
-            marks.append(("solve", clock()))
-        health = Health(
+        if seen.points_m is None or att is None or kin is None:
+            return FrameState(att, kin, yaw, None, None, True, seen.status, seen.reason)
+        assert yaw is not None
+        vel = self._target_velocity(t_s, store)
+        try:
+            es = self._error_state(seen.points_m, roll, pitch, yaw, att.yaw_rate_rad_s,
+                                   (kin_cap or kin).vel_ned_m_s, vel)
+        except (MeasurementError, DegenerateTargetError) as exc:
+            return FrameState(att, kin, yaw, None, vel, not isinstance(exc, MeasurementError),
+                              "rejected", f"moments: {exc}")
+        self._s4_prev = float(es.s[3])
+        self._last_seen_s = t_s
+        v_img = self._estimator.update(t_s, es.s, es.v_q_v_m_s, yaw, att.yaw_rate_rad_s)
+        if vel.source != "follow_target":
+            vel = VelocityEstimate(v_img, np.zeros(3), 0.0, "image_estimator")
+        return FrameState(att, kin, yaw, es, vel, True, seen.status, seen.reason)
+
+    def predict(self, state: FrameState, t_s: float, t_now: float,
+                delay_s: float) -> Predicted | None:
+        """The target's motion over the horizon and the error state moved from the frame's
+        time ``t_s`` to when the command takes effect, ``delay_s`` after ``t_now``
+        (``control.latency``); ``None`` without an error state."""
+        es, vel = state.error_state, state.velocity
+        if es is None or vel is None:
+            return None
+        cfg = self.cfg
+        motion = predict_target_motion(
+            vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
+            cfg.rmpc.horizon, cfg.rmpc.dt_s,
+            None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2),
+            cfg.rmpc.eta_max[4] if cfg.rmpc.target_speed_extrapolation == "box" else None)
+        lat = cfg.control.latency
+        if not lat.enabled:
+            return Predicted(es.eta_e, motion, None)
+        v_a, vdot_a, psidot_a = motion.stage(0)
+        pred: Prediction | None = predict_error_state(
+            es.eta_e, t_s, t_now + delay_s, [(t, u) for t, u, _ in self._commands], v_a, vdot_a,
+            psidot_a, cfg.rmpc.desired_depth_m, lat)
+        assert pred is not None
+        if not np.all(np.isfinite(pred.eta_e)):
+            return Predicted(es.eta_e, motion, None,
+                             ("latency: non-finite prediction, measured state used",))
+        notes: tuple[str, ...] = ()
+        if pred.clipped:
+            notes = (f"latency: frame {t_now - t_s:.3f} s old, predicted "
+                     f"{pred.horizon_s:.3f} s only",)
+        return Predicted(pred.eta_e, motion, pred, notes)
+
+    def plan(self, predicted: Predicted | None) -> Plan:
+        """The controller's solve from the predicted state (or the fallback law while a
+        solver failure is injected); no plan without a state."""
+        if predicted is None:
+            return Plan(None, True)
+        if self.force_solver_failure:
+            res = self._fallback(predicted.eta0, predicted.motion, "injected failure")
+        else:
+            res = self.rmpc.solve(predicted.eta0, predicted.motion)
+        return Plan(res, res.mode != "fallback")
+
+    def decide(self, t_s: float, store: TelemetryStore, state: FrameState,
+               plan: Plan) -> SafetyDecision:
+        """The safety ladder's level for this step, from the health of its inputs."""
+        decision = self.safety.update(Health(
             t_s=t_s,
             telemetry_age_s=store.telemetry_age_s(t_s),
             target_age_s=t_s - self._last_seen_s,
             follow_target_age_s=store.target_age_s(t_s),
-            inputs_finite=finite,
-            solver_ok=solver_ok,
-        )
-        decision = self.safety.update(health)
+            inputs_finite=state.inputs_finite,
+            solver_ok=plan.solver_ok,
+        ))
         if decision.changed:
             log.warning("safety -> %s: %s", decision.level.value, decision.reason)
-        # 4. the command
-        u: np.ndarray | None = None
-        sp: AttitudeSetpoint | None = None
+        return decision
+
+    def command(self, decision: SafetyDecision, state: FrameState,
+                predicted: Predicted | None, plan: Plan, store: TelemetryStore,
+                in_control: bool | None, t_effect_s: float, t_now: float) -> Command:
+        """The input the safety level asks for, mapped to an attitude setpoint (led for the
+        tilt lag while tracking); the hover when that fails (silence only at SILENT); the
+        command is remembered for the latency prediction and the thrust estimate."""
         level = decision.level
-        if level is SafetyLevel.TRACKING and rmpc_res is not None:
-            u = np.asarray(rmpc_res.u0, dtype=float)
-        elif level is SafetyLevel.TERMINAL and eta0 is not None and motion is not None:
-            u = self._fallback(eta0, motion, "safety terminal").u0
-        elif level is SafetyLevel.REACQUIRE and att is not None and kin is not None:
-            u = self._reacquire(store, kin, yaw)
+        u = self._input_for(level, state, predicted, plan, store)
         est = self._dist.estimate() if self._dist is not None else None
+        notes: list[str] = []
+        sp: AttitudeSetpoint | None = None
         lead_m_s2: np.ndarray | None = None
         if u is not None:
             try:
@@ -324,11 +277,11 @@ class ControlPipeline:
                 # a change of tilt the vehicle must catch up with) and the controller tracks
                 # in its nominal problem: the recovery's chase and the fallbacks' jumps are
                 # flown as commanded (docs/offset-free.md 2b)
+                res = plan.result
                 led = (in_control is not False and level is SafetyLevel.TRACKING
-                       and rmpc_res is not None
-                       and rmpc_res.mode not in ("recovery", "fallback"))
-                sp, lead_m_s2 = self._setpoint(u, self._yaw_reference(), cfg.rmpc.dt_s, est,
-                                               t_now if led else None)
+                       and res is not None and res.mode not in ("recovery", "fallback"))
+                sp, lead_m_s2 = self._setpoint(u, self._yaw_reference(), self.cfg.rmpc.dt_s,
+                                               est, t_now if led else None)
             except ValueError as exc:
                 notes.append(f"setpoint refused: {exc}")
                 self._lead.reset()
@@ -339,39 +292,77 @@ class ControlPipeline:
             self._lead.reset()
         if sp is None and level is not SafetyLevel.SILENT:
             u = None
-            sp = None
-            if est is not None:  # hold still against the estimated disturbance
-                try:
-                    sp, _ = self._setpoint(np.zeros(4), self._last_yaw, 0.0, est)
-                except ValueError as exc:
-                    notes.append(f"compensated hover refused: {exc}")
-            if sp is None:
-                sp = hover_setpoint(self._last_yaw, hover_thrust=cfg.control.hover_thrust,
-                                    thrust_min=cfg.control.thrust_min,
-                                    thrust_max=cfg.control.thrust_max)
+            sp = self._hover(est, notes)
         if sp is not None:
-            t_eff = t_now + delay_s
-            if self._commands and t_eff < self._commands[-1][0]:
-                t_eff = self._commands[-1][0]  # keep the history in time order
-            # what the vehicle will fly: before OFFBOARD (in_control False) PX4 holds with its
-            # own controller and ignores the stream, so the latency prediction must integrate
-            # zero acceleration there, not the inputs we streamed
-            flown = u is not None and in_control is not False
-            self._commands.append((t_eff,
-                                   np.array(u, dtype=float) if flown else np.zeros(4),
-                                   sp.thrust_norm))
+            self._remember(sp, u, in_control, t_effect_s)
         self._yaw_sp = sp.yaw_rad if sp is not None else None
-        if clock:
-            marks.append(("command", clock()))
-        timings = {name: (t - marks[i][1]) * 1e3 for i, (name, t) in enumerate(marks[1:])}
-        return StepResult(
-            timings_ms=timings,
-            t_s=t_s, perception_status=p_status, perception_reason=p_reason,
-            corners_px=corners, error_state=es, target_velocity=vel, rmpc=rmpc_res,
-            safety=decision, u=u, setpoint=sp, notes=tuple(notes), estimator=est,
-            prediction=pred, t_now_s=t_now, in_control=in_control, input_region=region,
-            lead_m_s2=lead_m_s2, actuation_delay_s=delay_s,
+        return Command(u, sp, lead_m_s2, est, tuple(notes))
+
+    # -- the stages' parts ----------------------------------------------------------------------
+
+    def _actuation_delay(self, measured_s: float | None) -> float:
+        """From "now" to the vehicle flying the command (s): the runtime's measure, bounded
+        to [0, 1] s, or the configured constant."""
+        if measured_s is not None and math.isfinite(measured_s):
+            return min(max(float(measured_s), 0.0), 1.0)
+        return self.cfg.control.latency.actuation_delay_s
+
+    def _error_state(self, points_m: np.ndarray, roll: float, pitch: float, yaw: float,
+                     yaw_rate_rad_s: float, v_q_ned_m_s: Any,
+                     vel: VelocityEstimate) -> ErrorState:
+        cfg = self.cfg
+        return build_error_state(
+            points_m, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
+            yaw_rate_rad_s=yaw_rate_rad_s, v_q_ned_m_s=v_q_ned_m_s,
+            v_a_ned_m_s=vel.v_a_ned_m_s, a_a_ned_m_s2=vel.a_a_ned_m_s2,
+            psidot_a_rad_s=vel.yaw_rate_rad_s, a_star=self.a_star,
+            lam=cfg.camera.focal_length_m,
+            # folded: a target turning faster than the yaw-rate bound must not wind
+            # s4 up (its period: pi for the moments, 2 pi for ordered corners)
+            s4_prev_rad=fold_s4(self._s4_prev, 2.0 * math.pi
+                                if cfg.target.pattern == "aruco" else math.pi),
+            # a square marker's moments carry no orientation: use its corner order
+            heading_from_corners=cfg.target.pattern == "aruco",
+            cam_to_body=self._cam_to_body,
         )
+
+    def _input_for(self, level: SafetyLevel, state: FrameState, predicted: Predicted | None,
+                   plan: Plan, store: TelemetryStore) -> np.ndarray | None:
+        """The input (r1, r2, r3, psidot_q) of the safety level: the plan's while tracking,
+        the terminal law at TERMINAL, the climb-and-turn at REACQUIRE; else none."""
+        if level is SafetyLevel.TRACKING and plan.result is not None:
+            return np.asarray(plan.result.u0, dtype=float)
+        if level is SafetyLevel.TERMINAL and predicted is not None:
+            return self._fallback(predicted.eta0, predicted.motion, "safety terminal").u0
+        if (level is SafetyLevel.REACQUIRE and state.attitude is not None
+                and state.kinematics is not None and state.yaw_rad is not None):
+            return self._reacquire(store, state.kinematics, state.yaw_rad)
+        return None
+
+    def _hover(self, est: DisturbanceEstimate | None, notes: list[str]) -> AttitudeSetpoint:
+        """Hold still: against the estimated disturbance when there is one, else level."""
+        c = self.cfg.control
+        if est is not None:
+            try:
+                return self._setpoint(np.zeros(4), self._last_yaw, 0.0, est)[0]
+            except ValueError as exc:
+                notes.append(f"compensated hover refused: {exc}")
+        return hover_setpoint(self._last_yaw, hover_thrust=c.hover_thrust,
+                              thrust_min=c.thrust_min, thrust_max=c.thrust_max)
+
+    def _remember(self, sp: AttitudeSetpoint, u: np.ndarray | None, in_control: bool | None,
+                  t_effect_s: float) -> None:
+        """The command history: when the command takes effect, the input the vehicle will
+        fly and the thrust sent."""
+        t_eff = t_effect_s
+        if self._commands and t_eff < self._commands[-1][0]:
+            t_eff = self._commands[-1][0]  # keep the history in time order
+        # what the vehicle will fly: before OFFBOARD (in_control False) PX4 holds with its
+        # own controller and ignores the stream, so the latency prediction must integrate
+        # zero acceleration there, not the inputs we streamed
+        flown = u is not None and in_control is not False
+        self._commands.append((t_eff, np.array(u, dtype=float) if flown else np.zeros(4),
+                               sp.thrust_norm))
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,
                   est: DisturbanceEstimate | None,
@@ -400,87 +391,6 @@ class ControlPipeline:
         return attitude_setpoint(u, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
                                  hover_thrust=hover, thrust_min=c.thrust_min,
                                  thrust_max=c.thrust_max), lead
-
-    def _update_estimator(self, store: TelemetryStore, in_control: bool | None,
-                          t_now: float) -> None:
-        """Feed every velocity sample newer than the filter's with the thrust commanded over
-        the interval (time-weighted) and the body z axis measured at its middle. While PX4 is
-        in OFFBOARD and armed that is our thrust; before (armed, in the air, PX4's own mode)
-        the autopilot's thrust setpoint from ATTITUDE_TARGET, when it streams one. With the
-        accelerometer (``control.estimator.accelerometer``), the HIGHRES_IMU samples newer
-        than the filter and not newer than the newest velocity sample go in between, in time
-        order (each with the attitude at its own time)."""
-        f = self._dist
-        if f is None:
-            return
-        mode = store.mode
-        ours = mode is not None and mode.armed and mode.main_mode == PX4_MAIN_OFFBOARD
-        if in_control is not None:
-            ours = in_control
-        if not ours:
-            self._control_since = None
-        elif self._control_since is None:
-            # our setpoints fly the vehicle from the next one on: an interval that began
-            # earlier was flown by PX4's own controller and says nothing about our thrust
-            self._control_since = t_now
-        since = self._control_since
-        own = self.cfg.control.estimator.autopilot_thrust and mode is not None and mode.armed
-        events: list[tuple[float, int, Any]] = [
-            (k.t_s, 0, k) for k in store.kinematics_history if f.t_s is None or k.t_s > f.t_s]
-        if f.params.accelerometer and events and store.accel:
-            newest_v = events[-1][0]
-            events += [(a.t_s, 1, a) for a in store.accel
-                       if (f.t_s is None or a.t_s > f.t_s) and a.t_s <= newest_v]
-            events.sort(key=lambda e: (e[0], e[1]))
-        for t_s, kind, sample in events:
-            # (a velocity sample goes before an accelerometer sample of the same instant)
-            if f.t_s is not None and (t_s < f.t_s or (kind == 0 and t_s == f.t_s)):
-                continue
-            thrust, body_z = self._inputs_over(f.t_s, t_s, store, since, own)
-            if kind == 0:
-                f.update(t_s, sample.vel_ned_m_s, thrust, body_z)
-                continue
-            a = store.attitude_at(t_s)
-            if a is None:
-                continue
-            rot = rotation_from_quat(np.array(a.q_wxyz))
-            f.update_accel(t_s, sample.f_frd_m_s2[:2], thrust, body_z, rot)
-
-    def _inputs_over(self, t0: float | None, t1: float, store: TelemetryStore,
-                     since: float | None, own: bool) -> tuple[float | None, np.ndarray | None]:
-        """The thrust that flew over ``[t0, t1]`` (ours while in control, the autopilot's
-        before) and the body z axis at its middle; ``(None, None)`` when unknown."""
-        if t0 is None:
-            return None, None
-        thrust = None
-        if since is not None and t0 >= since - 1e-9:
-            thrust = self._thrust_over(t0, t1)
-        elif own and (since is None or t1 <= since + 1e-9):
-            # PX4's own modes fly the vehicle (e.g. the pre-flight stream before OFFBOARD):
-            # the thrust it reports is the one flying, so the hover thrust is estimated before
-            # our first command is flown
-            thrust = store.autopilot_thrust_over(
-                t0, t1, self.cfg.control.estimator.autopilot_thrust_max_age_s)
-        if thrust is None:
-            return None, None
-        a = store.attitude_at(0.5 * (t0 + t1))
-        if a is None:
-            return None, None
-        return thrust, rotation_from_quat(np.array(a.q_wxyz))[:, 2]
-
-    def _thrust_over(self, t0: float, t1: float) -> float | None:
-        """Time-weighted thrust commanded over ``[t0, t1]``; ``None`` if nothing was in force
-        at ``t0``."""
-        cmds = self._commands
-        if not cmds or cmds[0][0] > t0 + 1e-9 or t1 <= t0:
-            return None
-        total = 0.0
-        for i, (te, _, thr) in enumerate(cmds):
-            end = cmds[i + 1][0] if i + 1 < len(cmds) else math.inf
-            lo, hi = max(te, t0), min(end, t1)
-            if hi > lo:
-                total += thr * (hi - lo)
-        return total / (t1 - t0)
 
     # ------------------------------------------------------------------------------------------
 
@@ -534,20 +444,6 @@ def _target_points(cfg: Config) -> np.ndarray:
     if t.pattern == "aruco":
         return rectangle_corners_m(t.aruco_size_m, t.aruco_size_m)
     return rectangle_corners_m(t.length_m, t.width_m)
-
-
-def _lst(a: Any) -> Any:
-    if a is None:
-        return None
-    return np.asarray(a, dtype=float).tolist()
-
-
-def _f(x: Any) -> float | None:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 __all__ = ["ControlPipeline", "StepResult", "VelocityEstimate"]
