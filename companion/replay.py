@@ -185,17 +185,50 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
         raise ReplayError(f"{log_path}: missing channel {TOPIC_STEP}: cannot replay "
                           f"(present: {', '.join(sorted(counts)) or 'none'})")
     cfg = replay_config(reader, config, list(overrides or []))
-    if from_detections:
-        mode = "detections"
-    else:
-        first = next((_json(m.raw) for m in reader.messages(topics=[TOPIC_STEP], decode=False)),
-                     None)
-        mode = input_mode(counts, first)
-        if mode == "none":
-            want = TOPIC_FRAME if first is None or "input" not in first else TOPIC_INPUT
-            raise ReplayError(f"{log_path}: missing channel {want}: no perception input to "
-                              "replay; --from-detections replays the controller from the "
-                              "recorded detections")
+    mode = "detections" if from_detections else _input_mode(reader, log_path, counts)
+    res = _new_result(reader, log_path, cfg, mode)
+    # the controller first (as the live process builds it), then
+    rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
+    # the perception worker is forked before this process starts any thread (the writer's)
+    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
+    writer = None
+    if out_path is not None:
+        writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
+        writer.open()
+        writer.log_config(0, "", dict(cfg.raw), cfg.source)
+    rp.stage, rp.writer = stage, writer
+    topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
+    if writer is not None:
+        topics.append(TOPIC_TRUTH)
+    try:
+        rp.feed(reader, topics)
+    except ReplayInputError as exc:
+        raise ReplayError(str(exc)) from exc
+    finally:
+        if stage is not None and hasattr(stage, "close"):
+            stage.close()
+        if writer is not None:
+            writer.close()
+    res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
+    res.recorded_wire_commands = rp.recorded_sat
+    return res
+
+
+def _input_mode(reader: LogReader, log_path: Path, counts: dict[str, int]) -> str:
+    """What perception replays from: "crop" or "frames"; a clear error when neither is
+    logged."""
+    first = next((_json(m.raw) for m in reader.messages(topics=[TOPIC_STEP], decode=False)),
+                 None)
+    mode = input_mode(counts, first)
+    if mode == "none":
+        want = TOPIC_FRAME if first is None or "input" not in first else TOPIC_INPUT
+        raise ReplayError(f"{log_path}: missing channel {want}: no perception input to "
+                          "replay; --from-detections replays the controller from the "
+                          "recorded detections")
+    return mode
+
+
+def _new_result(reader: LogReader, log_path: Path, cfg: Config, mode: str) -> ReplayResult:
     res = ReplayResult(config_source=cfg.source, perception=mode)
     if mode == "crop":
         try:  # how the flight logged what perception read (a JPEG crop replays approximately)
@@ -210,87 +243,37 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
         log.warning("%s is cut short: replaying the %d messages recovered up to %.1f s",
                     log_path, rec.messages,
                     ((rec.last_log_time_ns or 0) - (rec.first_log_time_ns or 0)) * 1e-9)
-    pipeline = new_pipeline(cfg, timer=timer)
-    # undistortion + metric of detections
-    perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
-    store = new_store(cfg)
-    tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
-    parser = mavlink2.MAVLink(None)
-    parser.robust_parsing = True
-    total_steps = counts.get(TOPIC_STEP, 0)
+    return res
 
-    rx_seen = 0
-    recorded_sat = 0
-    pending_steps: deque[dict[str, Any]] = deque()
-    mav_in: deque[tuple[str, int, bytes]] = deque()
-    used = TelemetryStore.MESSAGES | STAMPED_MESSAGES
-    # the perception worker is forked before this process starts any thread (the writer's)
-    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
-    writer = None
-    if out_path is not None:
-        writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
-        writer.open()
-        writer.log_config(0, "", dict(cfg.raw), cfg.source)
 
-    def ingest(name: str, t_ns: int, raw_json: bytes) -> None:
-        nonlocal rx_seen
-        rx_seen += 1
-        if name not in used:  # neither the store nor the time base reads it: count it only
-            return
-        data = _json(raw_json) or {}
-        fields, sysid = data.get("fields"), data.get("sysid")
-        if (not isinstance(fields, dict) or not isinstance(sysid, int)
-                or any(v is None for v in fields.values())):
-            # the logged fields lost something (JSON has no NaN): decode the raw bytes
-            msg = _decode(parser, base64.b64decode(data.get("raw_b64", "")))
-            if msg is None:
-                return
-            fields, name, sysid = msg.to_dict(), msg.get_type(), msg.get_srcSystem()
-        # logged fields are the decoded values (floats round-trip JSON exactly)
-        t_s = tb.message_s(name, fields, int(data.get("t_rx_ns", t_ns)))
-        store.ingest(name, fields, t_s, sysid)
+class _Replayer:
+    """The live process's order, rebuilt: before step k, exactly the ``rx_count`` messages
+    the live process had ingested go into the store; then the step runs and is compared."""
 
-    def run_step(rec_step: dict[str, Any]) -> None:
-        want = int(rec_step.get("rx_count", 0))
-        while rx_seen < want and mav_in:
-            ingest(*mav_in.popleft())
-        if stage is None:
-            p = perceived_from_record(rec_step)
-        else:
-            nxt = next(stage, None)
-            if nxt is None:
-                raise ReplayError(f"{log_path}: perception ended before the step records")
-            p = nxt
-        res.frames_missing += p.missing
-        res.outside_crop += p.outside_crop
-        t_s = tb.frame_s(int(rec_step["frame_t_us"]), int(rec_step["t_rx_ns"]))
-        pipeline.force_solver_failure = bool(rec_step.get("fault_injected", False))
-        t_now = rec_step.get("t_now_s")  # the live step's "now" (latency compensation)
-        ic = rec_step.get("in_control")
-        ad = rec_step.get("actuation_delay_s")  # the delay the live step used (auto_delay)
-        out = pipeline.step(None, t_s, store,
-                            t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
-                            in_control=ic if isinstance(ic, bool) else None,
-                            perceived=p.result(perception),
-                            actuation_delay_s=float(ad) if isinstance(ad, (int, float))
-                            and cfg.control.latency.auto_delay else None)
-        res.steps += 1
-        if writer is not None:
-            new = out.to_record()
-            new.update({k: rec_step.get(k) for k in ("frame_seq", "frame_t_us", "t_rx_ns",
-                                                     "rx_count", "offboard")})
-            writer.log(TOPIC_STEP, int(rec_step["t_rx_ns"]), new, schema=sch.CONTROLLER_STEP)
-        _compare(res, rec_step, out, t_s)
-        if progress is not None:
-            progress(res.steps, total_steps)
+    def __init__(self, cfg: Config, log_path: Path, res: ReplayResult,
+                 timer: Callable[[], float] | None,
+                 progress: Callable[[int, int], None] | None, total_steps: int) -> None:
+        self.cfg, self.log_path, self.res = cfg, log_path, res
+        self.progress, self.total_steps = progress, total_steps
+        #: the perception stage (None: from the recorded detections) and the output log
+        self.stage: Iterator[Perceived] | None = None
+        self.writer: McapLogger | None = None
+        self.pipeline = new_pipeline(cfg, timer=timer)
+        # undistortion + metric of detections
+        self.perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
+        self.store = new_store(cfg)
+        self.tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
+        self.parser = mavlink2.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.rx_seen = 0
+        self.recorded_sat = 0
+        self.pending_steps: deque[dict[str, Any]] = deque()
+        self.mav_in: deque[tuple[str, int, bytes]] = deque()
+        self.used = TelemetryStore.MESSAGES | STAMPED_MESSAGES
 
-    def ready(step: dict[str, Any]) -> bool:
-        return rx_seen + len(mav_in) >= int(step.get("rx_count", 0))
-
-    topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
-    if writer is not None:
-        topics.append(TOPIC_TRUTH)
-    try:
+    def feed(self, reader: LogReader, topics: list[str]) -> None:
+        """Read the log once, in log-time order, running each step as soon as it can run."""
+        writer = self.writer
         # A step record is stamped with its frame's time, but the messages it saw may have
         # arrived after that frame: run a step once all of its ``rx_count`` messages have
         # been read (log-time order preserves their order of arrival).
@@ -299,31 +282,79 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
             if topic == TOPIC_STEP:
                 data = _json(m.raw)
                 if data:
-                    pending_steps.append(data)
+                    self.pending_steps.append(data)
             elif topic == TOPIC_SAT:
-                recorded_sat += 1
+                self.recorded_sat += 1
             elif topic == TOPIC_TRUTH:
                 if writer is not None:
                     writer.log(TOPIC_TRUTH, m.log_time_ns, m.raw, schema=sch.JSON)
                 continue
             else:
-                mav_in.append((topic[len("/mavlink/in/"):], m.log_time_ns, m.raw))
-                if not pending_steps:
+                self.mav_in.append((topic[len("/mavlink/in/"):], m.log_time_ns, m.raw))
+                if not self.pending_steps:
                     continue
-            while pending_steps and ready(pending_steps[0]):
-                run_step(pending_steps.popleft())
-        while pending_steps:  # end of the log (or a log cut short): run what is left
-            run_step(pending_steps.popleft())
-    except ReplayInputError as exc:
-        raise ReplayError(str(exc)) from exc
-    finally:
-        if stage is not None and hasattr(stage, "close"):
-            stage.close()
-        if writer is not None:
-            writer.close()
-    res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
-    res.recorded_wire_commands = recorded_sat
-    return res
+            while self.pending_steps and self._ready(self.pending_steps[0]):
+                self.run_step(self.pending_steps.popleft())
+        while self.pending_steps:  # end of the log (or a log cut short): run what is left
+            self.run_step(self.pending_steps.popleft())
+
+    def _ready(self, step: dict[str, Any]) -> bool:
+        return self.rx_seen + len(self.mav_in) >= int(step.get("rx_count", 0))
+
+    def ingest(self, name: str, t_ns: int, raw_json: bytes) -> None:
+        self.rx_seen += 1
+        if name not in self.used:  # neither the store nor the time base reads it: count it only
+            return
+        data = _json(raw_json) or {}
+        fields, sysid = data.get("fields"), data.get("sysid")
+        if (not isinstance(fields, dict) or not isinstance(sysid, int)
+                or any(v is None for v in fields.values())):
+            # the logged fields lost something (JSON has no NaN): decode the raw bytes
+            msg = _decode(self.parser, base64.b64decode(data.get("raw_b64", "")))
+            if msg is None:
+                return
+            fields, name, sysid = msg.to_dict(), msg.get_type(), msg.get_srcSystem()
+        # logged fields are the decoded values (floats round-trip JSON exactly)
+        t_s = self.tb.message_s(name, fields, int(data.get("t_rx_ns", t_ns)))
+        self.store.ingest(name, fields, t_s, sysid)
+
+    def _perceived(self, rec_step: dict[str, Any]) -> Perceived:
+        if self.stage is None:
+            return perceived_from_record(rec_step)
+        nxt = next(self.stage, None)
+        if nxt is None:
+            raise ReplayError(f"{self.log_path}: perception ended before the step records")
+        return nxt
+
+    def run_step(self, rec_step: dict[str, Any]) -> None:
+        want = int(rec_step.get("rx_count", 0))
+        while self.rx_seen < want and self.mav_in:
+            self.ingest(*self.mav_in.popleft())
+        p = self._perceived(rec_step)
+        res = self.res
+        res.frames_missing += p.missing
+        res.outside_crop += p.outside_crop
+        t_s = self.tb.frame_s(int(rec_step["frame_t_us"]), int(rec_step["t_rx_ns"]))
+        self.pipeline.force_solver_failure = bool(rec_step.get("fault_injected", False))
+        t_now = rec_step.get("t_now_s")  # the live step's "now" (latency compensation)
+        ic = rec_step.get("in_control")
+        ad = rec_step.get("actuation_delay_s")  # the delay the live step used (auto_delay)
+        out = self.pipeline.step(None, t_s, self.store,
+                                 t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
+                                 in_control=ic if isinstance(ic, bool) else None,
+                                 perceived=p.result(self.perception),
+                                 actuation_delay_s=float(ad) if isinstance(ad, (int, float))
+                                 and self.cfg.control.latency.auto_delay else None)
+        res.steps += 1
+        if self.writer is not None:
+            new = out.to_record()
+            new.update({k: rec_step.get(k) for k in ("frame_seq", "frame_t_us", "t_rx_ns",
+                                                     "rx_count", "offboard")})
+            self.writer.log(TOPIC_STEP, int(rec_step["t_rx_ns"]), new,
+                            schema=sch.CONTROLLER_STEP)
+        _compare(res, rec_step, out, t_s)
+        if self.progress is not None:
+            self.progress(res.steps, self.total_steps)
 
 
 def _json(raw: bytes) -> dict[str, Any] | None:

@@ -14,7 +14,9 @@ import os
 import shlex
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from companion.campaign.scenarios import (
     DEFAULT_CAMPAIGN,
@@ -110,6 +112,25 @@ def _run(args: argparse.Namespace) -> int:
         shown = Path(args.campaign)
     notes = [f"Campaign file `{shown}`, {len(specs)} runs in the matrix, "
              f"{len(rows)} finished."]
+    notes += _engine_notes(out, specs, rows, stats, load0)
+    write_table(rows, out / "results.csv")
+    write_plots(rows, out / "plots")
+    write_summary(rows, out / "summary.md", title=f"Campaign: {out.name}", command=command,
+                  notes=notes)
+    ok = sum(1 for r in rows if r.get("status") == "ok")
+    print(f"campaign: {len(rows)} runs ({ok} ok, {len(rows) - ok} errors); "
+          f"{out / 'results.csv'}, {out / 'summary.md'}, {out / 'plots'}")
+    if stats is not None and stats.flown:
+        print(f"campaign: {stats.flown} flights in {stats.wall_s:.0f} s on {stats.workers} "
+              f"worker(s): {stats.flights_per_minute:.2f} flights/min")
+    return 0
+
+
+def _engine_notes(out: Path, specs: Sequence[Any], rows: list[dict[str, Any]], stats: Any,
+                  load0: tuple[float, float, float]) -> list[str]:
+    """The summary's note on the engine: this invocation's flights (also kept in
+    ``engine.json``), or the last flying invocation's when this one flew nothing."""
+    notes: list[str] = []
     if stats is not None and stats.flown:
         fpm = stats.flights_per_minute
         load1 = os.getloadavg()
@@ -140,14 +161,4 @@ def _run(args: argparse.Namespace) -> int:
                          + ".")
         except (ValueError, KeyError, TypeError):
             pass
-    write_table(rows, out / "results.csv")
-    write_plots(rows, out / "plots")
-    write_summary(rows, out / "summary.md", title=f"Campaign: {out.name}", command=command,
-                  notes=notes)
-    ok = sum(1 for r in rows if r.get("status") == "ok")
-    print(f"campaign: {len(rows)} runs ({ok} ok, {len(rows) - ok} errors); "
-          f"{out / 'results.csv'}, {out / 'summary.md'}, {out / 'plots'}")
-    if stats is not None and stats.flown:
-        print(f"campaign: {stats.flown} flights in {stats.wall_s:.0f} s on {stats.workers} "
-              f"worker(s): {stats.flights_per_minute:.2f} flights/min")
-    return 0
+    return notes

@@ -18,7 +18,7 @@ from pathlib import Path
 from companion.config import DEFAULT_CONFIG, config_from_dict, read_document
 from companion.config_file import merged_document
 from companion.flight import fly
-from companion.report.headline import demo_summary
+from companion.report.text import demo_summary
 
 log = logging.getLogger(__name__)
 

@@ -23,6 +23,7 @@ from companion.log.reader import LogReader, NotMcapError
 from companion.progress import step_callback
 from companion.replay import ReplayError, replay, replay_config
 from companion.replay_inputs import Perceived
+from companion.report.text import replay_summary
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -80,6 +81,7 @@ def _one(args: argparse.Namespace, overrides: list[str], out: Path, label: str,
     summary["cpu_ms_per_step"] = cpu * 1e3 / res.steps if res.steps else None
     summary["load_1min"] = os.getloadavg()[0]
     summary["overrides"] = overrides
+    summary["log_path"] = str(args.log)
     report: dict[str, object] = {"replay": summary}
     from companion.report.files import build_report
 
@@ -130,32 +132,10 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _per_step(s: dict[str, Any]) -> str:
-    per = s.get("cpu_ms_per_step")
-    if per is None:
-        return ""
-    return (f" ({per:.2f} ms per step, start-up and both processes included; load average "
-            f"{s.get('load_1min', 0.0):.1f})")
-
-
 def _print_single(s: dict[str, Any], out: Path) -> None:
-    same = "identical" if s["identical"] else "DIFFERENT"
-    speed = s.get("speed_vs_real_time")
-    print(f"replayed {s['steps']} steps ({s['perception']}) in {s['wall_time_s']:.1f} s"
-          f"{f' ({speed:.1f}x real time)' if speed else ''}, CPU {s['cpu_time_s']:.1f} s"
-          f"{_per_step(s)}: "
-          f"{s['commands_compared']} commands compared, {same} (max |dq| "
-          f"{s['max_quat_diff']:.3g}, max |dthrust| {s['max_thrust_diff']:.3g}, tolerance 1e-6)")
-    if s["first_difference_t_s"] is not None:
-        print(f"first difference at t = {s['first_difference_t_s']:.2f} s")
-    if not s["identical"] and s.get("input_encoding") == "jpeg":
-        print('the flight logged its perception input as JPEG (logging.image_encoding = "jpeg"):'
-              ' lossy, so replay only approximates; record with "png" or "raw" for exact replay')
-    if s["perception_outside_crop"]:
-        print(f"perception read outside the logged crop in {s['perception_outside_crop']} "
-              "steps: not exact there")
-    if s["log"].get("truncated"):
-        print(f"log was cut short: {s['log']['messages_recovered']} messages recovered")
+    print(f"replay of {s.get('log_path', 'the log')}:")
+    for line in replay_summary(s):
+        print(line)
     print(f"report: {out / 'report.json'}")
 
 

@@ -9,6 +9,7 @@ from companion.config import load_config
 from companion.log.reader import LogReader, NotMcapError
 from companion.replay import ReplayError, replay_config
 from companion.report.files import build_report
+from companion.report.text import headline_lines, verdict_line
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -40,6 +41,10 @@ def _run(args: argparse.Namespace) -> int:
         rep = build_report(args.log, cfg, args.out, progress=cb)
     finally:
         bar.close()
+    print(f"flight {args.log}:")
+    for line in headline_lines(rep):
+        print(line)
+    print(f"  {verdict_line(rep)}")
     print(f"report: {args.out / 'report.json'}, {args.out / 'report.html'} "
           f"({len(rep.get('figures', {}))} figures)")
     return 0

@@ -90,7 +90,7 @@ def test_engaged_figures_start_one_second_after_offboard() -> None:
 def test_demo_summary_is_rounded_text_with_verdicts() -> None:
     """What ``companion demo`` prints: no Python list/dict repr, figures rounded with units,
     each headline row with its verdict, and a last line counting the misses."""
-    from companion.report.headline import demo_summary
+    from companion.report.text import demo_summary
 
     rep = _rep(tracking={"settle_time_s": 4.0, "rms_se": [0.00925537222372309, 0.0225, 0.1, 0.2],
                          "rms_horizontal_error_m": 0.10261644096588553,
