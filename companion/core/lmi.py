@@ -104,27 +104,38 @@ def lmi_terminal(
         xc = np.asarray(x, dtype=float).reshape(n, 1)
         blk = _bmat([[np.array([[level**2]]), xc.T], [xc, wv]])
         cons.append(0.5 * (blk + blk.T) >> 0)
-    if objective_state is not None:
-        xo = np.asarray(objective_state, dtype=float).reshape(n, 1)
-        blk = _bmat([[_reshape(t, (1, 1), order="C"), xo.T], [xo, wv]])
-        cons.append(0.5 * (blk + blk.T) >> 0)
-        prob = cp.Problem(cp.Minimize(t), cons)
-    else:
-        cons.append(wv >> t * np.eye(n))
-        prob = cp.Problem(cp.Maximize(t), cons)
-    try:
-        with warnings.catch_warnings():
-            # "Solution may be inaccurate": the result is verified exactly afterwards
-            warnings.simplefilter("ignore", UserWarning)
-            prob.solve(solver=solver)  # type: ignore[no-untyped-call]
-    except cp.error.SolverError as exc:
-        raise CertificateError(f"LMI solver {solver} failed: {exc}") from None
-    if prob.status not in ("optimal", "optimal_inaccurate") or wv.value is None:
-        raise CertificateError(f"LMI design infeasible (status {prob.status})")
+    prob = _problem(cons, wv, t, objective_state)
+    _solve(prob, wv, solver)
     w = _sym(np.asarray(wv.value))
     p = _sym(np.linalg.inv(w))
     k = np.asarray(yv.value) @ np.linalg.inv(w)
     return LmiDesign(p=p, k=k, kappa=kappa, status=str(prob.status), objective=float(prob.value))
+
+
+def _problem(cons: list[Any], wv: Any, t: Any, objective_state: np.ndarray | None) -> Any:
+    """The design's objective: the smallest ``x' P x`` for ``objective_state`` (a state the
+    terminal set should contain with margin), else the largest ``t`` with ``W >= t I``."""
+    n = wv.shape[0]
+    if objective_state is not None:
+        xo = np.asarray(objective_state, dtype=float).reshape(n, 1)
+        blk = _bmat([[_reshape(t, (1, 1), order="C"), xo.T], [xo, wv]])
+        cons.append(0.5 * (blk + blk.T) >> 0)
+        return cp.Problem(cp.Minimize(t), cons)
+    cons.append(wv >> t * np.eye(n))
+    return cp.Problem(cp.Maximize(t), cons)
+
+
+def _solve(prob: Any, wv: Any, solver: str) -> None:
+    """Solve ``prob``; :class:`CertificateError` when the solver fails or it is infeasible."""
+    try:
+        with warnings.catch_warnings():
+            # "Solution may be inaccurate": the result is verified exactly afterwards
+            warnings.simplefilter("ignore", UserWarning)
+            prob.solve(solver=solver)
+    except cp.error.SolverError as exc:
+        raise CertificateError(f"LMI solver {solver} failed: {exc}") from None
+    if prob.status not in ("optimal", "optimal_inaccurate") or wv.value is None:
+        raise CertificateError(f"LMI design infeasible (status {prob.status})")
 
 
 def _final_kappa(a: np.ndarray, b: np.ndarray, k: np.ndarray, p: np.ndarray, q: np.ndarray,
