@@ -16,6 +16,7 @@ two processes' output (``companion.log``, ``sim.log``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -33,6 +34,7 @@ from typing import Any
 from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, read_document
 from companion.config_file import absolutize_paths, dump_toml, merged_document
+from companion.control.knobs import warn_ineffective_knobs
 from companion.report.files import build_report
 
 log = logging.getLogger(__name__)
@@ -189,6 +191,9 @@ def fly(config: Path, scenario: str, duration_s: float | None, out: Path,
     # fail early, before anything starts, on a key either program refuses
     cfg, comp_path, sim_path, sim_doc = prepare_configs(config, scenario, overrides, out, env,
                                                         sim_config)
+    # said here too, where the user reads (the companion's own warning is in companion.log)
+    warn_ineffective_knobs(dataclasses.replace(cfg, live=dataclasses.replace(
+        cfg.live, enabled=True)) if live else cfg)
     if duration_s is None:
         duration_s = float(sim_doc.get("sim", {}).get("duration_s", 251.0))
     sim_cmd, comp_cmd = demo_commands(comp_path, scenario, duration_s, out, [], faults,

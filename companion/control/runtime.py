@@ -38,6 +38,7 @@ import numpy as np
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
 from companion.control.faults import FaultWindow, apply_faults, check_faults
+from companion.control.knobs import warn_ineffective_knobs
 from companion.control.offboard import OffboardManager, OffboardPhase
 from companion.control.pipeline import StepResult
 from companion.control.recording import (
@@ -123,6 +124,7 @@ class CompanionApp:
         progress_file: Path | None = None,
     ) -> None:
         self.cfg = cfg
+        warn_ineffective_knobs(cfg)  # a knob the chosen mode ignores, by name
         self.mavlink_url = mavlink_url or cfg.mavlink.url
         self.camera_url = camera_url
         self.log_path = log_path
