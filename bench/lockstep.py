@@ -13,12 +13,23 @@ process's own CPU time (``getrusage(RUSAGE_CHILDREN)``) per simulated step is pr
 does not depend on the machine's load the way wall time does. ``--thrust``: the client's
 collective thrust (the vehicle's true hover thrust keeps it in the air, e.g. 0.573 with
 ``config/realistic.toml``).
+
+``--digest``: an identity check of the emulator's output. The client switches the vehicle to
+OFFBOARD and flies a slow attitude wave (so the vehicle and the view move), and prints one
+SHA-256 over every frame (header and pixels) and every MAVLink datagram of the offboard link
+from the 20th frame on (after the start-up, which depends on when the client connects).
+Lockstep makes it deterministic when every step delivers its frame (an ideal camera's timing:
+no latency, no drops; a step that delivers none does not wait for the client) and no step
+times out (give ``sim.lockstep_timeout_s`` room on a loaded machine): the same code and config
+then give the same digest; a change meant to keep the emulator's behaviour must keep it.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import math
 import os
 import resource
 import socket
@@ -26,6 +37,7 @@ import struct
 import subprocess
 import sys
 import time
+from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
@@ -50,6 +62,35 @@ def read_exact(sock: socket.socket, view: memoryview, n: int) -> memoryview:
     return view[:n]
 
 
+def _digest_step(digest: Any, udp: socket.socket, head: tuple[int, ...], buf: memoryview,
+                 mav: mavlink2.MAVLink, p_sim: int, index: int) -> None:
+    """Hash the frame just read and the datagrams that came before it (from the 20th frame
+    on), then answer it: OFFBOARD requested at the 10th frame, a slow roll/pitch wave about
+    hover."""
+    grams = []
+    while True:
+        try:
+            grams.append(udp.recv(65536))
+        except BlockingIOError:
+            break
+    if index >= 20:
+        digest.update(repr(head).encode())
+        digest.update(bytes(buf[:head[8]]))
+        for g in grams:
+            if not (g[:1] == b"\xfd" and int.from_bytes(g[7:10], "little") == 2):
+                digest.update(g)  # SYSTEM_TIME carries the wall clock's Unix time: left out
+    t_s = 0.05 * index
+    roll, pitch = 0.08 * math.sin(0.7 * t_s), 0.06 * math.sin(0.5 * t_s + 1.0)
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    q = [cr * cp, sr * cp, cr * sp, -sr * sp]
+    to = ("127.0.0.1", p_sim)
+    if index == 10:  # before the setpoint, which releases the step: handled within the step
+        udp.sendto(mav.command_long_encode(1, 1, 176, 0, 1, 6, 0, 0, 0, 0, 0).pack(mav), to)
+    udp.sendto(mav.set_attitude_target_encode(head[5] // 1000, 1, 1, 7, q, 0.0, 0.0, 0.0,
+                                              0.5).pack(mav), to)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=30.0)
@@ -57,6 +98,8 @@ def main() -> int:
     ap.add_argument("--profile", default=None, help="write the emulator's cProfile here")
     ap.add_argument("--config", default=None, help="scenario TOML for the emulator")
     ap.add_argument("--thrust", type=float, default=0.5, help="the client's hover thrust")
+    ap.add_argument("--digest", action="store_true",
+                    help="fly an attitude wave in OFFBOARD and print the output's SHA-256")
     args = ap.parse_args()
     p_comp, p_sim = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     p_frame = free_port(socket.SOCK_STREAM)
@@ -90,15 +133,28 @@ def main() -> int:
         arrivals: list[float] = []
         stamps_us: list[int] = []
         buf = memoryview(bytearray(64 << 20))
+        digest = hashlib.sha256()
+        udp.setblocking(False)
+        if args.digest:  # a long lockstep timeout may hold step 0 for us: release it
+            tcp.settimeout(1.0)
         while True:
             try:
                 head = HEADER.unpack(read_exact(tcp, buf, HEADER.size))
                 read_exact(tcp, buf, head[8])
-            except (EOFError, TimeoutError, OSError):
+            except TimeoutError:
+                if args.digest and not arrivals:  # step 0's frame left before we connected
+                    udp.sendto(hover, ("127.0.0.1", p_sim))
+                    tcp.settimeout(60.0)
+                    continue
+                break
+            except (EOFError, OSError):
                 break
             arrivals.append(time.perf_counter())
             stamps_us.append(head[5])
-            udp.sendto(hover, ("127.0.0.1", p_sim))
+            if args.digest:
+                _digest_step(digest, udp, head, buf, mav, p_sim, len(arrivals) - 1)
+            else:
+                udp.sendto(hover, ("127.0.0.1", p_sim))
         sim.wait(timeout=30.0)
     finally:
         if sim.poll() is None:
@@ -122,6 +178,10 @@ def main() -> int:
         # whole process (start-up included) over every simulated step
         "emulator_cpu_ms_per_sim_step": float(emu_cpu_s * 1e3 / (args.duration / step_s)),
     }
+    if args.digest:
+        res["digest_sha256"] = digest.hexdigest()
+        print(f"emulator output digest (frames 20.., {len(stamps_us)} frames): "
+              f"{res['digest_sha256']}")
     if args.json:
         print(json.dumps(res, indent=2))
     else:

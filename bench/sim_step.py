@@ -37,9 +37,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from sim_bridge.camera import Camera, read_calibration
-from sim_bridge.camera_model import Sensor
+from sim_bridge.camera.frames import encode_frame
+from sim_bridge.camera.sensor import Sensor
 from sim_bridge.config import CAMERA_LEVELS, CameraModelConfig, load_config
-from sim_bridge.frames import encode_frame
 from sim_bridge.physics.agv import AgvTrajectory
 from sim_bridge.physics.vehicle import AttitudeCommand, initial_state
 from sim_bridge.vehicle_model import VehicleDynamics, build_vehicle_model

@@ -84,6 +84,14 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         cfg = load_config(args.config, scenario=args.scenario)
+        # the clock and the start first: --check-config judges the run they ask for (e.g. a
+        # camera rate that lockstep would ignore)
+        if args.lockstep:
+            cfg = with_sim(cfg, time_mode="lockstep")
+        elif args.realtime:
+            cfg = with_sim(cfg, time_mode="realtime")
+        if args.start:
+            cfg = with_sim(cfg, start=args.start)
         if args.check_config:
             print(check_config(cfg))
             return 0
@@ -95,12 +103,6 @@ def main(argv: list[str] | None = None) -> int:
             "agv_local_port": args.agv_port, "frame_port": args.frame_port,
             "truth_remote": args.truth_remote}.items() if v is not None}
         cfg = with_link(cfg, **changes)
-        if args.lockstep:
-            cfg = with_sim(cfg, time_mode="lockstep")
-        elif args.realtime:
-            cfg = with_sim(cfg, time_mode="realtime")
-        if args.start:
-            cfg = with_sim(cfg, start=args.start)
         if args.duration is not None and not args.duration > 0:
             raise SimBridgeError("--duration: must be > 0")
         asyncio.run(_run(SimBridge(cfg, bind_host=args.bind), args.duration))

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from sim_bridge import LinkError
-from sim_bridge.camera import RenderedFrame
+from sim_bridge.camera.camera import RenderedFrame
 from sim_bridge.physics.agv import AgvState
 
 __all__ = ["TruthPublisher", "truth_record"]

@@ -4,7 +4,7 @@ every grey level of the frame (and saturates at 255).
 Two independent sources of pixels: this suite's own exact-coverage renderer
 (tests/companion/test_perception.py, gain applied here) and the emulator's renderer
 (``sim_bridge.camera.Camera``) through the emulator's sensor model
-(``sim_bridge.camera_model.Sensor``: gain, shot and read noise at the "harsh" camera level's
+(``sim_bridge.camera.sensor.Sensor``: gain, shot and read noise at the "harsh" camera level's
 values, rounding), with the gain held fixed instead of drifting.
 
 Measured worst corner errors (px) behind the bounds below (2026-11-26):
@@ -30,7 +30,7 @@ from companion.config import load_config
 from companion.perception import Perception, RectangleDetector
 from companion.perception.rectangle import RectangleSettings
 from sim_bridge.camera import Camera
-from sim_bridge.camera_model import Sensor
+from sim_bridge.camera.sensor import Sensor
 from sim_bridge.config import CAMERA_LEVELS, CameraModelConfig
 from sim_bridge.physics.agv import AgvState
 from tests.companion import test_perception as tp

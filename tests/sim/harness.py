@@ -145,7 +145,7 @@ def run_sim(cfg: EmulatorConfig, duration_s: float = 600.0) -> Iterator[RunningS
                 ready.set()
                 box["stats"] = await sim.run(duration_s)
         except asyncio.CancelledError:
-            box["stats"] = sim.stats() if sim._links else None
+            box["stats"] = sim.stats() if sim.links else None
         except BaseException as e:
             box["error"] = e
         finally:

@@ -1,4 +1,4 @@
-"""A camera like a real one (sim_bridge.camera_model and the renderer's lens and motion blur),
+"""A camera like a real one (sim_bridge.camera.sensor and the renderer's lens and motion blur),
 against independent oracles: OpenCV's own undistortion, hand projections, binomial bounds, the
 noise model's analytic standard deviation."""
 
@@ -13,8 +13,9 @@ import pytest
 
 from sim_bridge import ConfigError
 from sim_bridge.camera import Camera, read_calibration
-from sim_bridge.camera_model import CameraTiming, DelayLine, Sensor, line_kernel
+from sim_bridge.camera.sensor import CameraTiming, Sensor, line_kernel
 from sim_bridge.config import CameraModelConfig, load_config
+from sim_bridge.delay import DelayLine
 from sim_bridge.physics.agv import AgvState
 from tests.sim.test_camera import (
     LAM,
@@ -338,7 +339,7 @@ def test_distorted_frame_equals_a_full_resolution_remap_of_the_ideal_canvas(
     with the canvas's matrix renders the scene, every output pixel samples it at its
     undistorted position."""
     k, d = lens
-    rk, (rw, rh) = dcam._rk, (dcam._rw, dcam._rh)
+    rk, (rw, rh) = dcam.lens.rk, (dcam.lens.rw, dcam.lens.rh)
     ref_cam = Camera(LAM, PIX, rw, rh, camera_matrix=rk, dist_coeffs=np.zeros(5))
     cols, rows = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     pts = np.stack([cols.ravel(), rows.ravel()], axis=-1).reshape(-1, 1, 2)

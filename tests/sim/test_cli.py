@@ -56,6 +56,18 @@ def test_default_ports_are_px4_sitl_ones() -> None:
         assert p.returncode == 2 and "cannot bind" in p.stderr, p.stderr
 
 
+def test_check_config_judges_the_clock_asked_for(tmp_path: Path) -> None:
+    """``--check-config --lockstep`` refuses, by name, a camera rate lockstep would ignore;
+    the same file on the wall clock is fine."""
+    cfg = tmp_path / "fast-camera.toml"
+    cfg.write_text(f'base = "{ROOT / "config" / "paper.toml"}"\n[sim.camera]\nrate_hz = 30.0\n')
+    p = _run("--config", str(cfg), "--check-config", "--lockstep")
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert "sim.camera.rate_hz: 30 Hz has no effect in lockstep" in p.stderr
+    ok = _run("--config", str(cfg), "--check-config", "--realtime")
+    assert ok.returncode == 0 and "config OK" in ok.stdout, ok.stderr
+
+
 def test_bad_arguments_exit_2() -> None:
     assert _run("--scenario", "no-such-scenario").returncode == 2
     assert _run("--duration", "-1", *FREE_PORTS).returncode == 2

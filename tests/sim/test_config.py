@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from sim_bridge import ConfigError
-from sim_bridge.config import DEFAULT_CONFIG, deep_merge, load_config, with_link
+from sim_bridge.config import DEFAULT_CONFIG, deep_merge, load_config, with_link, with_sim
 
 
 def test_paper_config() -> None:
@@ -90,3 +90,22 @@ def test_link_overrides_are_validated() -> None:
         with_link(load_config(), frame_port=-1)
     with pytest.raises(ConfigError, match=r"sim\.link\.nope"):
         with_link(load_config(), nope=1)
+
+
+def test_camera_rate_that_lockstep_would_ignore_is_refused_by_name(tmp_path: Path) -> None:
+    """In lockstep the camera fires once per ``sim.step_dt_s``: a ``sim.camera.rate_hz`` that
+    says otherwise would be silently ignored (a "30 Hz" flight flying at 20 Hz)."""
+    p = _variant(tmp_path, "[sim]\ntime_mode = \"lockstep\"\n[sim.camera]\nrate_hz = 30.0\n")
+    with pytest.raises(ConfigError, match=r"^sim\.camera\.rate_hz: 30 Hz has no effect in "
+                       r"lockstep.*sim\.step_dt_s = 0\.05 s \(20 Hz\)"):
+        load_config(p)
+    # the same rate with the step that matches it, or on the wall clock, is what it says
+    ok = _variant(tmp_path, "[sim]\ntime_mode = \"lockstep\"\nstep_dt_s = 0.0333333333333333\n"
+                  "physics_dt_s = 0.0033333333333333\n[sim.camera]\nrate_hz = 30.0\n")
+    assert load_config(ok).sim.camera.rate_hz == 30.0
+    rt = load_config(_variant(tmp_path, "[sim.camera]\nrate_hz = 30.0\n"))
+    assert rt.sim.time_mode == "realtime" and rt.sim.camera.rate_hz == 30.0
+    # switching that realtime config to lockstep (``sim-bridge --lockstep``) is refused too
+    with pytest.raises(ConfigError, match=r"^sim\.camera\.rate_hz: "):
+        with_sim(rt, time_mode="lockstep")
+    assert with_sim(load_config(), time_mode="lockstep").sim.camera.rate_hz == 20.0

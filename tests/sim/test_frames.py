@@ -12,7 +12,7 @@ from collections.abc import Awaitable, Callable
 import numpy as np
 import pytest
 
-from sim_bridge.frames import (
+from sim_bridge.camera.frames import (
     FrameError,
     FrameServer,
     decode_header,
@@ -250,7 +250,7 @@ def test_truth_to_nobody_never_raises() -> None:
 def test_record_parts_are_the_record_without_copying_the_image() -> None:
     """The frame server writes (header, payload) as they are: the raw payload is the image's
     own memory, read-only, and the two parts are exactly encode_frame's record."""
-    from sim_bridge.frames import encode_frame_parts
+    from sim_bridge.camera.frames import encode_frame_parts
 
     img = np.arange(48 * 64, dtype=np.uint8).reshape(48, 64)
     header, payload = encode_frame_parts(7, 123, img)

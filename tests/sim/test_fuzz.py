@@ -32,10 +32,10 @@ def _oracle_valid(data: bytes) -> int:
 def _wait_received(rs: RunningSim, n: int, timeout_s: float = 10.0) -> None:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        if rs.call(lambda: rs.sim._links["offboard"].counters.rx_datagrams) >= n:
+        if rs.call(lambda: rs.sim.links["offboard"].counters.rx_datagrams) >= n:
             return
         time.sleep(0.01)
-    c = rs.call(lambda: rs.sim._links["offboard"].counters)
+    c = rs.call(lambda: rs.sim.links["offboard"].counters)
     raise AssertionError(f"emulator did not receive every datagram: {n} sent, {c}")
 
 
@@ -79,7 +79,7 @@ def test_ten_thousand_bad_packets(client: MavClient) -> None:
                     valid += 1
             _wait_received(rs, sent)
             client.drain()
-        c = rs.call(lambda: rs.sim._links["offboard"].counters)
+        c = rs.call(lambda: rs.sim.links["offboard"].counters)
         assert c.rx_datagrams == sent
         assert c.rx_messages == valid + oracle
         rejected = c.rx_bad + c.rx_unknown + c.rx_mavlink1 + c.rx_empty + c.rx_foreign

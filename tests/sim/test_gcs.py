@@ -20,7 +20,6 @@ from typing import Any
 
 import pytest
 
-from sim_bridge.app import CAPABILITIES
 from sim_bridge.config import with_link
 from sim_bridge.follow_target import latlon_from_ned
 from sim_bridge.gcs import (
@@ -31,6 +30,7 @@ from sim_bridge.gcs import (
     from_wire,
     to_wire,
 )
+from sim_bridge.px4.streams import CAPABILITIES
 from tests.sim.harness import MavClient, RunningSim, make_config, run_sim
 
 ROOT = Path(__file__).resolve().parents[2]

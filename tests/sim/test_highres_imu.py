@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 
-from sim_bridge.app import SimBridge
 from sim_bridge.config import TelemetryConfig
 from sim_bridge.physics.px4_control import Px4Gains
 from sim_bridge.physics.rigid_body import AirframeParams, Px4VehicleModel
@@ -22,6 +21,7 @@ from sim_bridge.physics.vehicle import (
     VehicleParams,
     initial_state,
 )
+from sim_bridge.px4.telemetry import specific_force_frd
 from tests.sim.harness import MavClient, sim_with_client
 
 G = 9.81
@@ -31,7 +31,7 @@ def test_hover_reads_minus_g_along_body_z() -> None:
     """At rest in a level hover the accelerometer reads (0, 0, -g) whatever the yaw."""
     m = VehicleModel(VehicleParams(hover_thrust=0.5), dt_s=0.0025)
     s = m.step(initial_state((0.0, 0.0, -3.0), yaw_rad=1.1), AttitudeCommand(0, 0, 1.1, 0.5), 1.0)
-    np.testing.assert_allclose(SimBridge.specific_force_frd(s), [0.0, 0.0, -G], atol=1e-9)
+    np.testing.assert_allclose(specific_force_frd(s), [0.0, 0.0, -G], atol=1e-9)
 
 
 def test_tilted_accelerating_vehicle_with_drag_and_wind() -> None:
@@ -48,7 +48,7 @@ def test_tilted_accelerating_vehicle_with_drag_and_wind() -> None:
     rot = s.rot_body_to_ned
     other = np.asarray(wind) - 0.2 * s.vel_ned_m_s  # everything but thrust and gravity
     assert np.linalg.norm(s.vel_ned_m_s) > 1.0  # it is moving: drag matters
-    f = SimBridge.specific_force_frd(s)
+    f = specific_force_frd(s)
     np.testing.assert_allclose(f[:2], (rot.T @ other)[:2], atol=2e-3)
     assert math.isclose(f[2], -G * 0.6 / 0.5 + (rot.T @ other)[2], abs_tol=2e-3)
     # the accelerometer is the vehicle's acceleration less gravity
@@ -66,7 +66,7 @@ def test_px4_model_turbulence_reaches_the_accelerometer() -> None:
     seen = []
     for _ in range(40):
         s = m.step(s, AttitudeCommand(0.0, 0.0, 0.5, 0.5), 0.05)
-        f = SimBridge.specific_force_frd(s)
+        f = specific_force_frd(s)
         other = s.disturbance_ned_m_s2 - 0.1 * s.vel_ned_m_s
         np.testing.assert_allclose(f[:2], (s.rot_body_to_ned.T @ other)[:2], atol=2e-3)
         seen.append(np.linalg.norm(f[:2]))
@@ -82,7 +82,7 @@ def test_highres_imu_on_the_wire_hovering(client: MavClient) -> None:
     ATTITUDE's time_boot_ms), reading the true specific force of the hovering vehicle."""
     with sim_with_client(client) as rs:
         msgs = client.collect(1.0)
-        truth = rs.call(lambda: SimBridge.specific_force_frd(rs.sim.state))
+        truth = rs.call(lambda: specific_force_frd(rs.sim.state))
     imu = _imu(msgs)
     assert len(imu) >= 15, len(imu)
     assert all(m.fields_updated & 0b111 == 0b111 for m in imu)

@@ -176,7 +176,7 @@ def test_drop_rate_seen_by_a_real_client(client: MavClient) -> None:
     imp = _impaired(to_peer=ImpairmentParams(drop_p=0.3), seed=5)
     with sim_with_client(client, impairment=imp) as rs:
         msgs = client.collect(2.0)
-        counters = rs.call(lambda: rs.sim._links["offboard"].impairment.outgoing.counters)
+        counters = rs.call(lambda: rs.sim.links["offboard"].impairment.outgoing.counters)
     aq = [m for m in msgs if m.get_type() == "ATTITUDE_QUATERNION"]
     sent = 2.0 * 50
     assert 0.5 * sent < len(aq) < 0.9 * sent, len(aq)
@@ -220,7 +220,7 @@ def test_link_cut_and_heartbeat_stop_seen_by_a_real_client(client: MavClient) ->
                 if hasattr(m, "time_boot_ms"):
                     last_stamp_s = m.time_boot_ms * 1e-3
                 arrivals.append((last_stamp_s, m.get_type()))
-        counters = rs.call(lambda: rs.sim._links["offboard"].impairment.outgoing.counters)
+        counters = rs.call(lambda: rs.sim.links["offboard"].impairment.outgoing.counters)
     assert sent_in_cut
     stamped = [t for t, k in arrivals if k == "ATTITUDE_QUATERNION"]
     assert not [t for t in stamped if 0.6 <= t < 1.2]
@@ -242,7 +242,7 @@ def test_corruption_is_rejected_by_the_receivers(client: MavClient) -> None:
         for _ in range(50):
             client.command(400, 1)
         time.sleep(0.3)
-        c = rs.call(lambda: rs.sim._links["offboard"].counters)
+        c = rs.call(lambda: rs.sim.links["offboard"].counters)
     # a flipped bit in the payload or CRC fails the CRC; very few flips (e.g. in an unused
     # trailing length field) can leave a valid frame, so allow a handful
     assert len(good) <= 3
@@ -302,13 +302,13 @@ def test_lockstep_delay_counts_in_simulated_time(client: MavClient) -> None:
     ages: list[float] = []
     with run_sim(cfg, duration_s=1.5) as rs:
         client.target = ("127.0.0.1", rs.ports["offboard"])
-        real_pub = rs.sim._publish_frame
+        real_pub = rs.sim.publish_frame
 
         async def spy(t: float) -> None:
             ages.append(rs.sim.px4.setpoint_age_s(t))
             await real_pub(t)
 
-        rs.sim._publish_frame = spy  # type: ignore[method-assign]
+        rs.sim.publish_frame = spy  # type: ignore[method-assign]
         _lockstep_steps(client, rs, 20.0)
         rs.thread.join(10.0)
     stats = rs.stop()

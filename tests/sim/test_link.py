@@ -234,7 +234,7 @@ def test_mavlink1_frames_are_dropped(client: MavClient) -> None:
         msg = mav1.command_long_encode(1, 1, 31999, 0, 0, 0, 0, 0, 0, 0, 0)
         client.send_raw(msg.pack(mav1, force_mavlink1=True))
         assert client.ack(31999, 0.5) is None
-        c = rs.call(lambda: rs.sim._links["offboard"].counters)
+        c = rs.call(lambda: rs.sim.links["offboard"].counters)
         assert c.rx_mavlink1 == 1
 
 

@@ -204,7 +204,7 @@ def test_emulator_signs_everything_it_sends(client: MavClient) -> None:
 def test_signed_accepted_unsigned_replayed_forged_rejected(client: MavClient) -> None:
     with _signing_sim(client) as rs:
         def counters() -> Any:
-            return rs.call(lambda: rs.sim._links["offboard"].counters)
+            return rs.call(lambda: rs.sim.links["offboard"].counters)
 
         # unsigned command: no ACK, counted
         client.command(ARM, 1)
@@ -252,5 +252,5 @@ def test_signing_client_with_wrong_key_is_locked_out(client: MavClient) -> None:
         for _ in range(3):
             client.command(ARM, 1)
         assert client.ack(ARM, 0.5) is None
-        c = rs.call(lambda: rs.sim._links["offboard"].counters)
+        c = rs.call(lambda: rs.sim.links["offboard"].counters)
     assert c.rx_bad_signature == 3 and c.rx_messages == 0

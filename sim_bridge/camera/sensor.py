@@ -10,8 +10,7 @@ the runtime (``sim_bridge.app``) owns the I/O and the tests drive it step by ste
   (exposure/gain) drift, then shot noise (variance = conversion gain x signal) and read noise,
   rounded and saturated to 8 bits.
 * :func:`line_kernel`: the motion-blur kernel of a straight image motion over the exposure
-  (the geometry that produces the motion is the renderer's, ``sim_bridge.camera``).
-* :class:`DelayLine`: a FIFO of items each due at a time (frames, telemetry datagrams).
+  (the geometry that produces the motion is the renderer's, ``sim_bridge.camera.camera``).
 
 Each effect draws from its own seeded stream (``numpy.random.SeedSequence(seed).spawn``), so
 switching one effect on or off does not change the others' realisation.
@@ -19,58 +18,19 @@ switching one effect on or off does not change the others' realisation.
 
 from __future__ import annotations
 
-import collections
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Generic, TypeVar
 
 import cv2
 import numpy as np
 
 from sim_bridge.config import CameraModelConfig
+from sim_bridge.delay import rngs
 
-__all__ = ["CameraTiming", "Capture", "DelayLine", "Sensor", "line_kernel", "rngs"]
-
-T = TypeVar("T")
+__all__ = ["CameraTiming", "Capture", "Sensor", "line_kernel"]
 
 _NOISE_BANK = 3
 _NOISE_PAD = 64
-
-
-def rngs(seed: int, n: int, salt: int = 0) -> list[np.random.Generator]:
-    """``n`` independent generators derived from ``seed`` (any int) and a per-use ``salt``."""
-    ss = np.random.SeedSequence([seed % 2**32, salt])
-    return [np.random.default_rng(s) for s in ss.spawn(n)]
-
-
-class DelayLine(Generic[T]):
-    """Items in delivery order, each with the time (s) it is due. ``push`` keeps FIFO order:
-    an item is never due before the one pushed ahead of it (a link does not reorder)."""
-
-    def __init__(self) -> None:
-        self._q: collections.deque[tuple[float, T]] = collections.deque()
-        self._last_due_s = -math.inf
-
-    def push(self, due_s: float, item: T) -> float:
-        """Queue ``item``; returns its due time (pushed back behind the previous item)."""
-        due = max(due_s, self._last_due_s)
-        self._last_due_s = due
-        self._q.append((due, item))
-        return due
-
-    def pop_due(self, now_s: float) -> Iterator[T]:
-        """Yield (and remove) every item due at or before ``now_s``, in order."""
-        while self._q and self._q[0][0] <= now_s + 1e-9:
-            yield self._q.popleft()[1]
-
-    @property
-    def next_due_s(self) -> float:
-        return self._q[0][0] if self._q else math.inf
-
-    def __len__(self) -> int:
-        return len(self._q)
-
 
 @dataclass(frozen=True)
 class Capture:

@@ -1,0 +1,172 @@
+"""The vehicle's MAVLink telemetry: each streamed or requested message encoded from the state
+the emulator flies (PX4's stream definitions, docs/wire.md), with the sensor noise and injected
+faults of ``[sim.telemetry]`` and ``[sim.faults]``, sent through the transport delay."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sim_bridge import SimBridgeError
+from sim_bridge.delay import rngs
+from sim_bridge.follow_target import latlon_from_ned
+from sim_bridge.link import Address, MavUdpLink
+from sim_bridge.physics.vehicle import G_M_S2, VehicleState, quat_from_euler
+from sim_bridge.px4.streams import (
+    ATTITUDE,
+    ATTITUDE_QUATERNION,
+    ATTITUDE_TARGET,
+    AUTOPILOT_VERSION,
+    CAPABILITIES,
+    EXTENDED_SYS_STATE,
+    FLIGHT_SW_VERSION,
+    GLOBAL_POSITION_INT,
+    HEARTBEAT,
+    HIGHRES_IMU,
+    HOME_POSITION,
+    LOCAL_POSITION_NED,
+    STATE_STREAMS,
+    SYS_STATUS,
+    SYSTEM_TIME,
+    TIMESYNC,
+    Streams,
+)
+
+if TYPE_CHECKING:
+    from sim_bridge.app import SimBridge
+
+
+def specific_force_frd(s: VehicleState) -> np.ndarray:
+    """What an ideal accelerometer reads (m/s^2, body FRD): the vehicle's acceleration
+    less gravity, i.e. thrust, drag, wind and turbulence (``R' (a - g e_z)``); ``-g``
+    along z in a level hover or at rest on the ground."""
+    f_ned = np.asarray(s.acc_ned_m_s2, dtype=float) - np.array([0.0, 0.0, G_M_S2])
+    out: np.ndarray = s.rot_body_to_ned.T @ f_ned
+    return out
+
+
+class Telemetry:
+    """The streams of every vehicle link (:attr:`streams`, by link name) and the encoding of
+    each message from ``sim``'s state, autopilot and clocks."""
+
+    def __init__(self, sim: SimBridge) -> None:
+        self.sim = sim
+        seed, tm = sim.cfg.sim.seed, sim.cfg.sim.telemetry
+        self.streams: dict[str, Streams] = {}
+        # HIGHRES_IMU: its own generators (accelerometer noise, transport jitter), so that the
+        # other messages draw the same jitter with or without it
+        self._imu_rng, self._imu_tx_rng = rngs(seed, 2, salt=5)
+        self._accel_noise = tm.accel_noise_m_s2
+        self._accel_bias = np.asarray(tm.accel_bias_m_s2, dtype=float)
+        # LOCAL_POSITION_NED's velocity noise: its own generator too
+        (self._vel_rng,) = rngs(seed, 1, salt=7)
+        self._vel_noise = tm.velocity_noise_m_s
+        #: our TIMESYNC requests' ``ts1`` (ns) -> the simulation time they were sent
+        self.timesync_sent_ns: dict[int, float] = {}
+
+    def ned_to_global(self, pos: np.ndarray) -> tuple[float, float, float]:
+        tg = self.sim.cfg.target
+        return latlon_from_ned(pos, tg.origin_lat_deg, tg.origin_lon_deg, tg.origin_alt_m)
+
+    def encode(self, link: MavUdpLink, mid: int, t: float) -> Any:
+        s, px4, mav, ms = self.sim.state, self.sim.px4, link.mav, self.sim.ms(t)
+        if mid == HEARTBEAT:
+            return mav.heartbeat_encode(2, 12, px4.base_mode, px4.custom_mode,
+                                        px4.system_status, 3)
+        if mid == SYS_STATUS:
+            sensors = 1 | 2 | 4 | 8 | 32 | 0x8000 | 0x200000 | 0x2000000
+            return mav.sys_status_encode(sensors, sensors, sensors, 100, 16000, -1, 100,
+                                         0, 0, 0, 0, 0, 0)
+        if mid == ATTITUDE_QUATERNION:
+            q, w = s.q_wxyz, s.rates_frd_rad_s
+            return mav.attitude_quaternion_encode(ms, *(float(v) for v in q),
+                                                  *(float(v) for v in w))
+        if mid == ATTITUDE:
+            w = s.rates_frd_rad_s
+            return mav.attitude_encode(ms, s.roll_rad, s.pitch_rad, s.yaw_rad,
+                                       *(float(v) for v in w))
+        if mid == ATTITUDE_TARGET:  # PX4 streams/ATTITUDE_TARGET.hpp: the attitude setpoint
+            cmd = self.sim.attitude_target or px4.attitude_command()
+            q = quat_from_euler(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad)
+            rates = cmd.body_rates_frd_rad_s or (0.0, 0.0, cmd.yaw_rate_ff_rad_s)
+            return mav.attitude_target_encode(ms, 0, [float(v) for v in q],
+                                              *(float(v) for v in rates),
+                                              float(cmd.thrust_norm))
+        if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/wire.md, HIGHRES_IMU)
+            f = specific_force_frd(s)
+            if self._accel_noise > 0 or np.any(self._accel_bias):
+                f = f + self._accel_bias + self._accel_noise * self._imu_rng.standard_normal(3)
+            w = s.rates_frd_rad_s
+            return mav.highres_imu_encode(self.sim.us(t), *(float(v) for v in f),
+                                          *(float(v) for v in w), 0.0, 0.0, 0.0, 0.0, 0.0,
+                                          0.0, 0.0, 0b111111)
+        if mid == LOCAL_POSITION_NED:
+            vel = s.vel_ned_m_s
+            if self._vel_noise > 0:
+                vel = vel + self._vel_noise * self._vel_rng.standard_normal(3)
+            return mav.local_position_ned_encode(ms, *(float(v) for v in s.pos_ned_m),
+                                                 *(float(v) for v in vel))
+        if mid == GLOBAL_POSITION_INT:
+            lat, lon, alt = self.ned_to_global(s.pos_ned_m)
+            rel = float(px4.home_ned_m[2] - s.pos_ned_m[2])
+            v = s.vel_ned_m_s * 100
+            hdg = round(math.degrees(s.yaw_rad) % 360 * 100) % 36000
+            return mav.global_position_int_encode(ms, int(lat * 1e7), int(lon * 1e7),
+                                                  int(alt * 1000), int(rel * 1000),
+                                                  int(v[0]), int(v[1]), int(v[2]), hdg)
+        if mid == EXTENDED_SYS_STATE:
+            return mav.extended_sys_state_encode(0, px4.landed_state)
+        if mid == TIMESYNC:  # PX4's own request (streams/TIMESYNC.hpp): tc1 = 0, ts1 = now ns
+            ts1 = round(self.sim.boot_s(t) * 1e9)
+            self.timesync_sent_ns[ts1] = t
+            if len(self.timesync_sent_ns) > 64:
+                self.timesync_sent_ns.pop(next(iter(self.timesync_sent_ns)))
+            return mav.timesync_encode(0, ts1)
+        if mid == SYSTEM_TIME:
+            return mav.system_time_encode(round((self.sim.unix_t0_s + t) * 1e6), ms)
+        if mid == HOME_POSITION:
+            h = px4.home_ned_m
+            lat, lon, alt = self.ned_to_global(h)
+            return mav.home_position_encode(int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
+                                            float(h[0]), float(h[1]), float(h[2]),
+                                            [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                            self.sim.us(t))
+        if mid == AUTOPILOT_VERSION:
+            return mav.autopilot_version_encode(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0,
+                                                [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x11,
+                                                0x5EB1D6E0)
+        raise SimBridgeError(f"no encoder for message {mid}")  # pragma: no cover
+
+    def send_message(self, link: MavUdpLink, mid: int, t: float,
+                     addr: Address | None = None, *, reply: bool = False) -> None:
+        self.sim.transport.tx(link, self.encode(link, mid, t), addr, reply=reply,
+                              rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
+
+    def send_streams(self, t: float) -> None:
+        faults = self.sim.cfg.sim.faults
+        for name, streams in self.streams.items():
+            link = self.sim.links[name]
+            for mid in streams.due(t):
+                if mid in STATE_STREAMS and faults.dropout(t):
+                    continue  # injected telemetry dropout
+                if mid in STATE_STREAMS and faults.nan(t):
+                    self.sim.transport.tx(link, self.encode_nan(link, mid, t),
+                                          rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
+                    continue
+                self.send_message(link, mid, t)
+
+    def encode_nan(self, link: MavUdpLink, mid: int, t: float) -> Any:
+        """The state message ``mid`` with NaN attitude/velocity (injected fault)."""
+        nan, ms, mav = float("nan"), self.sim.ms(t), link.mav
+        if mid == ATTITUDE_QUATERNION:
+            return mav.attitude_quaternion_encode(ms, nan, nan, nan, nan, nan, nan, nan)
+        if mid == ATTITUDE:
+            return mav.attitude_encode(ms, nan, nan, nan, nan, nan, nan)
+        if mid == HIGHRES_IMU:
+            return mav.highres_imu_encode(self.sim.us(t), nan, nan, nan, nan, nan, nan, 0.0, 0.0,
+                                          0.0, 0.0, 0.0, 0.0, 0.0, 0b111111)
+        p = self.sim.state.pos_ned_m
+        return mav.local_position_ned_encode(ms, float(p[0]), float(p[1]), float(p[2]),
+                                             nan, nan, nan)
