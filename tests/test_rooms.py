@@ -32,10 +32,6 @@ SPLITTING: dict[str, str] = {
     "companion/log/lag.py": "log analysis (lean pass)",
     "companion/log/reader.py": "log reader (lean pass)",
     "companion/log/writer.py": "log writer (lean pass)",
-    "sim_bridge/app.py": "the emulator's app (sim split)",
-    "sim_bridge/camera.py": "the emulator's camera (sim split)",
-    "sim_bridge/config.py": "the emulator's config (sim split)",
-    "sim_bridge/px4.py": "the emulator's PX4 modes and streams (sim split)",
 }
 
 _EXCEPTION_LINE = re.compile(r"^- `(?P<path>[^`]+)` \(max (?P<max>\d+) lines\): (?P<why>\S.*)$")
