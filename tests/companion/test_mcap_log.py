@@ -384,3 +384,65 @@ def test_a_held_writer_waits_for_release_and_loses_nothing(
             lg.log("/seq", i, {"i": i}, schema=sch.JSON)
     with LogReader(path2) as r:
         assert [m.data["i"] for m in r.messages() if m.data is not None] == list(range(5))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (7, 5), (241, 333), (16, 9, 3), (1, 4, 3)])
+def test_png_bytes_is_a_lossless_standard_png(shape: tuple[int, ...]) -> None:
+    """The logged crops' PNG writer (ISA-L deflate, UP filter): OpenCV and Pillow, two
+    independent decoders, both give back every pixel (BGR in, BGR back from OpenCV)."""
+    import io
+
+    from PIL import Image
+
+    from companion.log.encode import png_bytes
+
+    rng = np.random.default_rng(sum(shape))
+    img = rng.integers(0, 256, shape, dtype=np.uint8)
+    data = png_bytes(img)
+    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert back is not None and np.array_equal(back, img)
+    pil = np.asarray(Image.open(io.BytesIO(data)))  # Pillow checks every chunk's CRC
+    assert np.array_equal(pil, img if img.ndim == 2 else img[:, :, ::-1])
+    # a non-contiguous view (a crop of a frame) is what the recorder hands over
+    frame = rng.integers(0, 256, (50, 60), dtype=np.uint8)
+    crop = frame[10:40, 5:45]
+    back = cv2.imdecode(np.frombuffer(png_bytes(crop), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(back, crop)
+
+
+def test_encode_json_values_match_the_json_module() -> None:
+    """encode_json (orjson) reads back to the same values as the json module's encoding,
+    NaN/inf as null, numpy float32 at float64 precision, bytes as base64, int keys as text."""
+    payload: dict[Any, Any] = {
+        "f": [0.1, 1e-5, 1e16, -0.0, 123456.789, float("nan"), float("inf")],
+        "np": np.array([[1.5, np.nan], [np.float32(0.1), -np.inf]]),
+        "f32": np.float32(0.1), "i64": np.int64(-7), "b": b"\x00\xff", "t": (1, 2),
+        "nested": {"x": [{"y": float("-inf")}]}, 3: "int key", "big": 2**70,
+    }
+    reference = json.dumps(_nulled(payload), allow_nan=False, default=_plain)
+    assert json.loads(encode_json(payload)) == json.loads(reference)
+    small = {k: v for k, v in payload.items() if k != "big"}  # orjson's own path, not the fallback
+    assert json.loads(encode_json(small)) == json.loads(
+        json.dumps(_nulled(small), allow_nan=False, default=_plain))
+
+
+def _plain(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, bytes):
+        return base64.b64encode(o).decode()
+    raise TypeError(type(o))
+
+
+def _nulled(o: Any) -> Any:
+    if isinstance(o, np.ndarray | np.generic):
+        o = o.tolist()
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {str(k): _nulled(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_nulled(v) for v in o]
+    return o
