@@ -15,19 +15,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import orjson
+from isal import isal_zlib
 
 from companion.log import McapLogError
 from companion.log import schemas as sch
-
-try:
-    import orjson
-except ImportError:  # pragma: no cover - a pinned dependency; the json module otherwise
-    orjson = None
-
-try:
-    from isal import isal_zlib as _isal_zlib
-except ImportError:  # pragma: no cover - a pinned dependency; OpenCV's PNG writer otherwise
-    _isal_zlib = None
 
 
 def stamp(t_ns: int) -> dict[str, int]:
@@ -77,20 +69,19 @@ def _orjson_default(o: Any) -> Any:
     return _json_default(o)
 
 
-_ORJSON_OPTIONS = 0 if orjson is None else orjson.OPT_NON_STR_KEYS
+_ORJSON_OPTIONS = orjson.OPT_NON_STR_KEYS
 
 
 def encode_json(payload: Any) -> bytes:
     """Compact JSON; NaN/inf become null; numpy, bytes (base64) and dataclasses are handled.
 
-    orjson when installed (a pinned dependency): a flight's step record costs ~25 us instead
+    orjson (a pinned dependency): a flight's step record costs ~25 us instead
     of ~400 us with the json module (which must walk it again to null its NaNs). The text may
     differ from the json module's in float spelling (``1e-05`` vs ``1e-5``), never in value."""
-    if orjson is not None:
-        try:
-            return orjson.dumps(payload, default=_orjson_default, option=_ORJSON_OPTIONS)
-        except (TypeError, orjson.JSONEncodeError):
-            pass  # an int beyond 64 bits, ...: the json module says what it cannot encode
+    try:
+        return orjson.dumps(payload, default=_orjson_default, option=_ORJSON_OPTIONS)
+    except TypeError:  # orjson.JSONEncodeError: an int beyond 64 bits, an unknown type, ...
+        pass  # the json module encodes what it can and says what it cannot
     try:
         text = json.dumps(payload, default=_json_default, allow_nan=False, separators=(",", ":"))
     except ValueError:  # a non-finite float somewhere
@@ -114,19 +105,12 @@ def encode_image(
         raise McapLogError(f"image must be uint8 HxW or HxWx3 (BGR), got {img.dtype} {img.shape}")
     ts = stamp(log_time_ns)
     if encoding in ("jpeg", "png"):
-        if encoding == "png" and _isal_zlib is not None and img.size > 0:
+        if encoding == "png":
             data = png_bytes(img)
         else:
-            # JPEG; or PNG without ISA-L: lossless, Huffman-only after the PAETH filter
-            # (27 kB, 2.1 ms a flight crop, against 30 kB, 0.48 ms for png_bytes)
-            params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if encoding == "jpeg" else [
-                cv2.IMWRITE_PNG_COMPRESSION, 1,
-                cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
-                cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_PAETH,
-            ]
-            ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
+            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
             if not ok:
-                raise McapLogError(f"cv2 could not encode a {encoding} image")
+                raise McapLogError("cv2 could not encode a jpeg image")
             data = buf.tobytes()
         cmsg = sch.protobuf_class(sch.COMPRESSED_IMAGE)(
             frame_id=frame_id, format=encoding, data=data
@@ -158,10 +142,10 @@ def png_bytes(image: np.ndarray) -> bytes:
     several hundred. On the crops of a paper flight (~110 kpx, textured ground with sensor
     noise) 0.48 ms and 30.5 kB a crop, against 2.1 ms and 27.2 kB for OpenCV's PAETH +
     Huffman-only (UP filter with zlib instead: 1.6 ms, 35.8 kB)."""
-    if _isal_zlib is None:  # pragma: no cover - isal is a pinned dependency
-        raise McapLogError("png_bytes needs the isal package")
     img = np.ascontiguousarray(image)
     h, w = img.shape[:2]
+    if h == 0 or w == 0:
+        raise McapLogError(f"cannot encode an empty image ({w} x {h}) as PNG")
     if img.ndim == 3:
         img = img[:, :, ::-1].reshape(h, w * 3)  # BGR -> RGB, one row of bytes per image row
     rows = np.empty((h, img.shape[1] + 1), dtype=np.uint8)
@@ -172,7 +156,7 @@ def png_bytes(image: np.ndarray) -> bytes:
     header = struct.pack(">IIBBBBB", w, h, 8, 0 if image.ndim == 2 else 2, 0, 0, 0)
     return b"".join((
         b"\x89PNG\r\n\x1a\n", _png_chunk(b"IHDR", header),
-        _png_chunk(b"IDAT", _isal_zlib.compress(rows.data, 1)), _png_chunk(b"IEND", b""),
+        _png_chunk(b"IDAT", isal_zlib.compress(rows.data, 1)), _png_chunk(b"IEND", b""),
     ))
 
 def xyz(v: Sequence[float]) -> dict[str, float]:
