@@ -14,7 +14,7 @@ corners each step recorded (tuning the controller: solver-bound).
 from __future__ import annotations
 
 import base64
-import json
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -33,6 +33,7 @@ from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import STAMPED_MESSAGES, TimeBase
 from companion.control.wiring import new_pipeline, new_store
 from companion.log import schemas as sch
+from companion.log.encode import decode_json
 from companion.log.reader import LogReader
 from companion.log.writer import McapLogger
 from companion.perception import Perception
@@ -184,7 +185,7 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     if TOPIC_STEP not in counts:
         raise ReplayError(f"{log_path}: missing channel {TOPIC_STEP}: cannot replay "
                           f"(present: {', '.join(sorted(counts)) or 'none'})")
-    cfg = replay_config(reader, config, list(overrides or []))
+    cfg = _in_process_solves(replay_config(reader, config, list(overrides or [])))
     mode = "detections" if from_detections else _input_mode(reader, log_path, counts)
     res = _new_result(reader, log_path, cfg, mode)
     # the controller first (as the live process builds it), then
@@ -357,9 +358,20 @@ class _Replayer:
             self.progress(res.steps, self.total_steps)
 
 
+def _in_process_solves(cfg: Config) -> Config:
+    """The config with the RMPC solved in this process (``rmpc.solve_isolation = "none"``).
+
+    A replay has no deadline to protect, and the child process of a flight solves the same
+    compiled problem, so the commands are the same; in-process a replay saves the child's
+    start-up (loading the solver a second time) and a pipe round trip per solve."""
+    if cfg.rmpc.solve_isolation == "none":
+        return cfg
+    return dataclasses.replace(cfg, rmpc=dataclasses.replace(cfg.rmpc, solve_isolation="none"))
+
+
 def _json(raw: bytes) -> dict[str, Any] | None:
     try:
-        out = json.loads(raw)
+        out = decode_json(raw)
     except ValueError:
         return None
     return out if isinstance(out, dict) else None

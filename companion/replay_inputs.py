@@ -33,6 +33,7 @@ import numpy as np
 from companion import CompanionError
 from companion.config import Config, config_from_dict
 from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP
+from companion.log.encode import decode_json
 from companion.log.reader import LogReader, image_from_raw
 from companion.perception import Perception, PerceptionResult
 
@@ -95,7 +96,7 @@ def perceived_from_record(rec: Mapping[str, Any]) -> Perceived:
 
 def _json(raw: bytes) -> dict[str, Any] | None:
     try:
-        out = json.loads(raw)
+        out = decode_json(raw)
     except ValueError:
         return None
     return out if isinstance(out, dict) else None

@@ -89,6 +89,16 @@ def encode_json(payload: Any) -> bytes:
     return text.encode()
 
 
+def decode_json(raw: bytes | str) -> Any:
+    """The value of a JSON text (orjson; the json module for what orjson refuses but it reads:
+    the NaN/Infinity literals or integers beyond 64 bits some writers produce). Raises
+    ``ValueError`` (incl. ``UnicodeDecodeError``) when neither reads it."""
+    try:
+        return orjson.loads(raw)
+    except orjson.JSONDecodeError:
+        return json.loads(raw)
+
+
 def encode_image(
     image: np.ndarray, encoding: str, log_time_ns: int, frame_id: str, jpeg_quality: int
 ) -> tuple[str, bytes]:

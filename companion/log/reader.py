@@ -19,7 +19,6 @@ from __future__ import annotations
 import base64
 import heapq
 import io
-import json
 import logging
 import struct
 from collections.abc import Iterable, Iterator
@@ -38,6 +37,7 @@ from mcap.stream_reader import get_chunk_data_stream
 
 from companion import CompanionError
 from companion.log import schemas as sch
+from companion.log.encode import decode_json
 
 log = logging.getLogger(__name__)
 
@@ -418,7 +418,7 @@ class LogReader:
                 data, image = decode_protobuf_image(schema_name, m.data)
         elif decode and ch.message_encoding == sch.MESSAGE_ENCODING:
             try:
-                data = json.loads(m.data)
+                data = decode_json(m.data)
             except (ValueError, UnicodeDecodeError) as e:
                 log.warning(
                     "%s: undecodable JSON on %s at %d: %s", self.path, ch.topic, m.log_time, e
@@ -443,8 +443,8 @@ def image_from_raw(schema_name: str, message_encoding: str, raw: bytes) -> np.nd
     if message_encoding == sch.PROTOBUF_ENCODING:
         return decode_protobuf_image(schema_name, raw)[1]
     try:
-        msg = json.loads(raw)
-    except (ValueError, UnicodeDecodeError):
+        msg = decode_json(raw)
+    except ValueError:
         return None
     return decode_image(schema_name, msg) if isinstance(msg, dict) else None
 
