@@ -48,6 +48,8 @@ from companion.core.errors import ParamError
 
 _NX = 7  # v (3), d (3), theta
 _NB = 2  # with the accelerometer: its bias in body x, y (states 7, 8)
+_EYE3 = np.eye(3)
+_ORTHO_TOL = 1e-3 + 1e-5 * _EYE3  # np.allclose's atol + rtol |b| against the identity
 
 
 @dataclass(frozen=True)
@@ -211,18 +213,21 @@ class DisturbanceEstimator:
         return 1.0 / float(self.x[6])
 
     def estimate(self) -> DisturbanceEstimate:
-        theta = float(self.x[6])
-        theta_std = math.sqrt(max(float(self.p[6, 6]), 0.0))
-        d_std = np.sqrt(np.maximum(np.diag(self.p)[3:6], 0.0))
-        bias = (float(self.x[7]), float(self.x[8])) if self.params.accelerometer else None
+        # plain floats: numpy's per-call overhead on 3-vectors cost more than the arithmetic
+        x = self.x.tolist()
+        p_diag = self.p.diagonal().tolist()
+        theta = x[6]
+        theta_std = math.sqrt(max(p_diag[6], 0.0))
+        dx, dy, dz = (math.sqrt(max(v, 0.0)) for v in p_diag[3:6])
+        bias = (x[7], x[8]) if self.params.accelerometer else None
+        ix, iy, iz = self.innovation.tolist()
         return DisturbanceEstimate(
             hover_thrust=1.0 / theta,
-            d_ned_m_s2=(float(self.x[3]), float(self.x[4]), float(self.x[5])),
+            d_ned_m_s2=(x[3], x[4], x[5]),
             hover_std=theta_std / (theta * theta),
-            d_std_m_s2=(float(d_std[0]), float(d_std[1]), float(d_std[2])),
+            d_std_m_s2=(dx, dy, dz),
             updates=self.updates, rejected=self.rejected,
-            innovation_m_s=(float(self.innovation[0]), float(self.innovation[1]),
-                            float(self.innovation[2])),
+            innovation_m_s=(ix, iy, iz),
             reason=self.reason, accel_bias_m_s2=bias, accel_updates=self.accel_updates,
         )
 
@@ -235,7 +240,7 @@ class DisturbanceEstimator:
         re-anchors the velocity; the estimate is not touched.
         """
         v = np.asarray(v_ned_m_s, dtype=float).reshape(-1)
-        if v.shape != (3,) or not np.all(np.isfinite(v)) or not math.isfinite(float(t_s)):
+        if v.shape != (3,) or not _all_finite(v.tolist()) or not math.isfinite(float(t_s)):
             return self._reject("non-finite velocity or time")
         if self.t_s is not None and t_s <= self.t_s:
             return self._reject("velocity sample not newer than the last one")
@@ -251,12 +256,9 @@ class DisturbanceEstimator:
             return True
         dt = t_s - self.t_s
         x_pred, p_pred = self._predict(t_s, dt, float(thrust_norm), b)
-        # correction with z = v
-        h = np.zeros((3, self.n))
-        h[:, :3] = np.eye(3)
+        # correction with z = v: H = [I 0], R = r I (the structure used by _correct_velocity)
         innov = v - x_pred[:3]
-        r = np.eye(3) * self.params.velocity_noise_m_s**2
-        res = self._correct(x_pred, p_pred, h, innov, r)
+        res = self._correct_velocity(x_pred, p_pred, innov, self.params.velocity_noise_m_s**2)
         if isinstance(res, str):
             if res.startswith("outlier"):
                 # an outlier: keep the estimate, re-anchor the velocity so one glitch is not
@@ -287,11 +289,13 @@ class DisturbanceEstimator:
             return False
         f = np.asarray(f_body_xy_m_s2, dtype=float).reshape(-1)
         rot = np.asarray(r_body_to_ned, dtype=float)
-        if (f.shape != (2,) or not np.all(np.isfinite(f)) or not math.isfinite(float(t_s))
-                or float(np.max(np.abs(f))) > self.params.accel_max_m_s2):
-            return self._reject(f"non-finite or implausible accelerometer sample {f.tolist()}")
-        if (rot.shape != (3, 3) or not np.all(np.isfinite(rot))
-                or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-3)):
+        fl = f.tolist()
+        if (f.shape != (2,) or not _all_finite(fl) or not math.isfinite(float(t_s))
+                or max(abs(fl[0]), abs(fl[1])) > self.params.accel_max_m_s2):
+            return self._reject(f"non-finite or implausible accelerometer sample {fl}")
+        # np.allclose(R'R, I, atol=1e-3) (rtol 1e-5), without its wrapper's cost
+        if (rot.shape != (3, 3) or not np.isfinite(rot).all()
+                or not (np.abs(rot.T @ rot - _EYE3) <= _ORTHO_TOL).all()):
             return self._reject("accelerometer attitude is not a rotation")
         if t_s < self.t_s:
             return False  # older than what the filter holds: no update
@@ -325,6 +329,34 @@ class DisturbanceEstimator:
 
     # ------------------------------------------------------------------------------------------
 
+    def _correct_velocity(self, x_pred: np.ndarray, p_pred: np.ndarray, innov: np.ndarray,
+                          r: float) -> str | None:
+        """:meth:`_correct` for ``H = [I3 0]``, ``R = r I3`` (the velocity measurement),
+        without the products by H: ``H P H' = P[:3, :3]``, ``P H' = P[:, :3]``, ``K H = [K 0]``
+        and ``K R K' = r K K'`` are exact (products by 0 and 1), so the result is the general
+        form's to rounding (the same where numpy's kernels sum in the same order)."""
+        s = p_pred[:3, :3] + np.diag((r, r, r))
+        try:
+            s_inv = np.linalg.inv(s)
+        except np.linalg.LinAlgError:
+            self.reset()
+            return "singular innovation covariance: filter reset"
+        nis = float(innov @ s_inv @ innov)
+        if not math.isfinite(nis) or nis > self.params.innovation_gate:
+            return f"outlier (normalised innovation {nis:.3g})"
+        k = p_pred[:, :3] @ s_inv
+        x_new = x_pred + k @ innov
+        i_kh = np.eye(self.n)
+        i_kh[:, :3] -= k
+        p_new = i_kh @ p_pred @ i_kh.T + (k * r) @ k.T  # Joseph form: stays PSD
+        p_new = 0.5 * (p_new + p_new.T)
+        if not (np.isfinite(x_new).all() and np.isfinite(p_new).all()):
+            self.reset()
+            return "non-finite estimate: filter reset"
+        self.x = self._clip(x_new)
+        self.p = p_new
+        return None
+
     def _correct(self, x_pred: np.ndarray, p_pred: np.ndarray, h: np.ndarray,
                  innov: np.ndarray, r: np.ndarray) -> str | None:
         """Kalman correction (Joseph form) into ``self.x``/``self.p``; a reason string (and
@@ -357,7 +389,7 @@ class DisturbanceEstimator:
         g = self.g_m_s2
         n = self.n
         f = np.eye(n)
-        f[0:3, 3:6] = np.eye(3) * dt
+        f[0, 3] = f[1, 4] = f[2, 5] = dt
         f[0:3, 6] = -dt * g * thrust * b
         x = f @ self.x
         x[2] += g * dt
@@ -387,13 +419,19 @@ class DisturbanceEstimator:
         self._t_vel = t_s
 
     def _clip(self, x: np.ndarray) -> np.ndarray:
+        """``x`` with d, theta (and the bias) clipped to their bounds (``np.clip``'s values,
+        element by element in plain floats: cheaper on so few)."""
         pr = self.params
-        out = x.copy()
-        out[3:6] = np.clip(out[3:6], -pr.disturbance_max_m_s2, pr.disturbance_max_m_s2)
-        out[6] = float(np.clip(out[6], 1.0 / pr.hover_max, 1.0 / pr.hover_min))
+        v = x.tolist()
+        d_max = pr.disturbance_max_m_s2
+        for i in (3, 4, 5):
+            v[i] = min(max(v[i], -d_max), d_max)
+        v[6] = min(max(v[6], 1.0 / pr.hover_max), 1.0 / pr.hover_min)
         if pr.accelerometer:
-            out[7:9] = np.clip(out[7:9], -pr.accel_bias_max_m_s2, pr.accel_bias_max_m_s2)
-        return out
+            b_max = pr.accel_bias_max_m_s2
+            v[7] = min(max(v[7], -b_max), b_max)
+            v[8] = min(max(v[8], -b_max), b_max)
+        return np.array(v)
 
     def _reject(self, why: str) -> bool:
         self.rejected += 1
@@ -401,11 +439,19 @@ class DisturbanceEstimator:
         return False
 
 
+def _all_finite(values: list[float]) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
 def _checked_inputs(thrust_norm: float, body_z_ned: ArrayLike) -> np.ndarray | None:
     """The body z axis as an array, or None when it or the thrust is non-finite/implausible."""
     b = np.asarray(body_z_ned, dtype=float).reshape(-1)
-    if (b.shape != (3,) or not np.all(np.isfinite(b)) or not math.isfinite(thrust_norm)
-            or not 0.0 <= thrust_norm <= 1.0 or abs(float(np.linalg.norm(b)) - 1.0) > 1e-3):
+    if b.shape != (3,):
+        return None
+    bx, by, bz = b.tolist()
+    if (not _all_finite([bx, by, bz]) or not math.isfinite(thrust_norm)
+            or not 0.0 <= thrust_norm <= 1.0
+            or abs(math.sqrt(bx * bx + by * by + bz * bz) - 1.0) > 1e-3):
         return None
     return b
 
