@@ -179,7 +179,7 @@ def rotation_from_quat(q_wxyz: ArrayLike) -> np.ndarray:
     nrm = float(np.linalg.norm(q))
     if nrm < 1e-9:
         raise GeometryError("rotation_from_quat: zero quaternion")
-    w, x, y, z = q / nrm
+    w, x, y, z = (q / nrm).tolist()  # plain floats: the same IEEE arithmetic, less overhead
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],

@@ -269,7 +269,8 @@ def grey_levels(gray: npt.NDArray[np.uint8], s: RectangleSettings) -> tuple[int,
     the levels agree with the whole image's to about a grey level."""
     step = max(math.isqrt(gray.size // _HIST_SAMPLES), 1)
     sample = gray[::step, ::step] if step > 1 else gray
-    hist = cv2.calcHist([np.ascontiguousarray(sample)], [0], None, [256], [0, 256]).ravel()
+    # calcHist reads a strided view (a crop of the frame, rows apart) as is: no copy needed
+    hist = cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel()
     total = float(hist.sum())
     csum = np.cumsum(hist)
     g = int(np.searchsorted(csum, 0.5 * total))
