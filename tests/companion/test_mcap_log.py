@@ -446,3 +446,17 @@ def _nulled(o: Any) -> Any:
     if isinstance(o, list | tuple):
         return [_nulled(v) for v in o]
     return o
+
+
+def test_decode_json_reads_what_either_encoder_wrote() -> None:
+    """Logs written before orjson (json module, compact) and text orjson refuses (NaN
+    literals, integers beyond 64 bits) decode to the same values."""
+    from companion.log.encode import decode_json
+
+    payload = {"a": [0.1, 1e-05, 2.5e16], "b": {"c": None, "d": True}, "e": "x"}
+    old = json.dumps(payload, separators=(",", ":")).encode()
+    assert decode_json(old) == payload == decode_json(encode_json(payload))
+    odd = decode_json(b'{"n": NaN, "big": 1180591620717411303424}')
+    assert math.isnan(odd["n"]) and odd["big"] == 2**70
+    with pytest.raises(ValueError):
+        decode_json(b'{"cut": ')
