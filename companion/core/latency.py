@@ -80,13 +80,13 @@ class Prediction:
 def input_at(history: Sequence[tuple[float, np.ndarray]], t_s: float) -> np.ndarray:
     """The input in effect at ``t_s``: the newest ``(t_effect_s, u)`` with ``t_effect_s <=
     t_s`` (``history`` sorted by time); zero acceleration and yaw rate before the first."""
-    u = np.zeros(4)
-    for t_eff, uu in history:
+    # from the newest back (the wanted input is nearly always among the last few of a
+    # history that keeps ~64): the same entry as the forward scan on a sorted history
+    for i in range(len(history) - 1, -1, -1):
+        t_eff, uu = history[i]
         if t_eff <= t_s + 1e-9:
-            u = uu
-        else:
-            break
-    return np.asarray(u, dtype=float)
+            return np.asarray(uu, dtype=float)
+    return np.zeros(4)
 
 
 def predict_error_state(
