@@ -83,14 +83,30 @@ def central_moments(points_v_m: ArrayLike) -> tuple[float, float, float, float, 
         raise DegenerateTargetError(f"target points: expected shape (N, 2), got {p.shape}")
     if p.shape[0] < 3:
         raise DegenerateTargetError(f"target points: need >= 3, got {p.shape[0]}")
-    if not np.all(np.isfinite(p)):
+    us, ns = p[:, 0].tolist(), p[:, 1].tolist()
+    if not all(math.isfinite(v) for v in us + ns):
         raise DegenerateTargetError("target points: non-finite value")
-    ub, nb = float(np.mean(p[:, 0])), float(np.mean(p[:, 1]))
-    du, dn = p[:, 0] - ub, p[:, 1] - nb
-    mu20 = float(np.sum(du * du))
-    mu02 = float(np.sum(dn * dn))
-    mu11 = float(np.sum(du * dn))
+    if len(us) >= 8:  # numpy sums eight or more pairwise: keep its values there
+        ub, nb = float(np.mean(p[:, 0])), float(np.mean(p[:, 1]))
+        du, dn = p[:, 0] - ub, p[:, 1] - nb
+        return ub, nb, float(np.sum(du * du)), float(np.sum(dn * dn)), float(np.sum(du * dn))
+    # a handful of points (the target's corners): plain floats, summed in order as numpy sums
+    # fewer than eight (the same values, without its per-call overhead)
+    ub, nb = _ordered_sum(us) / len(us), _ordered_sum(ns) / len(ns)
+    dus = [u - ub for u in us]
+    dns = [n - nb for n in ns]
+    mu20 = _ordered_sum([a * a for a in dus])
+    mu02 = _ordered_sum([b * b for b in dns])
+    mu11 = _ordered_sum([a * b for a, b in zip(dus, dns, strict=True)])
     return ub, nb, mu20, mu02, mu11
+
+
+def _ordered_sum(values: list[float]) -> float:
+    """Left-to-right sum (Python's ``sum`` of floats is compensated from 3.12 on)."""
+    total = 0.0
+    for v in values:
+        total += v
+    return total
 
 
 def _check_spread(
@@ -191,7 +207,7 @@ def image_moments(
         raise DegenerateTargetError(f"lam must be finite and > 0 (got {lam})")
     ub, nb, mu20, mu02, mu11 = central_moments(points_v_m)
     p = np.asarray(points_v_m, dtype=float)
-    _check_spread(mu20, mu02, mu11, p.shape[0], max(lam, float(np.max(np.abs(p)))))
+    _check_spread(mu20, mu02, mu11, p.shape[0], max(lam, max(abs(v) for v in p.ravel().tolist())))
     a = mu20 + mu02
     s3 = math.sqrt(a_star / a)
     if heading_from_corners:
