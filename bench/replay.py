@@ -7,7 +7,10 @@ the config's logging: crops of what perception read by default) and replays that
 exact (perception in a second process, the default of ``companion replay``), exact in one
 process, and ``--from-detections`` (controller only). For each: wall time, CPU time (this
 process and the perception worker, getrusage), steady CPU per step, the ratio to the flight's
-duration (targets: exact >= 20x, from detections >= 100x) and whether every command matched.
+duration (targets: exact >= 20x, from detections >= 100x), the start-up (the call to the first
+step: reading the config, the terminal design, the NLP build or solver load, the perception
+worker) and whether every command matched. CPU of a child process (the perception worker, a
+solver child) counts once it has exited: in the totals, not in the steady figures.
 Wall figures depend on the machine's load (printed); CPU figures much less.
 """
 
@@ -43,6 +46,8 @@ def measure(log: Path, flight_s: float, **kw: Any) -> dict[str, Any]:
 
     def prog(done: int, total: int) -> None:
         now = (time.perf_counter(), _cpu(), done)
+        if done == 1:
+            marks["first"] = now
         if done == 100:
             marks["a"] = now
         marks["b"] = now
@@ -55,7 +60,10 @@ def measure(log: Path, flight_s: float, **kw: Any) -> dict[str, Any]:
     if a and b and b[2] > a[2]:
         steady = {"wall_ms_per_step": 1e3 * (b[0] - a[0]) / (b[2] - a[2]),
                   "cpu_ms_per_step": 1e3 * (b[1] - a[1]) / (b[2] - a[2])}
+    first = marks.get("first")
+    startup = None if first is None else {"wall_s": first[0] - t0, "cpu_s": first[1] - c0}
     return {"steps": res.steps, "identical": res.summary()["identical"], "wall_s": wall,
+            "startup": startup,
             "cpu_s": cpu, "speed_vs_real_time": flight_s / wall if wall > 0 else None,
             "steady": steady}
 
@@ -97,6 +105,10 @@ def main() -> int:
               f"{st.get('wall_ms_per_step', float('nan')):.2f} ms wall, "
               f"{st.get('cpu_ms_per_step', float('nan')):.2f} ms CPU per step; identical: "
               f"{m['identical']}")
+        su = m["startup"] or {}
+        print(f"  {'':>16}  start-up (call -> first step): {su.get('wall_s', float('nan')):.2f} s "
+              f"wall, {su.get('cpu_s', float('nan')):.2f} s CPU (this process; the import of "
+              "the companion's modules before the call is not counted)")
     return 0
 
 
