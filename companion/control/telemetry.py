@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,7 +124,7 @@ class TelemetryStore:
             if name == "ATTITUDE_QUATERNION":
                 q = (float(fields["q1"]), float(fields["q2"]), float(fields["q3"]),
                      float(fields["q4"]))
-                if not _finite(*q, fields["yawspeed"]) or abs(np.linalg.norm(q) - 1.0) > 1e-3:
+                if not _finite(*q, fields["yawspeed"]) or abs(_norm(q) - 1.0) > 1e-3:
                     return self._reject("ATTITUDE_QUATERNION not a unit quaternion")
                 return self._push_attitude(name, AttitudeSample(t_s, q, float(fields["yawspeed"])))
             if name == "ATTITUDE":  # PX4 onboard: 100 Hz against ATTITUDE_QUATERNION's 50 Hz
@@ -206,7 +206,7 @@ class TelemetryStore:
         rates = [float(v) for v in f["rates"]]
         if not _finite(lat, lon, alt, *vel, *acc):
             return self._reject("FOLLOW_TARGET non-finite")
-        if caps & 0b1000 and _finite(*q, *rates) and abs(np.linalg.norm(q) - 1.0) < 1e-3:
+        if caps & 0b1000 and _finite(*q, *rates) and abs(_norm(q) - 1.0) < 1e-3:
             yaw = euler_zyx_from_quat(q)[2]
             yaw_rate = rates[2]
         else:  # heading from the velocity when the AGV does not send its attitude
@@ -318,6 +318,12 @@ class TelemetryStore:
 
 def _finite(*xs: Any) -> bool:
     return all(math.isfinite(float(x)) for x in xs)
+
+
+def _norm(q: Sequence[float]) -> float:
+    """Euclidean norm of a few floats (a unit-quaternion check: numpy's call overhead on a
+    tuple cost more than the check)."""
+    return math.sqrt(sum(x * x for x in q))
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
