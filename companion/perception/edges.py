@@ -161,9 +161,6 @@ def _edge_points_batch(
     profile, and the rows are split again at the end."""
     s = settings
     step = s.profile_step_px
-    r_max = max(rs)
-    ks = np.arange(-r_max, r_max + 1e-9, step)
-    n_k = len(ks)
     # Per-edge scalars in plain Python; the rows of all edges are then built by whole-array
     # operations (the same arithmetic per element as one edge at a time: bit-identical).
     n_segs = len(segs)
@@ -188,11 +185,12 @@ def _edge_points_batch(
         spacings.append((length - 2 * margin) / (n_samples - 1))
     if not used:
         return [None] * n_segs
-    seg_of_row = np.repeat(np.array(used), counts)
-    first_row = np.repeat(np.cumsum([0, *counts[:-1]]), counts)
-    n_rows = seg_of_row.shape[0]
-    rows = np.arange(n_rows)
-    along = (rows - first_row) * np.repeat(spacings, counts) + np.repeat(margins, counts)
+    lay = _layout(tuple(used), tuple(counts), tuple(rs), step)
+    ks, n_k, seg_of_row, n_rows = lay.ks, lay.n_k, lay.seg_of_row, lay.n_rows
+    mid, first, last_1, own_seg = lay.mid, lay.first, lay.last_1, lay.own_seg
+    row_start, dist_start = lay.row_start, lay.dist_start
+    in_lo_bound, out_hi_bound, width_hi = lay.in_lo_bound, lay.out_hi_bound, lay.width_hi
+    along = lay.in_row * np.repeat(spacings, counts) + np.repeat(margins, counts)
     t_all = d_all / np.array(lengths)[:, None]
     t_rows = t_all[seg_of_row]
     base_all = a_all[seg_of_row] + along[:, None] * t_rows
@@ -216,12 +214,6 @@ def _edge_points_batch(
         cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REPLICATE,
     ).astype(np.float64)
-    rr = np.array(rs)[seg_of_row]
-    mid = (ks[:-1] + ks[1:]) / 2
-    # a row's own profile: |k| <= r (the same samples as a profile of half length r)
-    first = np.rint((r_max - rr) / step).astype(np.intp)  # index of k = -r
-    last_1 = n_k - 2 - first  # index of k = +r, minus one
-    own_seg = (np.abs(mid)[None, :] < rr[:, None])  # both ends of the segment in the profile
     # Row-wise look-ups below index the flattened arrays (one 1-D take instead of a 2-D fancy
     # index). csum: running sums, one leading zero per row.
     csum = np.zeros((n_rows, n_k + 1))
@@ -229,10 +221,7 @@ def _edge_points_batch(
     csum_f = csum.ravel()
     # rows padded by one column so that every range end is a valid index of the flat array
     flat = np.concatenate((prof, np.full((n_rows, 1), np.inf)), axis=1).ravel()
-    row_start = rows * (n_k + 1)  # row offsets in csum_f and flat (both n_k + 1 wide)
-    dist_start = rows * (n_k - 1)
     bounds = np.empty(2 * n_rows, dtype=np.intp)
-    in_lo_bound, out_hi_bound, width_hi = 1.0 - rr, rr - 1.0, 2.0 * rr
     e = np.zeros(n_rows)
     width = np.ones(n_rows)
     ok = np.zeros(n_rows, dtype=bool)
@@ -297,6 +286,65 @@ def _edge_points_batch(
         pts = base[ok_e] + e[sl][ok_e, None] * normal_out[None, :]
         out.append((pts, _median(width[sl][ok_e]), n_samples))
     return out
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """The rows of a batch of profiles that depend only on which edges are measured, how many
+    profiles each and their half lengths (not on the image or the edges' positions): the same
+    for nearly every frame, so built once (read-only arrays; the same values as built anew)."""
+
+    ks: FloatArray  # profile offsets over the longest half length
+    n_k: int
+    seg_of_row: npt.NDArray[np.intp]
+    n_rows: int
+    in_row: npt.NDArray[np.intp]  # the row's index among its edge's rows
+    rr: FloatArray  # the row's half length
+    mid: FloatArray
+    first: npt.NDArray[np.intp]  # index of k = -r
+    last_1: npt.NDArray[np.intp]  # index of k = +r, minus one
+    own_seg: npt.NDArray[np.bool_]  # both ends of the segment in the row's own profile
+    row_start: npt.NDArray[np.intp]  # row offsets in the flat arrays (n_k + 1 wide)
+    dist_start: npt.NDArray[np.intp]
+    in_lo_bound: FloatArray
+    out_hi_bound: FloatArray
+    width_hi: FloatArray
+
+
+_LAYOUTS: dict[tuple[tuple[int, ...], tuple[int, ...], tuple[float, ...], float], _Layout] = {}
+
+
+def _layout(used: tuple[int, ...], counts: tuple[int, ...], rs: tuple[float, ...],
+            step: float) -> _Layout:
+    key = (used, counts, rs, step)
+    lay = _LAYOUTS.get(key)
+    if lay is not None:
+        return lay
+    r_max = max(rs)
+    ks = np.arange(-r_max, r_max + 1e-9, step)
+    n_k = len(ks)
+    seg_of_row = np.repeat(np.array(used), counts)
+    first_row = np.repeat(np.cumsum([0, *counts[:-1]]), counts)
+    n_rows = seg_of_row.shape[0]
+    rows = np.arange(n_rows)
+    rr = np.array(rs)[seg_of_row]
+    mid = (ks[:-1] + ks[1:]) / 2
+    # a row's own profile: |k| <= r (the same samples as a profile of half length r)
+    first = np.rint((r_max - rr) / step).astype(np.intp)
+    lay = _Layout(
+        ks=ks, n_k=n_k, seg_of_row=seg_of_row, n_rows=n_rows, in_row=rows - first_row, rr=rr,
+        mid=mid, first=first, last_1=n_k - 2 - first,
+        own_seg=(np.abs(mid)[None, :] < rr[:, None]),
+        row_start=rows * (n_k + 1), dist_start=rows * (n_k - 1),
+        in_lo_bound=1.0 - rr, out_hi_bound=rr - 1.0, width_hi=2.0 * rr,
+    )
+    for a in vars(lay).values():
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)
+    if len(_LAYOUTS) >= 256:  # edges shorter than the sample cap vary: keep the cache small
+        _LAYOUTS.clear()
+    _LAYOUTS[key] = lay
+    return lay
 
 
 def _median(x: FloatArray) -> float:
