@@ -362,7 +362,7 @@ def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     (the angle ``atan2(2 sxy, sxx - syy) / 2``): the same line as the first right singular vector
     of the centred points (an SVD per edge cost more than the rest of the fit; the two differ by
     rounding, ~1e-13 px at the corners, and the direction's sign, which nothing uses)."""
-    c = points.mean(axis=0)
+    c = points.sum(axis=0) / points.shape[0]  # np.mean's arithmetic, without its wrapper
     d = points - c
     (sxx, sxy), (_, syy) = (d.T @ d).tolist()
     half = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
