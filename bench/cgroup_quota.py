@@ -21,7 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["CgroupUnavailable", "CpuQuota", "create_quota", "find_cpu_controller"]
+__all__ = ["CgroupUnavailable", "CpuQuota", "controller_at", "create_quota",
+           "find_cpu_controller"]
 
 DEFAULT_PERIOD_US = 10_000
 
@@ -80,6 +81,22 @@ def find_cpu_controller() -> Controller:
     raise CgroupUnavailable(
         "no cgroup cpu controller is mounted (cgroup mounts found: " + ", ".join(kinds) + "; "
         "v1 needs a 'cpu' hierarchy, v2 needs 'cpu' in cgroup.controllers)")
+
+
+def controller_at(path: Path) -> Controller:
+    """The cpu controller of an explicit cgroup directory (a subtree delegated to this user,
+    e.g. systemd's ``user@UID.service``): v2 if it lists ``cpu`` in ``cgroup.controllers``, v1
+    if it has ``cpu.cfs_quota_us``. Raises :class:`CgroupUnavailable` otherwise."""
+    if (path / "cgroup.controllers").is_file():
+        if "cpu" in (path / "cgroup.controllers").read_text().split():
+            return Controller(2, path, None)
+        raise CgroupUnavailable(f"{path}: the cpu controller is not available there (not in "
+                                "its cgroup.controllers)")
+    if (path / "cpu.cfs_quota_us").is_file():
+        acct = path if (path / "cpuacct.usage").is_file() else None
+        return Controller(1, path, acct)
+    raise CgroupUnavailable(f"{path}: not a cgroup directory with the cpu controller (neither "
+                            "cgroup.controllers nor cpu.cfs_quota_us there)")
 
 
 def _write(path: Path, text: str) -> None:
@@ -193,19 +210,19 @@ class CpuQuota:
 
 
 def create_quota(fraction: float | None, name: str, period_us: int = DEFAULT_PERIOD_US,
-                 weight_factor: float = 1.0) -> CpuQuota:
+                 weight_factor: float = 1.0, parent: Path | None = None) -> CpuQuota:
     """Create the group ``name`` limited to ``fraction`` of one CPU (> 1: several CPUs; None:
     no limit) every ``period_us``, its scheduling weight ``weight_factor`` x the default (the
     group competes with every other runnable task as ONE task of that weight: at 1 on a busy
-    machine it gets less than its quota). Raises :class:`CgroupUnavailable` (why, in words)
-    or ValueError."""
+    machine it gets less than its quota), under ``parent`` (default: the cpu hierarchy found
+    in /proc/mounts). Raises :class:`CgroupUnavailable` (why, in words) or ValueError."""
     if fraction is not None and not 0.0 < fraction <= 64.0:
         raise ValueError(f"fraction {fraction}: must be in (0, 64]")
     if not 1000 <= period_us <= 1_000_000:
         raise ValueError(f"period {period_us} us: must be in [1000, 1000000]")
     if not 0.01 <= weight_factor <= 100.0:
         raise ValueError(f"weight factor {weight_factor}: must be in [0.01, 100]")
-    ctl = find_cpu_controller()
+    ctl = find_cpu_controller() if parent is None else controller_at(parent)
     q = CpuQuota(ctl, name, fraction, period_us)
     if ctl.version == 2:
         # the cpu controller must be enabled for the children of the group we create in

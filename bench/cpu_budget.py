@@ -210,6 +210,7 @@ class Flown:
     comp_rc: int | None = None
     cg_usage_start_s: float | None = None
     cg_usage_end_s: float | None = None
+    cg_usage_flight_end_s: float | None = None   # when the emulator ended
     cg_stat: dict[str, int] = field(default_factory=dict)
     cg_throttled_s: float | None = None
     rusage_comp_s: float | None = None
@@ -299,6 +300,7 @@ def fly(quota: CpuQuota, sim_group: CpuQuota | None, variant: Path, scenario: st
             except subprocess.TimeoutExpired:
                 f.sim_rc = _stop(sim, 20.0)
             f.wall_s = time.monotonic() - t_fly
+            f.cg_usage_flight_end_s = quota.usage_s()
             cpu1 = _children_cpu_s()  # the emulator reaped, the companion not yet
             f.rusage_sim_s = cpu1 - cpu0
             # the companion stops by itself duration_s after its first frame; else SIGTERM
@@ -407,6 +409,9 @@ def summarize(f: Flown, rep: dict[str, Any], emu: dict[str, Any],
         # frames offered: sent to the companion or dropped because it had not taken the last
         # one yet (frames rendered before its camera connected were never offered to it)
         "frames_offered": offered, "steps": steps, "commands_sent": sent,
+        # frames received but never stepped nor refused as stale: replaced in the companion's
+        # newest-frame buffer (its own count is not logged: derived)
+        "frames_skipped": None if stale is None else emu["frames_sent"] - steps - stale,
         "answered": _per(sent, offered), "answered_of_rendered": _per(sent, frames),
         "latency_median_ms": lat.get("frame_to_command_median_ms"),
         "latency_p95_ms": lat.get("p95_ms"), "latency_max_ms": lat.get("max_ms"),
@@ -426,8 +431,14 @@ def summarize(f: Flown, rep: dict[str, Any], emu: dict[str, Any],
         "cpu_ms_per_step_companion": _companion_cpu_ms(f.out),
         "cpu_ms_per_step_cgroup": _per(usage, steps, 1e3),
         "cpu_startup_s": f.cg_usage_start_s, "cpu_flight_s": usage,
+        "cpu_rusage_s": f.rusage_comp_s,
         "cpu_ms_per_step_rusage": _per(f.rusage_comp_s, steps, 1e3),
-        "cpu_share_of_quota": _per(usage, f.window_s * f.fraction),
+        # CPU used while the emulator flew / what the quota allowed in that time (~1: the
+        # quota was the limit; well below: the companion had CPU to spare, or lost it to the
+        # machine's other jobs)
+        "cpu_share_of_quota": _per(
+            None if f.cg_usage_flight_end_s is None or f.cg_usage_start_s is None
+            else f.cg_usage_flight_end_s - f.cg_usage_start_s, f.wall_s * f.fraction),
         "throttled_periods": st.get("nr_throttled"), "periods": periods,
         "throttled_fraction": _per(st.get("nr_throttled"), periods),
         "throttled_s": f.cg_throttled_s,
@@ -479,8 +490,9 @@ def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
     return [
         ("frames rendered / offered", f"{_fmt(r['frames_rendered'])} / "
                                       f"{_fmt(r['frames_offered'])}"),
-        ("frames not taken / stale", f"{_fmt(r['frames_dropped_by_emulator'])} / "
-                                     f"{_fmt(r['stale_frames'])}"),
+        ("not taken / skipped / stale", f"{_fmt(r['frames_dropped_by_emulator'])} / "
+                                        f"{_fmt(r['frames_skipped'])} / "
+                                        f"{_fmt(r['stale_frames'])}"),
         ("steps / commands sent", f"{r['steps']} / {r['commands_sent']}"),
         ("answered (of offered)", _fmt(None if r["answered"] is None else
                                        100 * r["answered"]) + " %"),
@@ -501,7 +513,7 @@ def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
                                       f"{_fmt(r['cpu_flight_s'], '.2f')}"),
         ("start-up wall s (idle after)", f"{_fmt(r['start_wall_s'])}"
                                          f"{'' if r['idle_before_flight'] else ' (never idle)'}"),
-        ("used / quota x wall", _fmt(r["cpu_share_of_quota"], ".2f")),
+        ("CPU used / quota, in flight", _fmt(r["cpu_share_of_quota"], ".2f")),
         ("throttled periods", f"{_fmt(r['throttled_periods'])} of {_fmt(r['periods'])} "
                               f"({_fmt(r['throttled_s'], '.1f')} s)"),
         ("emulator CPU ms/frame", _fmt(r["emulator_cpu_ms_per_frame"], ".2f")),
@@ -542,6 +554,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="scheduling weight of the companion's and the emulator's groups, x "
                          "the default (16: on a busy machine the quota, not the competition "
                          "with other jobs, limits the companion; 1: fair share)")
+    ap.add_argument("--cgroup-dir", type=Path, default=None,
+                    help="make the groups under this cgroup directory (a subtree delegated to "
+                         "you; default: the cpu hierarchy in /proc/mounts)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
     if not (math.isfinite(a.duration) and 5.0 <= a.duration <= 3600.0):
@@ -554,14 +569,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def fly_budget(fraction: float, variant: Path, scenario: str, duration_s: float, out: Path,
-               period_us: int = 10_000, weight: float = 16.0) -> dict[str, Any]:
+               period_us: int = 10_000, weight: float = 16.0,
+               cgroup_dir: Path | None = None) -> dict[str, Any]:
     """One flight under a ``fraction``-of-a-core quota, reported and judged (the row)."""
     tag = f"rmpc-budget-{os.getpid()}-{fraction:g}"
     out.mkdir(parents=True, exist_ok=True)
-    quota = create_quota(fraction, tag, period_us, weight)
+    quota = create_quota(fraction, tag, period_us, weight, cgroup_dir)
     sim_group: CpuQuota | None = None
     try:
-        sim_group = create_quota(None, tag + "-emulator", period_us, weight)
+        sim_group = create_quota(None, tag + "-emulator", period_us, weight, cgroup_dir)
         flown = fly(quota, sim_group, variant, scenario, duration_s, out)
     finally:
         quota.remove()
@@ -580,19 +596,20 @@ def main(argv: list[str] | None = None) -> int:
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     rows: list[dict[str, Any]] = []
     try:
+        # can a quota be set at all? (first: before anything else is started)
+        create_quota(a.fraction[0], f"rmpc-budget-{os.getpid()}-probe", a.period_us,
+                     parent=a.cgroup_dir).remove()
         keys = variant_settings(a.rate, a.overrides)
         a.out.mkdir(parents=True, exist_ok=True)
         variant = a.out / "config.toml"
         write_variant(a.config.resolve(), keys, variant)
         check_emulator_config(variant, a.scenario, env)
-        # can a quota be set at all? (before minutes of flying)
-        create_quota(a.fraction[0], f"rmpc-budget-{os.getpid()}-probe", a.period_us).remove()
         print(f"cpu_budget: {a.scenario}, {a.duration:g} s realtime per flight, config {variant}"
               f" ({', '.join(f'{k}={v}' for k, v in keys.items())}); uptime load "
               f"{_load()}", flush=True)
         for fr in a.fraction:
             rows.append(fly_budget(fr, variant, a.scenario, a.duration, a.out / f"f{fr:g}",
-                                   a.period_us, a.weight))
+                                   a.period_us, a.weight, a.cgroup_dir))
             r = rows[-1]
             print(f"  {fr:g} core: {r['commands_sent']}/{r['frames_offered']} frames answered,"
                   f" p95 {_fmt(r['latency_p95_ms'])} ms, {r['fallbacks']} fallbacks, "
