@@ -217,7 +217,7 @@ class Flown:
     rusage_sim_s: float | None = None
     quota: dict[str, Any] = field(default_factory=dict)
     load: list[str] = field(default_factory=list)
-    idle: bool = False             # the companion went idle (start-up done) before the flight
+    idle: float | None = None      # CPU (cores) once idle before the flight (None: never)
 
 
 def _wait_ready(comp: subprocess.Popen[bytes], ready: Path, budget_s: float, out: Path) -> None:
@@ -234,28 +234,29 @@ def _wait_ready(comp: subprocess.Popen[bytes], ready: Path, budget_s: float, out
 
 
 def _wait_idle(quota: CpuQuota, comp: subprocess.Popen[bytes], budget_s: float,
-               window_s: float = 1.0, idle_share: float = 0.2) -> bool:
+               window_s: float = 1.0, idle_share: float = 0.2) -> float | None:
     """Wait until the companion's group uses less than ``idle_share`` of its quota over
     ``window_s``: its start-up is over (the solver processes, main and stand-by, are loaded;
     the ready file only says its sockets are open). The flight then measures the steady
     state, not a start-up squeezed by the quota (a companion starts before the pilot hands
-    it the vehicle). False when ``budget_s`` passed first or usage cannot be read."""
+    it the vehicle). Returns the idle use (cores: no frames, no telemetry yet), None when
+    ``budget_s`` passed first or usage cannot be read."""
     assert quota.fraction is not None
     t_end = time.monotonic() + budget_s
     samples: list[tuple[float, float]] = []
     while time.monotonic() < t_end and comp.poll() is None:
         u = quota.usage_s()
         if u is None:
-            return False
+            return None
         now = time.monotonic()
         samples.append((now, u))
         old = [x for x in samples if x[0] <= now - window_s]
         if old:
             t_a, u_a = old[-1]
             if (u - u_a) / (now - t_a) < idle_share * quota.fraction:
-                return True
+                return (u - u_a) / (now - t_a)
         time.sleep(0.1)
-    return False
+    return None
 
 
 def _tail(path: Path, n: int = 3) -> str:
@@ -383,6 +384,16 @@ def _companion_cpu_ms(out: Path) -> float | None:
     return None
 
 
+def solver_restarts(comp_log: Path) -> int | None:
+    """Solver processes killed after a solve overran ``rmpc.max_solve_time_s`` (each restart
+    loads a fresh process: ~1 s of CPU), from the companion's own log lines (not in the MCAP
+    log nor in report.json)."""
+    with contextlib.suppress(OSError):
+        return sum("RMPC solver process" in ln and "killing pid" in ln
+                   for ln in comp_log.read_text(errors="replace").splitlines())
+    return None
+
+
 def _per(a: float | None, b: float | None, scale: float = 1.0) -> float | None:
     return None if a is None or not b else scale * a / b
 
@@ -403,7 +414,8 @@ def summarize(f: Flown, rep: dict[str, Any], emu: dict[str, Any],
     periods = st.get("nr_periods") or 0
     return {
         "fraction": f.fraction, "wall_s": f.wall_s, "load": f.load, "quota": f.quota,
-        "idle_before_flight": f.idle, "start_wall_s": f.start_wall_s,
+        "idle_before_flight": f.idle is not None, "idle_cpu_cores": f.idle,
+        "start_wall_s": f.start_wall_s,
         "frames_rendered": frames, "frames_sent": emu["frames_sent"],
         "frames_dropped_by_emulator": emu["frames_dropped"], "stale_frames": stale,
         # frames offered: sent to the companion or dropped because it had not taken the last
@@ -420,11 +432,13 @@ def summarize(f: Flown, rep: dict[str, Any], emu: dict[str, Any],
         "terminal_steps": int(levels.get("terminal", 0)),
         "silent_steps": int(levels.get("silent", 0)),
         "solves": sol.get("solves"), "fallbacks": sol.get("fallbacks"),
+        "solver_restarts": solver_restarts(f.out / "companion.log"),
         "recoveries": sol.get("recoveries"), "solver_failures": sol.get("failures"),
         "solve_median_ms": sol.get("median_ms"), "solve_p95_ms": sol.get("p95_ms"),
         "offboard_t_s": eng.get("t_engaged_s"), "offboard_exits": emu["offboard_exits"],
         "modes": emu["modes"],
-        "corner_max_px": eng.get("corner_max_px"),
+        # no frame judged (OFFBOARD never engaged, or too late): no worst corner
+        "corner_max_px": eng.get("corner_max_px") if eng.get("frames") else None,
         "bound_px": (rep.get("visibility") or {}).get("bound_px"),
         "frames_outside_after_grace": eng.get("frames_outside_bound"),
         "frames_lost_after_grace": engm.get("frames_target_lost_after_grace"),
@@ -501,6 +515,7 @@ def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
         ("solve median / p95 ms", f"{_fmt(r['solve_median_ms'])} / {_fmt(r['solve_p95_ms'])}"),
         ("safety transitions", _fmt(r["safety_transitions"])),
         ("fallbacks / recovery solves", f"{_fmt(r['fallbacks'])} / {_fmt(r['recoveries'])}"),
+        ("solver processes restarted", _fmt(r.get("solver_restarts"))),
         ("terminal / hover / silent steps", f"{r['terminal_steps']} / {r['hover_steps']} / "
                                             f"{r['silent_steps']}"),
         ("OFFBOARD at / exits", f"{_fmt(r['offboard_t_s'])} s / {r['offboard_exits']}"),
@@ -511,8 +526,8 @@ def _rows(r: dict[str, Any]) -> list[tuple[str, str]]:
                                            f"{_fmt(r['cpu_ms_per_step_cgroup'], '.2f')}"),
         ("CPU start-up s / flight s", f"{_fmt(r['cpu_startup_s'], '.2f')} / "
                                       f"{_fmt(r['cpu_flight_s'], '.2f')}"),
-        ("start-up wall s (idle after)", f"{_fmt(r['start_wall_s'])}"
-                                         f"{'' if r['idle_before_flight'] else ' (never idle)'}"),
+        ("start-up wall s / idle CPU cores", f"{_fmt(r['start_wall_s'])} / " + (
+            _fmt(r.get("idle_cpu_cores"), ".3f") if r["idle_before_flight"] else "never idle")),
         ("CPU used / quota, in flight", _fmt(r["cpu_share_of_quota"], ".2f")),
         ("throttled periods", f"{_fmt(r['throttled_periods'])} of {_fmt(r['periods'])} "
                               f"({_fmt(r['throttled_s'], '.1f')} s)"),
@@ -533,6 +548,32 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     w = [max(len(ln[j]) for ln in lines) for j in range(len(head))]
     for ln in lines:
         print("  ".join(cell.ljust(w[j]) for j, cell in enumerate(ln)).rstrip())
+
+
+MARKDOWN_HEAD = ("| core | answered | latency median / p95 / max ms | fallbacks | terminal / hover"
+                 " / silent steps | recovery solves | OFFBOARD exits | worst corner px (frames "
+                 "out) | CPU ms/step | used / quota | verdict |")
+
+
+def markdown_row(r: dict[str, Any]) -> str:
+    """One row of the compact Markdown table (``--markdown``; docs/guides/sizing.md)."""
+    v = r["verdict"]
+    verdict = "-" if v["pass"] is None else ("PASS" if v["pass"] else "MISS")
+    ans = "-" if r["answered"] is None else f"{100 * r['answered']:.1f} %"
+    return (f"| {r['fraction']:g} | {ans} | {_fmt(r['latency_median_ms'])} / "
+            f"{_fmt(r['latency_p95_ms'])} / {_fmt(r['latency_max_ms'], '.0f')} | "
+            f"{_fmt(r['fallbacks'])} | {r['terminal_steps']} / {r['hover_steps']} / "
+            f"{r['silent_steps']} | {_fmt(r['recoveries'])} | {r['offboard_exits']} | "
+            f"{_fmt(r['corner_max_px'], '.0f')} ({_fmt(r['frames_outside_after_grace'])}) | "
+            f"{_fmt(r['cpu_ms_per_step_companion'], '.1f')} | "
+            f"{_fmt(r['cpu_share_of_quota'], '.2f')} | {verdict} |")
+
+
+def print_markdown(rows: list[dict[str, Any]]) -> None:
+    print(MARKDOWN_HEAD)
+    print("|" + " --- |" * MARKDOWN_HEAD.count(" |"))
+    for r in rows:
+        print(markdown_row(r))
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -558,6 +599,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="make the groups under this cgroup directory (a subtree delegated to "
                          "you; default: the cpu hierarchy in /proc/mounts)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    ap.add_argument("--markdown", action="store_true",
+                    help="print a compact Markdown table (after the full one)")
+    ap.add_argument("--from-summary", type=Path, default=None, metavar="SUMMARY.json",
+                    help="fly nothing: print the tables of an earlier run's summary.json")
     a = ap.parse_args(argv)
     if not (math.isfinite(a.duration) and 5.0 <= a.duration <= 3600.0):
         ap.error("--duration: must be in [5, 3600] s")
@@ -591,8 +636,21 @@ def fly_budget(fraction: float, variant: Path, scenario: str, duration_s: float,
     return row
 
 
+def _print_rows(rows: list[dict[str, Any]], a: argparse.Namespace) -> int:
+    if a.json:
+        print(json.dumps(rows, indent=2, default=str))
+        return 0
+    print_table(rows)
+    if a.markdown:
+        print()
+        print_markdown(rows)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     a = parse_args(argv)
+    if a.from_summary is not None:
+        return _print_rows(json.loads(a.from_summary.read_text())["rows"], a)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     rows: list[dict[str, Any]] = []
     try:
@@ -625,10 +683,7 @@ def main(argv: list[str] | None = None) -> int:
             (a.out / "summary.json").write_text(json.dumps(
                 {"argv": sys.argv[1:] if argv is None else argv, "rows": rows}, indent=2,
                 default=str))
-    if a.json:
-        print(json.dumps(rows, indent=2, default=str))
-    else:
-        print_table(rows)
+    _print_rows(rows, a)
     crashed = [r["fraction"] for r in rows if r["rc"]["companion"] not in (0,)]
     if crashed:
         print(f"cpu_budget: the companion exited with an error at {crashed} core", file=sys.stderr)
