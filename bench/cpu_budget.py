@@ -234,12 +234,14 @@ def _wait_ready(comp: subprocess.Popen[bytes], ready: Path, budget_s: float, out
 
 
 def _wait_idle(quota: CpuQuota, comp: subprocess.Popen[bytes], budget_s: float,
-               window_s: float = 1.0, idle_share: float = 0.2) -> float | None:
-    """Wait until the companion's group uses less than ``idle_share`` of its quota over
-    ``window_s``: its start-up is over (the solver processes, main and stand-by, are loaded;
-    the ready file only says its sockets are open). The flight then measures the steady
-    state, not a start-up squeezed by the quota (a companion starts before the pilot hands
-    it the vehicle). Returns the idle use (cores: no frames, no telemetry yet), None when
+               window_s: float = 1.0, idle_cores: float = 0.02) -> float | None:
+    """Wait until the companion's group uses less than ``idle_cores`` (or a fifth of its
+    quota if less) over ``window_s``: its start-up is over (imports and the solver process
+    loading its libraries, ~3 s of CPU, then ~0.002 core measured while it waits for the
+    vehicle; the ready file only says its sockets are open). The flight then starts from a
+    loaded companion, as on a vehicle, where it starts before the pilot hands it the vehicle.
+    The stand-by solver process (``rmpc.solver_spare``) is started after the first solve: it
+    loads during the flight, as on a vehicle. Returns the idle use (cores), None when
     ``budget_s`` passed first or usage cannot be read."""
     assert quota.fraction is not None
     t_end = time.monotonic() + budget_s
@@ -253,7 +255,7 @@ def _wait_idle(quota: CpuQuota, comp: subprocess.Popen[bytes], budget_s: float,
         old = [x for x in samples if x[0] <= now - window_s]
         if old:
             t_a, u_a = old[-1]
-            if (u - u_a) / (now - t_a) < idle_share * quota.fraction:
+            if (u - u_a) / (now - t_a) < min(idle_cores, 0.2 * quota.fraction):
                 return (u - u_a) / (now - t_a)
         time.sleep(0.1)
     return None
