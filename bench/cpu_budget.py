@@ -3,7 +3,9 @@ one CPU core by a Linux cgroup quota (issue #24 item 3; docs/guides/sizing.md).
 
     python bench/cpu_budget.py [--fraction 1.0 0.5 0.3 0.15] [--duration 60] [--rate HZ]
                                [--config FILE] [--scenario paper] [--set KEY=VALUE ...]
-                               [--out DIR] [--json]
+                               [--out DIR] [--period-us 10000] [--weight 16]
+                               [--cgroup-dir DIR] [--json] [--markdown]
+    python bench/cpu_budget.py --from-summary OUT/summary.json [--markdown]
 
 Per fraction: ``sim-bridge --realtime`` (the emulator, unconfined, on the wall clock) and
 ``companion run`` against it, the companion process and every child it starts (the solver
@@ -27,8 +29,11 @@ Exit status: 0 the flights ran (the targets are printed, not enforced), 1 a flig
 process crashed or never started), 2 bad arguments or a config a program refused, 3 no cgroup
 CPU quota can be set on this machine (the reason is printed).
 
-The emulator is not confined: on a loaded machine it shares the other CPU(s) with everything
-else, and frames it renders late count against the companion. ``uptime`` is printed.
+The emulator is not confined (its group has no quota). Both groups get ``--weight`` x the
+default scheduling weight, so that on a loaded machine the quota, not the competition with other
+jobs, limits the companion; frames the emulator renders late still count against the companion.
+The load average is printed before and after each flight. docs/guides/sizing.md reads the
+figures.
 """
 
 from __future__ import annotations
@@ -612,6 +617,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         ap.error("--fraction: each must be in [0.01, 64] cores")
     if not a.config.is_file():
         ap.error(f"--config {a.config}: no such file")
+    if not 1000 <= a.period_us <= 1_000_000:
+        ap.error("--period-us: must be in [1000, 1000000] (the kernel's bounds)")
+    if not (math.isfinite(a.weight) and 0.01 <= a.weight <= 100.0):
+        ap.error("--weight: must be in [0.01, 100]")
     return a
 
 
