@@ -68,6 +68,12 @@ def _fmt(v: Any, fmt: str, unit: str = "") -> str:
     return "-" if v is None else f"{format(v, fmt)}{unit}"
 
 
+def _tol(x: float) -> str:
+    """``1e-6``, not Python's ``1e-06``."""
+    mant, _, exp = f"{x:.0e}".partition("e")
+    return f"{mant}e{int(exp)}"
+
+
 def replay_summary(s: dict[str, Any]) -> list[str]:
     """The replay's result for people: the comparison's verdict, the solver, the cost; the
     raw figures stay in ``report.json``."""
@@ -75,7 +81,7 @@ def replay_summary(s: dict[str, Any]) -> list[str]:
     n, changed = s["commands_compared"], s["commands_changed"]
     lines = [f"  {'PASS' if same else 'MISS'}  commands reproduced: {n - changed} of {n} "
              f"identical (max |dq| {s['max_quat_diff']:.3g}, max |dthrust| "
-             f"{s['max_thrust_diff']:.3g}; tolerance {s.get('tolerance', 1e-6):.0e})"]
+             f"{s['max_thrust_diff']:.3g}; tolerance {_tol(s.get('tolerance', 1e-6))})"]
     if s["first_difference_t_s"] is not None:
         lines.append(f"        first difference at t = {s['first_difference_t_s']:.2f} s")
     modes = ", ".join(f"{v} {k}" for k, v in sorted(s.get("solver_modes", {}).items()))

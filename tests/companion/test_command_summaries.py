@@ -23,7 +23,7 @@ def _summary(**over: Any) -> dict[str, Any]:
 
 def test_replay_summary_is_rounded_with_a_verdict() -> None:
     text = "\n".join(replay_summary(_summary()))
-    assert "PASS  commands reproduced: 1197 of 1197 identical" in text
+    assert "PASS  commands reproduced: 1197 of 1197 identical" in text and "tolerance 1e-6)" in text
     assert "1190 optimal, 7 recovery" in text and "median 3.0 ms, p95 20.7 ms" in text
     for raw in ("{", "[", "3.02455", "14.5466", "136.0987"):
         assert raw not in text, raw
