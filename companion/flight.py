@@ -1,7 +1,8 @@
 """A lockstep flight as a library call: the emulator and the companion as two processes.
 
 :func:`fly` is what ``companion demo``, the campaign runner (``companion/campaign/runner.py``)
-and the benches call. The two programs meet only on loopback sockets (docs/wire.md), exactly as
+and the benches call. The two programs meet only on loopback sockets (docs/reference/wire.md),
+exactly as
 the companion meets a real PX4: this module starts ``python -m sim_bridge --lockstep`` as a
 subprocess and never imports it. It merges the config file and every ``--set`` override into
 ``DIR/config.toml`` (so an override reaches both processes, ``sim.*`` keys the emulator and

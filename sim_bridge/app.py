@@ -1,6 +1,7 @@
 """The emulator's asyncio runtime: wires the vehicle physics, the PX4 state machine, the MAVLink
 links, the AGV (FOLLOW_TARGET from its own node), the camera frame server and the ground-truth
-publisher (docs/wire.md), and runs them on one of two clocks (``sim_bridge.clocks``: realtime
+publisher (docs/reference/wire.md), and runs them on one of two clocks (``sim_bridge.clocks``:
+realtime
 or lockstep).
 
 What runs where: ``px4/`` (the commander, the telemetry streams, the answers to a client's
@@ -128,7 +129,8 @@ class SimBridge:
         self._vehicle_ideal = vehicle_is_ideal(cfg)
         self._last_mode = self.px4.mode
         self._last_armed = self.px4.armed
-        # clocks: the autopilot's is simulation time + the boot offset (docs/wire.md, Clocks)
+        # clocks: the autopilot's is simulation time + the boot offset (docs/reference/wire.md,
+        # Clocks)
         self._t0_wall = time.monotonic()
         self.unix_t0_s = time.time()  # SYSTEM_TIME: Unix time at simulation time 0
         self.t_s = 0.0

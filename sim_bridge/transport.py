@@ -1,6 +1,6 @@
 """The autopilot -> client transport delay of the vehicle's MAVLink links (``[sim.telemetry]``
 ``delay_ms`` +- ``delay_jitter_ms``, uniform, in order): messages wait in a delay line per link
-until they are due, in lockstep at their due time in simulated time (docs/wire.md)."""
+until they are due, in lockstep at their due time in simulated time (docs/reference/wire.md)."""
 
 from __future__ import annotations
 

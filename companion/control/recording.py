@@ -12,7 +12,7 @@
   rejections, text events, poses, link statistics), each at its log time; with source log
   times, the records made before the first autopilot stamp wait for it.
 
-docs/logging.md says what replay keeps under each setting.
+docs/reference/logging.md says what replay keeps under each setting.
 """
 
 from __future__ import annotations

@@ -107,7 +107,7 @@ class LinkCommands:
 
     def send_timesync(self, tc1: int, ts1: int) -> bytes:
         """TIMESYNC (#111): a request is ``tc1 = 0, ts1 = local ns``; a reply to the
-        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/wire.md)."""
+        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/reference/wire.md)."""
         return self.send(self._enc.timesync_encode(int(tc1), int(ts1)))
 
     def send_heartbeat(self) -> bytes:

@@ -4,7 +4,7 @@ client.
 ``camera`` (:class:`Camera`: pose, projection, rendering), ``scene`` (the ground and the
 anti-aliased coverage), ``target`` (the AGV box and its top), ``lens`` (pinhole or calibrated
 lens, ``read_calibration``), ``sensor`` (timing, photometric noise, motion-blur kernel) and
-``frames`` (the TCP frame socket and its wire format, docs/wire.md).
+``frames`` (the TCP frame socket and its wire format, docs/reference/wire.md).
 """
 
 from __future__ import annotations

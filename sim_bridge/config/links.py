@@ -13,7 +13,8 @@ from sim_bridge.impairment import ImpairmentParams
 
 @dataclass(frozen=True)
 class LinkConfig:
-    """Sockets (docs/wire.md). Local ports may be 0 (any free port; the app logs the real one)."""
+    """Sockets (docs/reference/wire.md). Local ports may be 0 (any free port; the app logs the real
+    one)."""
 
     sysid: int = field(metadata=checked(valid_sysid))
     compid: int = field(metadata=checked(valid_sysid))

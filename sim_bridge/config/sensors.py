@@ -79,19 +79,21 @@ class CameraModelConfig:
 
 @dataclass(frozen=True)
 class TelemetryConfig:
-    """How the autopilot's MAVLink output departs from the ideal (``docs/wire.md``, Clocks).
+    """How the autopilot's MAVLink output departs from the ideal (``docs/reference/wire.md``,
+    Clocks).
 
     ``rates``: ``"emulator"`` (the emulator's historical stream rates) or ``"px4"`` (PX4's
     MAVLink "onboard" mode on the offboard link and "normal" mode on the GCS link, with its
     10 Hz TIMESYNC requests and 1 Hz SYSTEM_TIME). ``delay_ms`` +- ``delay_jitter_ms``
     (uniform, in order): autopilot -> client transport delay of every message on the vehicle's
-    links (in lockstep at its due time in simulated time, inside the step: docs/wire.md).
+    links (in lockstep at its due time in simulated time, inside the step: docs/reference/wire.md).
     ``boot_offset_s``: the autopilot booted this long before the simulation started: every
     autopilot stamp (``time_boot_ms``, ``time_usec``, TIMESYNC ``tc1``/``ts1``, the camera's
     ``t_us`` and the ground truth's ``t_us``) is simulation time + this offset.
     ``accel_noise_m_s2`` (white, std per axis and HIGHRES_IMU sample) and ``accel_bias_m_s2``
     (body FRD, constant): the accelerometer of HIGHRES_IMU departs from the true specific
-    force by these (docs/wire.md, HIGHRES_IMU). ``velocity_noise_m_s`` (white, std per axis
+    force by these (docs/reference/wire.md, HIGHRES_IMU). ``velocity_noise_m_s`` (white, std per
+    axis
     and LOCAL_POSITION_NED sample; 0 at every level): the velocity estimate departs from the
     truth by this, as an EKF's does (a white model: EKF2's output is smoother, so this is the
     harsher case for a given std).

@@ -13,7 +13,7 @@ from sim_bridge.config.checks import checked, nonneg, one_of, open_unit, positiv
 # --------------------------------------------------------------------------------------------
 # [sim.*]
 # Named levels of the vehicle's own imperfections ([sim.vehicle], [sim.battery],
-# [sim.disturbance]); explicit keys win over the level (docs/emulator-vehicle.md).
+# [sim.disturbance]); explicit keys win over the level (docs/reference/emulator.md).
 VEHICLE_LEVELS: dict[str, dict[str, Any]] = {
     "ideal": {},
     "mild": {"hover_thrust_error": 0.05, "mass_error": 0.02, "drag_error": 0.5,
@@ -108,7 +108,7 @@ def _deg_s(x: float) -> str | None:
 @dataclass(frozen=True)
 class Px4ControlConfig:
     """PX4's attitude and rate controller parameters (names after PX4's, lower case; defaults
-    are PX4's, docs/emulator-vehicle.md) and the airframe the ``px4`` model flies."""
+    are PX4's, docs/reference/emulator.md) and the airframe the ``px4`` model flies."""
 
     mc_roll_p: float = field(default=6.5, metadata=checked(nonneg))
     mc_pitch_p: float = field(default=6.5, metadata=checked(nonneg))

@@ -1,5 +1,6 @@
 """The vehicle's MAVLink telemetry: each streamed or requested message encoded from the state
-the emulator flies (PX4's stream definitions, docs/wire.md), with the sensor noise and injected
+the emulator flies (PX4's stream definitions, docs/reference/wire.md), with the sensor noise and
+injected
 faults of ``[sim.telemetry]`` and ``[sim.faults]``, sent through the transport delay."""
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ class Telemetry:
             return mav.attitude_target_encode(ms, 0, [float(v) for v in q],
                                               *(float(v) for v in rates),
                                               float(cmd.thrust_norm))
-        if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/wire.md, HIGHRES_IMU)
+        if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/reference/wire.md, HIGHRES_IMU)
             f = specific_force_frd(s)
             if self._accel_noise > 0 or np.any(self._accel_bias):
                 f = f + self._accel_bias + self._accel_noise * self._imu_rng.standard_normal(3)
