@@ -166,7 +166,7 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
     frames = []
     with LogReader(path, verify=False) as r:
         if any(c.topic == "/perception/input" for c in r.channels):
-            # crops of what perception read, pasted back where they were (docs/logging.md)
+            # crops of what perception read, pasted back where they were (docs/reference/logging.md)
             crops = {}
             canvas = _Canvas()
             for m in r.messages(topics=["/perception/input", "/control/step"]):

@@ -5,7 +5,8 @@
     python bench/reliability.py --soak-json out/reliability/soak/soak.json   # reuse a soak
 
 Runs every probe of ``bench/reliab/`` against the real emulator and companion processes on
-loopback (and the real MCAP writer), then writes ``docs/reliability.md``: one row per probe
+loopback (and the real MCAP writer), then writes ``docs/reference/reliability.md``: one row per
+probe
 (inputs tried, result, data lost, bad commands sent: must be 0), the date, the machine and its
 load. The short versions of the same probes are tests (``tests/reliability/``).
 """
@@ -44,7 +45,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="short versions of every probe")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "reliability")
-    ap.add_argument("--doc", type=Path, default=ROOT / "docs" / "reliability.md")
+    ap.add_argument("--doc", type=Path, default=ROOT / "docs" / "reference" / "reliability.md")
     ap.add_argument("--soak-json", type=Path, default=None,
                     help="use this soak result (written by bench/reliab/soak.py) instead of "
                          "running the soak")

@@ -11,7 +11,7 @@ nothing else:
   ``q_diag``/``r_diag`` at 20 Hz, what the RMPC reduces to when no constraint is active),
   applied at 20 Hz with a zero-order hold;
 - the attitude loop as a first-order lag of the realised acceleration (``--tau``: 0.1 s gives
-  PX4's 215 ms 10-90 % roll-step rise, docs/emulator-vehicle.md);
+  PX4's 215 ms 10-90 % roll-step rise, docs/reference/emulator.md);
 - the compensation ``u - d_hat`` with ``d_hat`` from: nothing; the companion's own estimator
   (``DisturbanceEstimator``, fed at 30 Hz with the true velocity, the thrust and the realised
   body axis, as in flight); or an oracle that knows the true disturbance at the control instant
@@ -133,7 +133,8 @@ def main() -> int:
     ap.add_argument("--only", default="", help="comma-separated case numbers (0-10)")
     ap.add_argument("--config", type=Path, default=None,
                     help="the companion's config whose weights give K (default: the paper's; "
-                    "config/realistic.toml: the stiffer tuning, docs/offset-free.md section 4)")
+                    "config/realistic.toml: the stiffer tuning, "
+                    "docs/records/2026-11-offset-free.md section 4)")
     ap.add_argument("--accel-noise", type=float, default=0.35,
                     help="accelerometer white noise per 50 Hz sample (m/s^2)")
     ap.add_argument("--accel-rw", type=float, default=1.0,

@@ -2,7 +2,7 @@
 
 Implements Q. Yang and H. Li, "RMPC-Based Visual Servoing for Trajectory Tracking of Quadrotor
 UAVs With Visibility Constraints", IEEE/CAA J. Autom. Sinica 11(9), 2024, with the conventions
-of docs/math.md.
+of docs/reference/math.md.
 """
 
 from __future__ import annotations

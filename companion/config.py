@@ -91,7 +91,8 @@ class MavlinkConfig:
     target_system: int = field(metadata=checked(positive))
     target_component: int = field(metadata=checked(nonneg))
     signing_key_file: str = ""
-    # Receive guard (companion/link/guard.py, docs/reliability.md): pin the autopilot (and the
+    # Receive guard (companion/link/guard.py, docs/reference/reliability.md): pin the autopilot
+    # (and the
     # AGV) to the address of its first valid frame and drop other senders claiming its sysid
     # unparsed; addresses that may always speak for it ("host" or "host:port", routers).
     pin_source: bool = True
@@ -244,7 +245,7 @@ CONTROLLER_KINDS = ("rmpc", "rmpc-centroid", "mpc-novis", "ibvs-pd")
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """Which control law flies (docs/visibility.md, ``companion/control/factory.py``).
+    """Which control law flies (docs/reference/visibility.md, ``companion/control/factory.py``).
 
     ``kind``: ``rmpc`` (the RMPC as configured in [rmpc]; paper.toml keeps every corner in
     view), ``rmpc-centroid`` (the same with the paper's centroid rows), ``mpc-novis`` (the same

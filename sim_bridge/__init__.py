@@ -1,6 +1,6 @@
 """sim_bridge: a MAVLink vehicle emulator that behaves like PX4 (plus the AGV, camera and
 ground truth it serves). It never imports the companion: the two meet only on the wire
-(docs/wire.md).
+(docs/reference/wire.md).
 """
 
 from __future__ import annotations

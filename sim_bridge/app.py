@@ -1,6 +1,6 @@
 """The emulator's asyncio runtime: wires the vehicle physics, the PX4 state machine, the MAVLink
 links, the AGV (FOLLOW_TARGET from its own node), the camera frame server and the ground-truth
-publisher (docs/wire.md).
+publisher (docs/reference/wire.md).
 
 Two clocks:
 
@@ -289,7 +289,7 @@ class SimBridge:
             aruco_size_m=tg.aruco_size_m, noise_std=sim.camera.noise_std,
             blur_px=sim.camera.blur_px, seed=sim.seed, camera_matrix=lens_k,
             dist_coeffs=lens_d)
-        # The autopilot's clock: simulation time + the boot offset (docs/wire.md, Clocks).
+        # The autopilot's clock: simulation time + the boot offset (docs/reference/wire.md, Clocks).
         self.boot_offset_s = sim.telemetry.boot_offset_s
         cm = sim.camera_model
         self.cam_timing = CameraTiming(cm, sim.seed, clock_offset_s=self.boot_offset_s)
@@ -622,7 +622,7 @@ class SimBridge:
             return mav.attitude_target_encode(ms, 0, [float(v) for v in q],
                                               *(float(v) for v in rates),
                                               float(cmd.thrust_norm))
-        if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/wire.md, HIGHRES_IMU)
+        if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/reference/wire.md, HIGHRES_IMU)
             f = self.specific_force_frd(s)
             if self._accel_noise > 0 or np.any(self._accel_bias):
                 f = f + self._accel_bias + self._accel_noise * self._imu_rng.standard_normal(3)

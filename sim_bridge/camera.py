@@ -1,6 +1,6 @@
 """The synthetic downward camera: renders the AGV on a textured ground into mono8 frames.
 
-Conventions (docs/math.md, section 1; docs/wire.md): world NED, body FRD, camera
+Conventions (docs/reference/math.md, section 1; docs/reference/wire.md): world NED, body FRD, camera
 axes = body axes rotated by the mount (x forward, y right, z down = optical axis). Ideal
 pinhole: ``fx = fy = focal_length_m / pixel_size_m``, principal point at the image centre
 ``cx = (width_px - 1) / 2``, ``cy = (height_px - 1) / 2`` (pixel centres at integer

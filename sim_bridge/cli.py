@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="scenario TOML (default: config/paper.toml)")
     p.add_argument("--scenario", help="name in [sim.scenarios.*] (default: sim.scenario)")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--lockstep", action="store_true", help="simulated time (docs/wire.md)")
+    mode.add_argument("--lockstep", action="store_true",
+                      help="simulated time (docs/reference/wire.md)")
     mode.add_argument("--realtime", action="store_true", help="wall-clock time")
     p.add_argument("--duration", type=float, help="seconds of boot time to run "
                    "(default: sim.duration_s)")

@@ -123,7 +123,7 @@ class TargetConfig:
 # --------------------------------------------------------------------------------------------
 # [sim.*]
 # Named levels of the vehicle's own imperfections ([sim.vehicle], [sim.battery],
-# [sim.disturbance]); explicit keys win over the level (docs/emulator-vehicle.md).
+# [sim.disturbance]); explicit keys win over the level (docs/reference/emulator.md).
 VEHICLE_LEVELS: dict[str, dict[str, Any]] = {
     "ideal": {},
     "mild": {"hover_thrust_error": 0.05, "mass_error": 0.02, "drag_error": 0.5,
@@ -218,7 +218,7 @@ def _deg_s(x: float) -> str | None:
 @dataclass(frozen=True)
 class Px4ControlConfig:
     """PX4's attitude and rate controller parameters (names after PX4's, lower case; defaults
-    are PX4's, docs/emulator-vehicle.md) and the airframe the ``px4`` model flies."""
+    are PX4's, docs/reference/emulator.md) and the airframe the ``px4`` model flies."""
 
     mc_roll_p: float = field(default=6.5, metadata=_c(_nonneg))
     mc_pitch_p: float = field(default=6.5, metadata=_c(_nonneg))
@@ -285,7 +285,8 @@ class Px4Config:
 
 @dataclass(frozen=True)
 class LinkConfig:
-    """Sockets (docs/wire.md). Local ports may be 0 (any free port; the app logs the real one)."""
+    """Sockets (docs/reference/wire.md). Local ports may be 0 (any free port; the app logs the real
+    one)."""
 
     sysid: int = field(metadata=_c(_sysid))
     compid: int = field(metadata=_c(_sysid))
@@ -496,19 +497,21 @@ class CameraModelConfig:
 
 @dataclass(frozen=True)
 class TelemetryConfig:
-    """How the autopilot's MAVLink output departs from the ideal (``docs/wire.md``, Clocks).
+    """How the autopilot's MAVLink output departs from the ideal (``docs/reference/wire.md``,
+    Clocks).
 
     ``rates``: ``"emulator"`` (the emulator's historical stream rates) or ``"px4"`` (PX4's
     MAVLink "onboard" mode on the offboard link and "normal" mode on the GCS link, with its
     10 Hz TIMESYNC requests and 1 Hz SYSTEM_TIME). ``delay_ms`` +- ``delay_jitter_ms``
     (uniform, in order): autopilot -> client transport delay of every message on the vehicle's
-    links (in lockstep at its due time in simulated time, inside the step: docs/wire.md).
+    links (in lockstep at its due time in simulated time, inside the step: docs/reference/wire.md).
     ``boot_offset_s``: the autopilot booted this long before the simulation started: every
     autopilot stamp (``time_boot_ms``, ``time_usec``, TIMESYNC ``tc1``/``ts1``, the camera's
     ``t_us`` and the ground truth's ``t_us``) is simulation time + this offset.
     ``accel_noise_m_s2`` (white, std per axis and HIGHRES_IMU sample) and ``accel_bias_m_s2``
     (body FRD, constant): the accelerometer of HIGHRES_IMU departs from the true specific
-    force by these (docs/wire.md, HIGHRES_IMU). ``velocity_noise_m_s`` (white, std per axis
+    force by these (docs/reference/wire.md, HIGHRES_IMU). ``velocity_noise_m_s`` (white, std per
+    axis
     and LOCAL_POSITION_NED sample; 0 at every level): the velocity estimate departs from the
     truth by this, as an EKF's does (a white model: EKF2's output is smoother, so this is the
     harsher case for a given std).

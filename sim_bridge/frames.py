@@ -1,4 +1,5 @@
-"""Camera frames on the wire (docs/wire.md, "Camera frames"): the record format and the TCP
+"""Camera frames on the wire (docs/reference/wire.md, "Camera frames"): the record format and the
+TCP
 server that streams them to any number of clients.
 
 A record is a 32-byte little-endian header (``struct`` ``<4sBBHIQHHII``: magic ``b"IBVF"``,
@@ -53,7 +54,7 @@ class FrameError(SimBridgeError):
 
 @dataclass(frozen=True)
 class FrameHeader:
-    """A decoded record header (docs/wire.md). ``t_us``: capture time, emulator clock."""
+    """A decoded record header (docs/reference/wire.md). ``t_us``: capture time, emulator clock."""
 
     version: int
     encoding: int
@@ -221,7 +222,7 @@ class _Client:
 
 
 class FrameServer:
-    """TCP server streaming camera frames to any number of clients (docs/wire.md).
+    """TCP server streaming camera frames to any number of clients (docs/reference/wire.md).
 
     ``async with FrameServer("127.0.0.1", 0) as srv: await srv.publish(seq, t_us, image)``.
     ``port`` 0 picks a free port (read it from :attr:`port`). Counters: :attr:`published`,

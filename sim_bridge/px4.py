@@ -2,7 +2,7 @@
 position controllers of the non-offboard modes). Pure logic: every call takes the time
 explicitly (``t_s``, seconds since boot, wall or simulated), no sockets or clocks.
 
-Behaviour (docs/px4-offboard.md; PX4 ``commander/``, ``mavlink_receiver.cpp``):
+Behaviour (docs/reference/px4-offboard.md; PX4 ``commander/``, ``mavlink_receiver.cpp``):
 
 * Modes: POSCTL (default), ALTCTL, STABILIZED, MANUAL, ACRO, OFFBOARD, AUTO.TAKEOFF,
   AUTO.LOITER (Hold), AUTO.RTL, AUTO.LAND, TERMINATION. With no RC, the manual modes hold

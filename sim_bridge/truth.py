@@ -1,4 +1,4 @@
-"""Ground truth on the wire (docs/wire.md, "Ground truth"): one UTF-8 JSON object per UDP
+"""Ground truth on the wire (docs/reference/wire.md, "Ground truth"): one UTF-8 JSON object per UDP
 datagram, for loggers and scoring only (the companion's control path never reads it).
 
 :func:`truth_record` builds the record from the emulator's state; :class:`TruthPublisher`
@@ -52,7 +52,8 @@ def truth_record(
     armed: bool = False,
     setpoint_age_s: float | None = None,
 ) -> dict[str, Any]:
-    """The ground-truth record of one step (docs/wire.md), JSON-ready (plain floats/lists).
+    """The ground-truth record of one step (docs/reference/wire.md), JSON-ready (plain
+    floats/lists).
 
     ``frame`` is the frame rendered at this step (``None``: no frame this step; then
     ``corners_px`` is null and ``target_in_image`` false). ``setpoint_age_s``: seconds since the

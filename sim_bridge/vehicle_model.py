@@ -1,7 +1,7 @@
 """Builds the emulator's vehicle dynamics from the configuration: the first-order attitude model
 or PX4's control cascade on a rigid body (``sim.vehicle.attitude_model``), with the vehicle's
 imperfections (``[sim.vehicle]`` errors, ``[sim.battery]``, ``[sim.disturbance]``) applied to
-either. docs/emulator-vehicle.md describes both.
+either. docs/reference/emulator.md describes both.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""docs/reliability.md from the probes' results: the summary table, then each probe's figures,
+"""docs/reference/reliability.md from the probes' results: the summary table, then each probe's
+figures,
 then what the probes do and the configuration keys they exercise."""
 
 from __future__ import annotations

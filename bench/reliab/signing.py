@@ -5,7 +5,8 @@ companion with ``mavlink.signing_key_file``. With ``mavlink.allowed_sources = ["
 the receive guard lets the attacker's frames through to the signature check, so this probe
 tests signing alone. During the flight, at each end: unsigned frames claiming the other end's
 identity, one frame with a forged signature stamped 2^48 - 2 (pymavlink 2.4.50 would then
-refuse every later frame of that stream: docs/pitfalls.md), and replays of genuine frames read
+refuse every later frame of that stream: docs/reference/pitfalls.md), and replays of genuine frames
+read
 back from the companion's log. The flight must go on in OFFBOARD with the legitimate streams.
 """
 

@@ -6,7 +6,8 @@ keeps a small bounded buffer that drops the oldest frame and counts it (style ha
 
 URLs (:func:`open_camera`):
 
-- ``tcp://127.0.0.1:5700``: the emulator's frame socket (docs/wire.md), :class:`FrameSocketSource`
+- ``tcp://127.0.0.1:5700``: the emulator's frame socket (docs/reference/wire.md),
+:class:`FrameSocketSource`
 - ``0``, ``/dev/video0``: a local camera device, ``rtsp://...``, ``http(s)://...``, ``udp://...``:
   a live stream; a file path (or ``file://path``): a video file (read at the consumer's pace,
   nothing dropped). All through ``cv2.VideoCapture``: :class:`VideoCaptureSource`.

@@ -1,4 +1,4 @@
-"""The emulator's frame socket (docs/wire.md, camera frames): record header, decoding and
+"""The emulator's frame socket (docs/reference/wire.md, camera frames): record header, decoding and
 :class:`FrameSocketSource`, a TCP client that resynchronises on a bad record."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from companion.camera.base import _CHANNELS, CameraError, CameraFrame, CameraSou
 _log = logging.getLogger(__name__)
 
 
-# docs/wire.md, camera frames
+# docs/reference/wire.md, camera frames
 FRAME_HEADER = struct.Struct("<4sBBHIQHHII")
 FRAME_MAGIC = b"IBVF"
 FRAME_VERSION = 1
@@ -28,16 +28,16 @@ ENCODINGS = {0: "mono8", 1: "bgr8", 2: "jpeg", 3: "png"}
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
 
 # ----------------------------------------------------------------------------------------------
-# The emulator's frame socket (docs/wire.md)
+# The emulator's frame socket (docs/reference/wire.md)
 
 
 class BadRecord(CameraError):
-    """A frame record violates docs/wire.md (the connection must be resynchronised)."""
+    """A frame record violates docs/reference/wire.md (the connection must be resynchronised)."""
 
 
 @dataclass(frozen=True)
 class FrameHeader:
-    """The 32-byte record header of docs/wire.md."""
+    """The 32-byte record header of docs/reference/wire.md."""
 
     magic: bytes
     version: int
@@ -76,7 +76,7 @@ class FrameHeader:
 def pack_frame(
     seq: int, t_us: int, image: npt.NDArray[np.uint8], encoding: str = "", payload: bytes = b""
 ) -> bytes:
-    """One docs/wire.md record for ``image`` (mono8 if 2-D, bgr8 if 3-D, or ``encoding`` =
+    """One docs/reference/wire.md record for ``image`` (mono8 if 2-D, bgr8 if 3-D, or ``encoding`` =
     ``"jpeg"``/``"png"`` to compress; ``payload`` overrides the bytes sent). For tests,
     tools and recorders that re-serve frames."""
     h, w = image.shape[:2]
@@ -128,7 +128,8 @@ class _Record:
 
 
 class _RecordProtocol(asyncio.BufferedProtocol):
-    """Receives docs/wire.md records straight into a buffer of their own (``recv_into``: one
+    """Receives docs/reference/wire.md records straight into a buffer of their own (``recv_into``:
+    one
     copy out of the kernel per byte).
 
     Why not ``asyncio.StreamReader.readexactly``: it copied a 1 MB frame about four times
@@ -194,7 +195,7 @@ class _RecordProtocol(asyncio.BufferedProtocol):
 
 
 class FrameSocketSource(CameraSource):
-    """TCP client of the emulator's camera frames (docs/wire.md).
+    """TCP client of the emulator's camera frames (docs/reference/wire.md).
 
     Reconnects with exponential backoff (``backoff_initial_s`` doubling up to
     ``backoff_max_s``; reset by a good frame). A record with a bad magic, version, encoding,

@@ -1,6 +1,6 @@
 """The campaign's scenario library: controllers x scenarios x seeds, and the sampled starts.
 
-A campaign file (``config/campaigns/default.toml``, documented in ``docs/campaigns/README.md``)
+A campaign file (``config/campaigns/default.toml``, documented in ``docs/reference/campaigns.md``)
 names a base config, the controllers (named override lists), the scenarios (an AGV path at a
 speed scale plus override lists for disturbances and the vehicle) and the distribution of the
 starts. Every run is one lockstep flight (``companion demo``) whose overrides are the

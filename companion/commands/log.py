@@ -1,7 +1,7 @@
 """``companion log info LOG.mcap``: channels, counts, rates, duration (like ``mcap info``).
 ``companion log export --tlog OUT.tlog LOG.mcap``: the MAVLink traffic as a telemetry log.
 ``companion log lag LOG.mcap``: the vehicle's tilt lag (``control.lead.attitude_lag_s``)
-measured from the setpoints it flew (docs/attitude-lag.md)."""
+measured from the setpoints it flew (docs/guides/tune.md)."""
 
 from __future__ import annotations
 

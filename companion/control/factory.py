@@ -1,7 +1,7 @@
 """Build the control law a config asks for (``controller.kind``), behind one interface.
 
 Every kind is a :class:`companion.control.seams.Controller` and flies through the same
-pipeline, safety ladder, emulator and report (docs/visibility.md):
+pipeline, safety ladder, emulator and report (docs/reference/visibility.md):
 
 - ``rmpc``: the RMPC of spec 6 as configured in [rmpc] (paper.toml: every corner in view);
 - ``rmpc-centroid``: the same with the paper's centroid visibility rows;
@@ -47,7 +47,7 @@ def build_controller(cfg: Config, terminal: TerminalDesign) -> Controller:
         raise ValueError(f"controller.kind: {kind!r} is not one of {CONTROLLER_KINDS}")
     params = rmpc_params_for(kind, cfg.rmpc)
     # rmpc.solve_isolation = "process": every step's solves bounded in wall time in a child
-    # process (companion.control.solve_guard, docs/reliability.md)
+    # process (companion.control.solve_guard, docs/reference/reliability.md)
     backend = (process_backend(params, cfg.camera, terminal)
                if params.solve_isolation == "process" else None)
     return Rmpc(params, cfg.camera, terminal, clock=time.perf_counter, backend=backend)

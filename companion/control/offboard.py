@@ -1,4 +1,4 @@
-"""Offboard state machine, as PX4 expects it (docs/px4-offboard.md).
+"""Offboard state machine, as PX4 expects it (docs/reference/px4-offboard.md).
 
 Pure logic with explicit time: the runtime feeds it observations (HEARTBEAT mode/armed,
 COMMAND_ACK results, whether a setpoint was just streamed) and executes the actions it returns.

@@ -323,7 +323,7 @@ class ControlPipeline:
                 # level with its own controller, so a difference of streamed commands is not
                 # a change of tilt the vehicle must catch up with) and the controller tracks
                 # in its nominal problem: the recovery's chase and the fallbacks' jumps are
-                # flown as commanded (docs/offset-free.md 2b)
+                # flown as commanded (docs/reference/estimator.md 2b)
                 led = (in_control is not False and level is SafetyLevel.TRACKING
                        and rmpc_res is not None
                        and rmpc_res.mode not in ("recovery", "fallback"))

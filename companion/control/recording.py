@@ -9,7 +9,7 @@
   ``/perception/input`` (the region of interest, or the whole frame when the detector
   searched) and, decimated and downscaled, a JPEG preview for people on ``/camera/image``.
 
-docs/logging.md says what replay keeps under each setting.
+docs/reference/logging.md says what replay keeps under each setting.
 """
 
 from __future__ import annotations

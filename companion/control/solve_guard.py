@@ -8,7 +8,7 @@ worker thread (CasADi releases the GIL, so a thread would keep the loop alive) c
 but never stopped, so it would burn one of the companion computer's cores for good. A child
 process can be killed (SIGKILL) and replaced. fatrop has no time option at all
 (``max_wall_time``/``max_cpu_time`` are refused as unsupported options); ipopt has them but
-they are checked only between iterations. docs/reliability.md has the measurements.
+they are checked only between iterations. docs/reference/reliability.md has the measurements.
 
 Protocol (a ``multiprocessing`` pipe, 'spawn' start: nothing of the parent's event loop,
 threads or sockets is inherited): the child builds the controller's compiled solvers from the

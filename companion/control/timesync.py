@@ -8,7 +8,7 @@ round trip ``t_rx - ts1``. The estimate is the sample with the smallest round tr
 last ``window`` accepted ones (a long round trip means queuing, whose asymmetry biases the
 sample); samples with a round trip above ``max_rtt_ns`` are dropped. PX4's own requests
 (``tc1 = 0`` from the autopilot) are answered with ``tc1`` = our time, ``ts1`` echoed
-(docs/wire.md, TIMESYNC).
+(docs/reference/wire.md, TIMESYNC).
 
 A frame stamped ``t_us`` on the autopilot's clock (a hardware-synced camera) is then
 ``autopilot_now - t_us`` old; that age is what the latency compensation predicts across.

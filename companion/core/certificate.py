@@ -1,6 +1,6 @@
 """The paper's stability and feasibility certificate (Assumption 2, Theorems 1 and 2).
 
-Yang & Li 2024, Assumption 2, Remark 2, Theorems 1 and 2; docs/math.md, section 7.
+Yang & Li 2024, Assumption 2, Remark 2, Theorems 1 and 2; docs/reference/math.md, section 7.
 Everything here is pure math (numpy, scipy, cvxpy): the certificate *evaluates* each condition
 as ``lhs <= rhs`` with the numbers it used, it never decides a verdict any other way.
 

@@ -19,12 +19,12 @@ velocity telemetry alone::
 steady vertical offset is read as a hover-thrust error (what it almost always is) and ``d_z``
 stays a slow residual.
 
-How the estimate is used (docs/offset-free.md): the controller's input ``u = [r, psidot]``
+How the estimate is used (docs/reference/estimator.md): the controller's input ``u = [r, psidot]``
 stays the vehicle's *acceleration* in the virtual frame (spec 4); the setpoint mapping (spec 5)
 asks for the specific force ``r - d_v - g e_z`` (``d_v`` = ``d`` in the virtual frame) with the
 estimated hover thrust, so the vehicle achieves ``r`` and the model holds.
 
-With an accelerometer (``accelerometer = true``, PX4's HIGHRES_IMU, docs/offset-free.md
+With an accelerometer (``accelerometer = true``, PX4's HIGHRES_IMU, docs/reference/estimator.md
 section 1b) the filter gains two states, the accelerometer's bias ``b`` in body x and y (a slow
 random walk), and a second measurement: in body axes the thrust has no x/y component, so the
 horizontal specific force measured is ``(R' d)_xy + b + noise`` whatever the thrust model. The
@@ -70,7 +70,7 @@ class EstimatorParams:
     ``autopilot_thrust_max_age_s`` is not used.
 
     ``accelerometer``: also fuse HIGHRES_IMU's horizontal specific force (body x/y) as a
-    measurement of ``d`` (docs/offset-free.md, section 1b); ``accel_noise_m_s2``: std of one
+    measurement of ``d`` (docs/reference/estimator.md, section 1b); ``accel_noise_m_s2``: std of one
     sample per axis; ``accel_disturbance_noise_m_s2_sqrt_s``: the random walk of ``d_x``,
     ``d_y`` while accelerometer samples arrive (at most ``accel_max_age_s`` old);
     ``accel_bias_noise_m_s2_sqrt_s``/``accel_bias_initial_std_m_s2``: random walk and prior

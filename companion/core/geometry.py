@@ -1,6 +1,6 @@
 """Camera geometry of spec sections 1, 2, 5 and 6 (the virtual camera and the visible area).
 
-Conventions (docs/math.md, section 1): world NED, body FRD, ZYX Euler
+Conventions (docs/reference/math.md, section 1): world NED, body FRD, ZYX Euler
 ``R = Rz(psi) Ry(theta) Rx(phi)``. Camera axes = body axes (x forward, y right, z down = optical
 axis). Metric image coordinates ``u = lambda x/z`` (along camera x), ``n = lambda y/z``.
 The virtual camera ``v`` has the camera's origin and yaw, roll = pitch = 0:
@@ -351,7 +351,7 @@ def principal_point_px(width_px: int, height_px: int) -> tuple[float, float]:
 
 
 def spec_pixel_to_opencv(u_px: Any, n_px: Any, cx_px: float, cy_px: float) -> tuple[Any, Any]:
-    """THE mapping spec pixels -> OpenCV ``(col, row)`` (spec 1, docs/wire.md).
+    """THE mapping spec pixels -> OpenCV ``(col, row)`` (spec 1, docs/reference/wire.md).
 
     Camera looking down, "forward = up" in the image: ``col = cx + n_px``, ``row = cy - u_px``.
     Every other conversion goes through this function and :func:`opencv_to_spec_pixel`.
@@ -428,7 +428,7 @@ class PinholeCamera:
 def rectangle_corners_m(length_m: float, width_m: float) -> np.ndarray:
     """Corners (4, 2) of a ``length x width`` rectangle in its own frame (x forward, y right).
 
-    Order as docs/wire.md ``corners_px``: front-left, front-right, rear-right, rear-left.
+    Order as docs/reference/wire.md ``corners_px``: front-left, front-right, rear-right, rear-left.
     """
     hl, hw = 0.5 * length_m, 0.5 * width_m
     return np.array([[hl, -hw], [hl, hw], [-hl, hw], [-hl, -hw]])

@@ -1,4 +1,4 @@
-"""Lead compensation of the vehicle's tilt lag (docs/offset-free.md, "Tilt-lag lead").
+"""Lead compensation of the vehicle's tilt lag (docs/reference/estimator.md, "Tilt-lag lead").
 
 The RMPC's model (spec 4) takes the commanded acceleration as the vehicle's acceleration. A
 real multicopter reaches a commanded tilt, and so a horizontal acceleration, only through its
@@ -17,7 +17,7 @@ hover, or while PX4 flies the vehicle itself (before OFFBOARD), so a jump in the
 becomes a kick larger than the bound. It is a small-signal correction: the lead terms of
 disturbance rejection are hundredths of m/s^2. The pipeline leads only the nominal tracking
 (the hard problem, or a controller without a soft copy): a recovery's chase of a target that got
-away, led, pushed corners further out in near-edge starts (docs/offset-free.md, "Tilt-lag
+away, led, pushed corners further out in near-edge starts (docs/reference/estimator.md, "Tilt-lag
 lead").
 """
 

@@ -1,4 +1,4 @@
-"""Image moments of the target in the virtual image (docs/math.md, section 3).
+"""Image moments of the target in the virtual image (docs/reference/math.md, section 3).
 
 Points are metric virtual-image coordinates ``[u_v, n_v]`` (m on the image plane, spec 2).
 With ``N_p`` points::

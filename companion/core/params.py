@@ -54,7 +54,7 @@ class CameraParams:
         # re-projected into body axes (core.state.virtual_image_points); the visibility rows
         # are circles about the optical axis, so they hold unchanged. A tilted or offset camera
         # would be flown with the wrong geometry: refused here instead of failing in the air
-        # (docs/limits.md).
+        # (docs/reference/limits.md).
         for name in ("mount_offset_m", "mount_rpy_rad"):
             value = getattr(self, name)
             if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
@@ -136,7 +136,8 @@ class RmpcParams:
     # the paper's (2d); the applied input u(0) is in no row), "causal" = p(n+1), the image
     # taken with the attitude u(n) produces (u(0) checked against the next image).
     visibility_pairing: str = "spec"
-    # What the visibility rows keep inside the visible area (docs/visibility.md): "centroid"
+    # What the visibility rows keep inside the visible area (docs/reference/visibility.md):
+    # "centroid"
     # (the paper's rows: the image of the target's centre) or "corners" (every target corner,
     # its image predicted from s_e, s3 and s4 and the target's known shape).
     visibility: str = "centroid"
@@ -153,7 +154,7 @@ class RmpcParams:
     target_motion: str = "nominal"
     # L1 weight of the tube and terminal rows' slacks in the soft (recovery) copy; the
     # visibility rows keep recovery_penalty (equal by default; config/paper.toml puts the
-    # tube 10x above visibility: docs/visibility.md section 5).
+    # tube 10x above visibility: docs/records/2026-11-visibility.md section 5).
     recovery_tube_penalty: float = field(default=1.0e3, metadata=checked(positive))
     # Input-rate weight of the soft (recovery) copy only: ``w sum_i ((u_i(n+1) - u_i(n)) /
     # u_max_i)^2`` over the horizon plus the same for u(0) against the input the previous
@@ -167,7 +168,7 @@ class RmpcParams:
     # design. A stiff q_diag shrinks the terminal set and stretches P's metric, and the soft
     # copy, whose slacks are measured in it, then chases harder from a start it cannot hold;
     # softer weights here keep the engagement as gentle as theirs (config/realistic.toml,
-    # docs/offset-free.md section 4).
+    # docs/records/2026-11-offset-free.md section 4).
     recovery_q_diag: tuple[float, float, float, float, float, float, float] | None = None
     recovery_eps: float | None = None
     # A second, loaded solver process on stand-by (solve_isolation = "process"): a timeout or
@@ -177,12 +178,12 @@ class RmpcParams:
     # How far the target's along-track acceleration is extrapolated over the horizon:
     # "linear" (held for the whole horizon) or "box" (held until the predicted speed reaches
     # the vehicle's velocity bound eta_max[4], or the current speed if that is higher; then
-    # constant speed). docs/visibility.md section 5.
+    # constant speed). docs/records/2026-11-visibility.md section 5.
     target_speed_extrapolation: str = "linear"
     # The target's corners (N, 2) in its own frame (x forward, y right), metres. Not a config
     # key: companion.config fills it from [target] (used by visibility = "corners").
     target_corners_m: tuple[tuple[float, float], ...] = ()
-    # Where the NLP solves run (docs/reliability.md): "process" (a child process the shell
+    # Where the NLP solves run (docs/reference/reliability.md): "process" (a child process the shell
     # kills and restarts when a solve exceeds max_solve_time_s: a solver that never returns
     # cannot freeze the control loop) or "none" (in the calling thread, unbounded: tests,
     # offline tools). The core itself only runs "none"; the shell builds the child.
@@ -257,10 +258,10 @@ class ControlParams:
     # a real vehicle) or "autopilot" (source stamps: frames and telemetry share the
     # autopilot's boot clock, as the emulator's do; needed in lockstep) or "timesync" (source
     # stamps as "autopilot", and "now" on the autopilot's clock from MAVLink TIMESYNC: what the
-    # latency compensation measures the frame's age with; docs/offset-free.md).
+    # latency compensation measures the frame's age with; docs/reference/estimator.md).
     time_source: str = "receipt"
     # Offset-free estimator (hover thrust, disturbance) and latency compensation
-    # (companion/core/disturbance.py, latency.py; docs/offset-free.md).
+    # (companion/core/disturbance.py, latency.py; docs/reference/estimator.md).
     estimator: EstimatorParams = field(default_factory=EstimatorParams)
     latency: LatencyParams = field(default_factory=LatencyParams)
     # Tilt-lag lead compensation of the commands (companion/core/lead.py).

@@ -30,7 +30,8 @@ Groups (RmpcParams switches):
 - ``visibility``: ``|p(n) - M(u(n))|^2 <= (r_v - n rho e^{L (n-1) delta})^2`` for n = 1..N-1,
   ``p(n) = [se1, se2]/s3``, ``s3 = se3 + 1``, ``M`` the mapped visible-area centre; with
   ``rmpc.visibility = "corners"`` one row per target corner ``p_i`` (:func:`corner_points`),
-  tightened by ``k_c`` times the paper's margin (:func:`visibility_radius`, docs/visibility.md);
+  tightened by ``k_c`` times the paper's margin (:func:`visibility_radius`,
+  docs/reference/visibility.md);
 - ``terminal``: ``eta(N)' P eta(N) <= eps^2`` (Omega) and ``|p(N)|^2 <= gamma^2``.
 
 With ``rmpc.heading = "cost"`` the tube and terminal-set rows use ``P`` with ``s4`` minimised
@@ -132,7 +133,7 @@ def corners_m(rmpc: RmpcParams) -> np.ndarray:
 
 def corner_gain(rmpc: RmpcParams, camera: CameraParams) -> float:
     """``k_c``: how much a state disturbance of Euclidean size 1 in ``(se1, se2, se3, s4)``
-    can move a corner's normalised image point (docs/visibility.md):
+    can move a corner's normalised image point (docs/reference/visibility.md):
 
         k_c = sqrt(1 + (c_max / z*)^2 + p_max^2) / s3_min
 

@@ -10,7 +10,7 @@ along body -z, so the attitude must satisfy ``R(q_d) [0, 0, -|f|] = Rz(psi_d) f`
     thrust  = hover_thrust |f| / g         (PX4: hover thrust gives 1 g), clamped
 
 ``q_d``: ZYX ``(phi_d, theta_d, psi_d)`` as ``[w, x, y, z]``, the attitude of body FRD relative
-to NED -- what SET_ATTITUDE_TARGET carries (docs/px4-offboard.md, section 1).
+to NED -- what SET_ATTITUDE_TARGET carries (docs/reference/px4-offboard.md, section 1).
 """
 
 from __future__ import annotations

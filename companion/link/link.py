@@ -1,7 +1,8 @@
 """A robust MAVLink 2 link for the companion: asyncio transport, hostile-input receive path.
 
 Why not ``mavutil``: its UDP connections feed every datagram into ONE shared parser, so a single
-truncated datagram poisons the following good frames (docs/pitfalls.md, pymavlink). Here each UDP
+truncated datagram poisons the following good frames (docs/reference/pitfalls.md, pymavlink). Here
+each UDP
 datagram is parsed by a fresh robust parser; streams (TCP, serial) keep one robust parser.
 pymavlink is used only as the codec (``pymavlink.dialects.v20.common``).
 
@@ -714,7 +715,7 @@ class MavlinkLink:
 
     def send_timesync(self, tc1: int, ts1: int) -> bytes:
         """TIMESYNC (#111): a request is ``tc1 = 0, ts1 = local ns``; a reply to the
-        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/wire.md)."""
+        autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/reference/wire.md)."""
         return self.send(self._enc.timesync_encode(int(tc1), int(ts1)))
 
     def send_heartbeat(self) -> bytes:

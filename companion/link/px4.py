@@ -1,5 +1,5 @@
 """PX4 on the wire: MAVLink constants the companion uses and PX4's custom-mode encoding
-(docs/px4-offboard.md; PX4 ``src/modules/commander/px4_custom_mode.h``)."""
+(docs/reference/px4-offboard.md; PX4 ``src/modules/commander/px4_custom_mode.h``)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """MAVLink 2 signing: key files, the signing clock and an incoming-signature verifier that
-checks the signature before it updates a stream's timestamp (docs/pitfalls.md)."""
+checks the signature before it updates a stream's timestamp (docs/reference/pitfalls.md)."""
 
 from __future__ import annotations
 

@@ -184,7 +184,7 @@ _STATIC: dict[str, dict[str, Any]] = {
          "in_control": {"type": ["boolean", "null"],
                         "description": "our setpoints fly the vehicle (estimator input)"},
          "estimator": {"type": ["object", "null"], "description":
-                       "offset-free estimator (docs/offset-free.md): hover_thrust, "
+                       "offset-free estimator (docs/reference/estimator.md): hover_thrust, "
                        "d_ned_m_s2 (m/s^2, NED), hover_std, d_std_m_s2, updates, rejected, "
                        "innovation_m_s, reason",
                        "properties": {"hover_thrust": _NUM,

@@ -1,6 +1,6 @@
 """Detector for the emulator's pattern: a bright rectangle (the AGV's top) on a darker scene.
 
-Scene model (what the emulator renders, docs/wire.md): the AGV top is the brightest region
+Scene model (what the emulator renders, docs/reference/wire.md): the AGV top is the brightest region
 (235 at the nominal exposure), the ground is textured (about 40..150) and the box's sides are
 dark (<= 60); a camera's exposure scales all of them (and saturates at 255).
 

@@ -13,7 +13,7 @@ attitude P -> rate PID -> allocation (quad X, airmode off) -> THR_MDL_FAC invers
 
 with ``b(t) = 1 - min(max_loss, loss_rate t)`` the battery's thrust factor and ``m = m_nom (1 +
 mass_error)`` (payload: the motors are those of the nominal vehicle, so the true hover thrust
-rises by the same factor and the inertia with it). docs/emulator-vehicle.md has the details.
+rises by the same factor and the inertia with it). docs/reference/emulator.md has the details.
 
 The controller state (integrators, filtered angular acceleration, motor thrusts, the exact
 quaternion and body rates) travels in ``VehicleState.cascade``, so ``step`` is a pure function.

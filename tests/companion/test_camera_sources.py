@@ -1,4 +1,5 @@
-"""Camera sources against real peers: a TCP frame server on 127.0.0.1 speaking docs/wire.md,
+"""Camera sources against real peers: a TCP frame server on 127.0.0.1 speaking
+docs/reference/wire.md,
 and real video files written with cv2.VideoWriter."""
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def test_header_layout_matches_wire_doc() -> None:
     assert (h.magic, h.version, h.encoding, h.seq, h.t_us) == (b"IBVF", 1, 0, 7, 123456789)
     assert (h.width_px, h.height_px, h.payload_len) == (64, 48, 64 * 48)
     assert h.crc32 == zlib.crc32(rec[32:])
-    # field offsets of docs/wire.md
+    # field offsets of docs/reference/wire.md
     assert struct.unpack_from("<I", rec, 8)[0] == 7
     assert struct.unpack_from("<Q", rec, 12)[0] == 123456789
     assert struct.unpack_from("<HH", rec, 20) == (64, 48)

@@ -57,7 +57,7 @@ def fly(params: EstimatorParams, d_of_t, duration_s: float, *, bias=(0.0, 0.0),
 
 
 # a quiet accelerometer (0.02 m/s^2 per sample) and a velocity with 0.01 m/s of noise: the
-# estimator's behaviour, not the realistic world's figures (docs/offset-free.md, 1b)
+# estimator's behaviour, not the realistic world's figures (docs/reference/estimator.md, 1b)
 ACCEL = EstimatorParams(accelerometer=True, accel_noise_m_s2=0.02,
                         accel_bias_noise_m_s2_sqrt_s=0.002)
 VEL_NOISE = 0.01

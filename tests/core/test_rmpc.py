@@ -402,7 +402,7 @@ def test_disturbance_moves_the_visible_area_centre_in_the_solved_problem(
     fresh: Rmpc, cfg: Config, design: TerminalDesign
 ) -> None:
     """With a disturbance estimate d the attitude realising the acceleration u is that of
-    u - d (docs/offset-free.md): the solver's visibility rows are those of M(u - d), so the
+    u - d (docs/reference/estimator.md): the solver's visibility rows are those of M(u - d), so the
     solution is checked clean against d, and the same trajectory checked with M(u) differs."""
     from companion.core.rmpc_problem import centre
 

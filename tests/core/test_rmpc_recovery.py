@@ -1,5 +1,5 @@
 """The recovery (soft) copy when the measured state is already outside the state box
-(docs/visibility.md, "Recovery from outside the velocity box"): campaign flights on fast paths
+(docs/records/2026-11-visibility.md section 5): campaign flights on fast paths
 measured the vehicle at 1.1-2.1 m/s against the 1 m/s box; the soft copy with a hard box was
 then infeasible at stage 1 and the controller fell back to the terminal law, which ignores the
 target. These tests fail on that behaviour."""
@@ -114,7 +114,7 @@ def test_recovery_closes_on_a_target_at_the_edge_of_the_view(
     above visibility) the soft copy must plan to close on the target: accelerate towards it
     and shrink the tube norm over the horizon. With equal weights it did not (the plan's
     |eta(N)|_P grew, the vehicle sat at the edge of the view for ~2.5 s while the target ran
-    away, and the corners left the view anyway: docs/visibility.md section 5)."""
+    away, and the corners left the view anyway: docs/records/2026-11-visibility.md section 5)."""
     eta0 = np.array([0.709, -0.512, 0.783, -0.024, -0.013, 0.043, -0.569])
     target = predict_target_motion(np.array([0.527, 0.288, 0.0]), np.array([-0.058, 0.105, 0.0]),
                                    0.2, 0.521, cfg.rmpc.horizon, cfg.rmpc.dt_s)

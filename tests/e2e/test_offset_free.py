@@ -127,7 +127,8 @@ def test_the_realistic_world_is_held_within_a_centimetre(tmp_path: Path) -> None
     """config/realistic.toml (PX4's cascade, turbulence, wind, a hover thrust 15 % off, the
     realistic camera and telemetry) with its stiffer RMPC tuning: after settling the vehicle
     stays within 10 mm RMS of the set point in both axes (the paper's weights: ~15 mm
-    horizontally, docs/offset-free.md 3c), the target in view, no fallback."""
+    horizontally, docs/records/2026-11-offset-free.md section 3), the target in view, no
+    fallback."""
     realistic = DEFAULT_CONFIG.parent / "realistic.toml"
     sim = tmp_path / "sim.toml"
     sim.write_text(f'base = "{realistic}"\n{PATIENT}')

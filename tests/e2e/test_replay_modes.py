@@ -87,7 +87,7 @@ def test_from_detections_reproduces_every_command(crop_flight: Path, tmp_path: P
     assert s["commands_compared"] == len(_steps(crop_flight)) and s["identical"], s
     # and a changed controller setting does change them (the comparison can fail): a hover
     # thrust 10 % off, without PX4's own thrust to learn it from before OFFBOARD (with it, the
-    # configured value hardly matters any more: docs/offset-free.md)
+    # configured value hardly matters any more: docs/reference/estimator.md)
     changed = replay(crop_flight, None, from_detections=True,
                      overrides=["control.estimator.autopilot_thrust=false",
                                 "control.hover_thrust=0.55"]).summary()

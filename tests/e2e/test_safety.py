@@ -48,7 +48,7 @@ def _levels(steps: list[dict], t0: float, t1: float) -> set[str]:
 
 def _level_hover(steps: list[dict], t0: float, t1: float) -> None:
     """The hover setpoint holds the vehicle still: zero acceleration through the offset-free
-    estimate logged with the step (docs/offset-free.md), i.e. nearly level at ~0.5 here."""
+    estimate logged with the step (docs/reference/estimator.md), i.e. nearly level at ~0.5 here."""
     for s in steps:
         if t0 <= s["t_s"] < t1 and s["safety"]["level"] == "hover":
             sp = s["setpoint"]

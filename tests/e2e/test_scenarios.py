@@ -4,7 +4,7 @@ Flown end to end (emulator + companion processes, lockstep), scored from ground 
 - ``edge`` (UAV at (-1, 0, -3.2) m, psi0 = pi/4): the target starts ~330 px off-centre and the
   vehicle must tilt away from it to accelerate. With the visibility constraint every corner
   stays inside the 500 px area; without it they leave. The spec's own row pairing (the applied
-  input in no row) is flown too: it does not keep them inside (docs/limits.md).
+  input in no row) is flown too: it does not keep them inside (docs/reference/limits.md).
 - ``yaw-offset`` (the paper's start with psi0 = -pi/8, a 1.18 rad yaw error): the hard problem
   is infeasible at first, so recovery steps come first, then optimal tracking, never a fallback.
 """

@@ -1,6 +1,6 @@
 """The reliability probes, short versions (``python bench/reliability.py`` runs the long ones):
 real emulator and companion processes on loopback, real MCAP files. No timed assertions: the
-figures are in docs/reliability.md."""
+figures are in docs/reference/reliability.md."""
 
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ def test_impaired_link_keeps_the_target_in_view_and_offboard(tmp_path: Path,
                                                               scenario: str) -> None:
     """In view = detected in every frame. The paper's stricter visible bound (corners within
     500 px) is reported, not asserted: the edge flight crosses it briefly on this link
-    (docs/reliability.md)."""
+    (docs/reference/reliability.md)."""
     r = fly(tmp_path, scenario, 15.0, impaired=True)
     assert r["impairment"], "the emulator did not impair the link"
     assert r["steps"] > 250

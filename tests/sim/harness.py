@@ -192,7 +192,7 @@ def read_exact(sock: socket.socket, n: int) -> bytes:
 
 
 def read_frame(sock: socket.socket) -> tuple[dict[str, Any], bytes]:
-    """One camera frame record (docs/wire.md), header checked, CRC verified."""
+    """One camera frame record (docs/reference/wire.md), header checked, CRC verified."""
     magic, ver, enc, _res, seq, t_us, w, h, n, crc = HEADER.unpack(
         read_exact(sock, HEADER.size))
     payload = read_exact(sock, n)

@@ -1,4 +1,4 @@
-"""The whole emulator in lockstep, read from the wire as docs/wire.md describes it: camera
+"""The whole emulator in lockstep, read from the wire as docs/reference/wire.md describes it: camera
 frames (TCP), ground truth (UDP JSON), FOLLOW_TARGET from the AGV's own sysid, telemetry."""
 
 from __future__ import annotations

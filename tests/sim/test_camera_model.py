@@ -44,7 +44,7 @@ def dcam(lens: tuple[np.ndarray, np.ndarray]) -> Camera:
 
 def pinhole(k: np.ndarray, p_world: np.ndarray, uav: np.ndarray) -> np.ndarray:
     """Ideal pixels of a level, yaw-0 camera at ``uav`` (body = camera: x fwd, y right,
-    z down): col = cx + fx y/z, row = cy - fy x/z (docs/wire.md)."""
+    z down): col = cx + fx y/z, row = cy - fy x/z (docs/reference/wire.md)."""
     rel = np.atleast_2d(p_world) - uav
     return np.column_stack([k[0, 2] + k[0, 0] * rel[:, 1] / rel[:, 2],
                             k[1, 2] - k[1, 1] * rel[:, 0] / rel[:, 2]])

@@ -1,4 +1,5 @@
-"""Lockstep (docs/wire.md): simulated time advances one step per setpoint, or per timeout."""
+"""Lockstep (docs/reference/wire.md): simulated time advances one step per setpoint, or per
+timeout."""
 
 from __future__ import annotations
 

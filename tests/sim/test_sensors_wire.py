@@ -1,4 +1,5 @@
-"""The imperfect camera and telemetry on the wire (docs/wire.md, Clocks): frames arrive late by
+"""The imperfect camera and telemetry on the wire (docs/reference/wire.md, Clocks): frames arrive
+late by
 the configured latency stamped with their capture time, drops leave seq gaps, the autopilot's
 clock starts at its boot offset, TIMESYNC is answered (and asked) like PX4."""
 
@@ -49,7 +50,7 @@ def test_lockstep_frames_arrive_late_by_the_latency_with_capture_stamps(
                     if m.get_type() == "ATTITUDE_QUATERNION":
                         latest_ms = max(latest_ms, m.time_boot_ms)
                 got += [(h["seq"], h["t_us"], latest_ms * 1000) for h in batch]
-                for _ in batch:  # one answer per frame (docs/wire.md, lockstep)
+                for _ in batch:  # one answer per frame (docs/reference/wire.md, lockstep)
                     client.send(client.mav.set_attitude_target_encode(
                         latest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
         finally:
