@@ -1,6 +1,5 @@
-"""docs/reference/reliability.md from the probes' results: the summary table, then each probe's
-figures,
-then what the probes do and the configuration keys they exercise."""
+"""docs/reference/reliability.md from the probes' results: the summary table, then each
+probe's figures, then what the probes do and the configuration keys they exercise."""
 
 from __future__ import annotations
 
@@ -11,6 +10,9 @@ from bench.reliab.common import ProbeResult
 
 INTRO = """\
 # Reliability and security
+
+> **Answers:** what does the companion do under a hostile or lossy link, a stalled or killed
+> process and a full or slow disk, measured?
 
 What the companion does under a hostile or lossy link, a stalled or killed process and a bad
 disk, measured against the real emulator and companion processes on loopback (real UDP/TCP
