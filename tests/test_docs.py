@@ -185,3 +185,16 @@ def test_docs_paths_cited_by_the_code_exist() -> None:
                 hint = f" (moved to {MOVED[path]})" if path in MOVED else ""
                 missing.append(f"{_rel(src)}: {path}{hint}")
     assert not missing, "docs paths cited that do not exist:\n" + "\n".join(sorted(missing))
+
+
+def test_repository_paths_named_by_the_docs_exist() -> None:
+    """Guides, reference pages, the README and CONTRIBUTING name source files (`path.py`); after
+    a module moves, this lists the pages to update. Records keep the paths of their day."""
+    named = re.compile(r"(?<![\w/.-])((?:companion|sim_bridge|tests|bench|config|foxglove)"
+                       r"/[A-Za-z0-9_./-]+\.(?:py|toml|json|yaml))")
+    pages = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", ROOT / "bench" / "README.md"]
+    pages += sorted((ROOT / "docs" / "guides").glob("*.md"))
+    pages += sorted((ROOT / "docs" / "reference").glob("*.md"))
+    missing = sorted({f"{_rel(page)}: {path}" for page in pages if page.exists()
+                      for path in named.findall(page.read_text()) if not (ROOT / path).exists()})
+    assert not missing, "paths named by the docs that do not exist:\n" + "\n".join(missing)
