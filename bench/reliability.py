@@ -6,8 +6,7 @@
 
 Runs every probe of ``bench/reliab/`` against the real emulator and companion processes on
 loopback (and the real MCAP writer), then writes ``docs/reference/reliability.md``: one row per
-probe
-(inputs tried, result, data lost, bad commands sent: must be 0), the date, the machine and its
+probe (inputs tried, result, data lost, bad commands sent: must be 0), the date, the machine and its
 load. The short versions of the same probes are tests (``tests/reliability/``).
 """
 

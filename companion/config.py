@@ -92,8 +92,8 @@ class MavlinkConfig:
     target_component: int = field(metadata=checked(nonneg))
     signing_key_file: str = ""
     # Receive guard (companion/link/guard.py, docs/reference/reliability.md): pin the autopilot
-    # (and the
-    # AGV) to the address of its first valid frame and drop other senders claiming its sysid
+    # (and the AGV) to the address of its first valid frame and drop other senders claiming its
+    # sysid
     # unparsed; addresses that may always speak for it ("host" or "host:port", routers).
     pin_source: bool = True
     allowed_sources: tuple[str, ...] = ()

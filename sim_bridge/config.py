@@ -511,8 +511,7 @@ class TelemetryConfig:
     ``accel_noise_m_s2`` (white, std per axis and HIGHRES_IMU sample) and ``accel_bias_m_s2``
     (body FRD, constant): the accelerometer of HIGHRES_IMU departs from the true specific
     force by these (docs/reference/wire.md, HIGHRES_IMU). ``velocity_noise_m_s`` (white, std per
-    axis
-    and LOCAL_POSITION_NED sample; 0 at every level): the velocity estimate departs from the
+    axis and LOCAL_POSITION_NED sample; 0 at every level): the velocity estimate departs from the
     truth by this, as an EKF's does (a white model: EKF2's output is smoother, so this is the
     harsher case for a given std).
     """

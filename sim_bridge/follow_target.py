@@ -1,6 +1,5 @@
 """The AGV's FOLLOW_TARGET (#144) content (docs/reference/px4-offboard.md, section 5): its NED
-state as
-MAVLink fields, positions as WGS84 lat/lon around a shared local origin.
+state as MAVLink fields, positions as WGS84 lat/lon around a shared local origin.
 
 The local NED frame is the tangent plane at the origin: north/east metres map to latitude and
 longitude through the WGS84 meridian and prime-vertical radii of curvature at the origin's

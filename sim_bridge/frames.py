@@ -1,6 +1,5 @@
 """Camera frames on the wire (docs/reference/wire.md, "Camera frames"): the record format and the
-TCP
-server that streams them to any number of clients.
+TCP server that streams them to any number of clients.
 
 A record is a 32-byte little-endian header (``struct`` ``<4sBBHIQHHII``: magic ``b"IBVF"``,
 version 1, encoding, reserved, seq, t_us, width, height, payload_len, crc32) followed by the

@@ -2,8 +2,7 @@
 
 Like the message interception of MAVSDK's system tests, or ``tc netem`` on a real link, but
 seeded and configured per scenario (``[sim.impairment]``, docs/reference/wire.md). Each direction
-of a
-link has its own :class:`DirectionImpairment`; :meth:`DirectionImpairment.process` takes the
+of a link has its own :class:`DirectionImpairment`; :meth:`DirectionImpairment.process` takes the
 time a datagram was sent (``t_s``, seconds of emulator boot time: wall time in realtime,
 simulated time in lockstep) and the datagram, and returns what the other end receives: a list
 of :class:`Delivery` (``deliver_at_s``, bytes), possibly empty (dropped), possibly two

@@ -2,8 +2,7 @@
 
 One :class:`MavUdpLink` per PX4 "instance" (offboard API link, GCS link) and one for the AGV's
 own node. Receive path (docs/reference/pitfalls.md, pymavlink): every datagram is parsed by a FRESH
-robust
-parser, so a truncated or corrupted datagram cannot poison the next ones; ``BAD_DATA`` and
+robust parser, so a truncated or corrupted datagram cannot poison the next ones; ``BAD_DATA`` and
 ``UNKNOWN_<id>`` pseudo-messages are counted and dropped, MAVLink 1 frames are counted and
 dropped, frames from our own (sysid, compid) are dropped, and messages addressed to another
 system/component are counted as foreign and not delivered.

@@ -25,8 +25,7 @@ PAPER = ROOT / "config" / "paper.toml"
 @dataclass
 class ProbeResult:
     """One row of docs/reference/reliability.md. ``bad_commands``: commands built from bad data
-    (must be
-    0); ``data_lost``: what the probe lost, in words with figures."""
+    (must be 0); ``data_lost``: what the probe lost, in words with figures."""
 
     probe: str
     inputs: str

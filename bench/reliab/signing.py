@@ -6,8 +6,7 @@ the receive guard lets the attacker's frames through to the signature check, so 
 tests signing alone. During the flight, at each end: unsigned frames claiming the other end's
 identity, one frame with a forged signature stamped 2^48 - 2 (pymavlink 2.4.50 would then
 refuse every later frame of that stream: docs/reference/pitfalls.md), and replays of genuine frames
-read
-back from the companion's log. The flight must go on in OFFBOARD with the legitimate streams.
+read back from the companion's log. The flight must go on in OFFBOARD with the legitimate streams.
 """
 
 from __future__ import annotations

@@ -129,8 +129,7 @@ class _Record:
 
 class _RecordProtocol(asyncio.BufferedProtocol):
     """Receives docs/reference/wire.md records straight into a buffer of their own (``recv_into``:
-    one
-    copy out of the kernel per byte).
+    one copy out of the kernel per byte).
 
     Why not ``asyncio.StreamReader.readexactly``: it copied a 1 MB frame about four times
     through its growing buffer, ~1.2 ms of CPU per frame on the event loop against ~0.1 ms here

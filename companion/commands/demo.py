@@ -1,8 +1,7 @@
 """``companion demo``: the emulator and the companion as two processes on loopback, in lockstep.
 
 They meet only on sockets (docs/reference/wire.md), exactly as the companion meets a real PX4. The
-demo
-merges the config file and every ``--set`` override into ``DIR/config.toml`` (so an override
+demo merges the config file and every ``--set`` override into ``DIR/config.toml`` (so an override
 reaches both processes, ``sim.*`` keys the emulator and shared ``camera.*``/``target.*`` keys
 both), has both programs validate it (``sim-bridge --check-config``; a key neither knows is
 refused before anything flies), picks free ports, starts ``python -m sim_bridge --lockstep`` and

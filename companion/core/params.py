@@ -137,8 +137,8 @@ class RmpcParams:
     # taken with the attitude u(n) produces (u(0) checked against the next image).
     visibility_pairing: str = "spec"
     # What the visibility rows keep inside the visible area (docs/reference/visibility.md):
-    # "centroid"
-    # (the paper's rows: the image of the target's centre) or "corners" (every target corner,
+    # "centroid" (the paper's rows: the image of the target's centre) or "corners" (every target
+    # corner,
     # its image predicted from s_e, s3 and s4 and the target's known shape).
     visibility: str = "centroid"
     # Depth bound for the corner rows' tightening: the predicted depth never goes below it

@@ -2,8 +2,7 @@
 
 Why not ``mavutil``: its UDP connections feed every datagram into ONE shared parser, so a single
 truncated datagram poisons the following good frames (docs/reference/pitfalls.md, pymavlink). Here
-each UDP
-datagram is parsed by a fresh robust parser; streams (TCP, serial) keep one robust parser.
+each UDP datagram is parsed by a fresh robust parser; streams (TCP, serial) keep one robust parser.
 pymavlink is used only as the codec (``pymavlink.dialects.v20.common``).
 
 Receive path, in order (each rejection increments ``counters[reason]``):

@@ -1,8 +1,7 @@
 """PX4's multicopter attitude/rate control cascade and quad-X control allocation, as pure math
 on Python floats (no numpy: a 3-vector op in numpy costs ~1 us, a float op ~30 ns, and the
 cascade runs at every physics sub-step). Structure and defaults follow PX4
-(docs/reference/emulator.md
-cites each source):
+(docs/reference/emulator.md cites each source):
 
 * attitude (``mc_att_control/AttitudeControl/AttitudeControl.cpp``, v1.13-v1.16): quaternion P
   law with the reduced (tilt-only) attitude, yaw de-prioritised by ``MC_YAW_WEIGHT``, the yaw-rate

@@ -1,6 +1,5 @@
 """Camera sources against real peers: a TCP frame server on 127.0.0.1 speaking
-docs/reference/wire.md,
-and real video files written with cv2.VideoWriter."""
+docs/reference/wire.md, and real video files written with cv2.VideoWriter."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """Perception on real pixels rendered here with known geometry.
 
 Scenes follow the emulator's pattern (docs/reference/wire.md, config [target]): a procedural
-textured
-ground (40..150), the AGV box's sides dark (35) and its top bright (225). Polygons are filled
+textured ground (40..150), the AGV box's sides dark (35) and its top bright (225). Polygons are
+filled
 with ``cv2.fillPoly`` at sub-pixel precision (``shift``) on a 16x supersampled crop and
 area-averaged down (``INTER_AREA``): each pixel holds its true area coverage to 1/32 px, so
 the projected corners are an exact oracle.

@@ -1,6 +1,6 @@
 """Whole-target visibility (docs/reference/visibility.md): the corner rows, the heading-in-cost
-tube and
-the planned-yaw target motion, each against an independent oracle or a case that must fail."""
+tube and the planned-yaw target motion, each against an independent oracle or a case that must
+fail."""
 
 from __future__ import annotations
 

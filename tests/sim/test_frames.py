@@ -1,6 +1,5 @@
 """Camera frames over a real TCP socket on 127.0.0.1 (docs/reference/wire.md): round trip,
-corruption,
-slow clients getting the newest frame, clients coming and going."""
+corruption, slow clients getting the newest frame, clients coming and going."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
 """The ground-station link (docs/reference/wire.md): parameters, missions and the position messages
-a
-GCS shows, first with a pymavlink client on the emulator's GCS port, then with MAVProxy, a
+a GCS shows, first with a pymavlink client on the emulator's GCS port, then with MAVProxy, a
 real ground station, run headless against the ``sim-bridge`` command."""
 
 from __future__ import annotations

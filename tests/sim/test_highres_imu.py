@@ -1,6 +1,6 @@
 """HIGHRES_IMU (docs/reference/wire.md): the accelerometer reads the true specific force in body
-FRD, i.e.
-everything acting on the vehicle but gravity (thrust, drag, wind, turbulence); 50 Hz on the
+FRD, i.e. everything acting on the vehicle but gravity (thrust, drag, wind, turbulence); 50 Hz on
+the
 offboard link as PX4's "onboard" MAVLink mode streams it, stamped on the autopilot clock; in the
 realistic telemetry with a constant bias and white noise."""
 

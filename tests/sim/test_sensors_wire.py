@@ -1,6 +1,6 @@
 """The imperfect camera and telemetry on the wire (docs/reference/wire.md, Clocks): frames arrive
-late by
-the configured latency stamped with their capture time, drops leave seq gaps, the autopilot's
+late by the configured latency stamped with their capture time, drops leave seq gaps, the
+autopilot's
 clock starts at its boot offset, TIMESYNC is answered (and asked) like PX4."""
 
 from __future__ import annotations
