@@ -35,12 +35,14 @@ from typing import Any
 
 import numpy as np
 
+from companion import CompanionError
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
 from companion.control.faults import FaultWindow, apply_faults, check_faults
 from companion.control.knobs import warn_ineffective_knobs
 from companion.control.offboard import OffboardManager, OffboardPhase
-from companion.control.pipeline import StepResult
+from companion.control.outrun import OutrunMonitor
+from companion.control.pipeline import ControlPipeline, StepResult
 from companion.control.recording import (
     TOPIC_SAFETY,
     TOPIC_STEP,
@@ -53,6 +55,7 @@ from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import TimeBase
 from companion.control.vehicle import Vehicle
+from companion.control.vehicle_limits import VehicleLimitsStage, adopt_vehicle_limits
 from companion.control.wiring import allow_rules, new_pipeline
 from companion.link import MavlinkLink, NoPeerError
 from companion.log import schemas as sch
@@ -145,8 +148,13 @@ class CompanionApp:
         self.clock = LogClock(cfg.logging.timestamps)
         self.recorder = FrameRecorder(cfg.logging)
         self.vehicle = Vehicle(cfg, self.timebase)
-        self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
-        check_faults(faults, self.pipeline.rmpc)
+        # the vehicle's limits (companion/control/vehicle_limits.py): with from_autopilot the
+        # pipeline is built once they are read (_control), else now
+        self.limits = self.vehicle.params = VehicleLimitsStage(cfg)
+        self.outrun = OutrunMonitor()
+        self._pipeline: ControlPipeline | None = None
+        if not cfg.vehicle_limits.from_autopilot:
+            self._set_pipeline(new_pipeline(cfg, timer=time.perf_counter))
         self.steps = 0
         self.sent = 0
         self._stop = asyncio.Event()
@@ -154,6 +162,16 @@ class CompanionApp:
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
         self._elapsed_s = 0.0  # since the first frame, on the frames' clock
+
+    @property
+    def pipeline(self) -> ControlPipeline:
+        if self._pipeline is None:
+            raise CompanionError("the controller is built once the vehicle's limits are read")
+        return self._pipeline
+
+    def _set_pipeline(self, pipeline: ControlPipeline) -> None:
+        self._pipeline = pipeline
+        check_faults(self.faults, pipeline.rmpc)
 
     @property
     def store(self) -> TelemetryStore:
@@ -189,7 +207,7 @@ class CompanionApp:
         finally:
             if live is not None:
                 live.close()
-            close = getattr(self.pipeline.rmpc, "close", None)
+            close = getattr(getattr(self._pipeline, "rmpc", None), "close", None)
             if callable(close):  # the solver's child process (rmpc.solve_isolation)
                 close()
         self._finish(logger)
@@ -313,6 +331,7 @@ class CompanionApp:
     # -- control ----------------------------------------------------------------------------
 
     async def _control(self, camera: FrameSource) -> None:
+        await adopt_vehicle_limits(self, new_pipeline)
         it = camera.__aiter__()
         exit_deadline: float | None = None
         while True:
@@ -481,6 +500,7 @@ class CompanionApp:
                                  - sum(rec["timings_ms"].values())}
         logger.log(TOPIC_STEP, t_log, rec, schema=sch.CONTROLLER_STEP)
         self._records.poses(t_log, self.store)
+        self.outrun.observe(self, res, t_s, t_log)
         if res.safety.changed or self.steps == 1:  # the initial state, then each transition
             logger.log_text(TOPIC_SAFETY, t_log,
                             f"{res.safety.level.value}: {res.safety.reason}",
