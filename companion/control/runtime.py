@@ -35,10 +35,9 @@ from typing import Any
 
 import numpy as np
 
-from companion import CompanionError
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
-from companion.control.faults import FaultWindow, apply_faults, check_faults
+from companion.control.faults import FaultWindow, apply_faults
 from companion.control.knobs import warn_ineffective_knobs
 from companion.control.offboard import OffboardManager, OffboardPhase
 from companion.control.outrun import OutrunMonitor
@@ -55,7 +54,7 @@ from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import TimeBase
 from companion.control.vehicle import Vehicle
-from companion.control.vehicle_limits import VehicleLimitsStage, adopt_vehicle_limits
+from companion.control.vehicle_limits import VehicleLimitsStage, adopt_vehicle_limits, set_pipeline
 from companion.control.wiring import allow_rules, new_pipeline
 from companion.link import MavlinkLink, NoPeerError
 from companion.log import schemas as sch
@@ -148,13 +147,11 @@ class CompanionApp:
         self.clock = LogClock(cfg.logging.timestamps)
         self.recorder = FrameRecorder(cfg.logging)
         self.vehicle = Vehicle(cfg, self.timebase)
-        # the vehicle's limits (companion/control/vehicle_limits.py): with from_autopilot the
-        # pipeline is built once they are read (_control), else now
-        self.limits = self.vehicle.params = VehicleLimitsStage(cfg)
+        self.vehicle.params = self.limits = VehicleLimitsStage(cfg)
         self.outrun = OutrunMonitor()
-        self._pipeline: ControlPipeline | None = None
+        self.pipeline: ControlPipeline  # with [vehicle_limits] from_autopilot: once they are read
         if not cfg.vehicle_limits.from_autopilot:
-            self._set_pipeline(new_pipeline(cfg, timer=time.perf_counter))
+            set_pipeline(self, new_pipeline(cfg, timer=time.perf_counter))
         self.steps = 0
         self.sent = 0
         self._stop = asyncio.Event()
@@ -162,16 +159,6 @@ class CompanionApp:
         self._link: MavlinkLink | None = None
         self._first_frame_s: float | None = None
         self._elapsed_s = 0.0  # since the first frame, on the frames' clock
-
-    @property
-    def pipeline(self) -> ControlPipeline:
-        if self._pipeline is None:
-            raise CompanionError("the controller is built once the vehicle's limits are read")
-        return self._pipeline
-
-    def _set_pipeline(self, pipeline: ControlPipeline) -> None:
-        self._pipeline = pipeline
-        check_faults(self.faults, pipeline.rmpc)
 
     @property
     def store(self) -> TelemetryStore:
@@ -207,7 +194,7 @@ class CompanionApp:
         finally:
             if live is not None:
                 live.close()
-            close = getattr(getattr(self._pipeline, "rmpc", None), "close", None)
+            close = getattr(getattr(getattr(self, "pipeline", None), "rmpc", None), "close", None)
             if callable(close):  # the solver's child process (rmpc.solve_isolation)
                 close()
         self._finish(logger)

@@ -32,6 +32,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from companion.config import Config
+from companion.control.faults import check_faults
 from companion.link.params import ParamReader, ParamReadResult
 from companion.log import schemas as sch
 
@@ -206,7 +207,8 @@ async def adopt_vehicle_limits(app: Any, build: Callable[..., Any]) -> None:
     vehicle takes seconds, the link keeps being served meanwhile). With one: read them in the
     background (reported and logged only)."""
     vl = app.cfg.vehicle_limits
-    if app._pipeline is not None and not vl.read:
+    built = getattr(app, "pipeline", None) is not None
+    if built and not vl.read:
         return
     records = app._records  # companion/control/recording.py: RuntimeLog
 
@@ -222,13 +224,20 @@ async def adopt_vehicle_limits(app: Any, build: Callable[..., Any]) -> None:
                 TOPIC_VEHICLE_LIMITS, t, payload, schema=sch.JSON))
 
     wait_s = float(app.startup_timeout_s)  # as long as the first frame may take
-    if app._pipeline is not None:
+    if built:
         app.limits.task = asyncio.create_task(app.limits.run(app._link, text, record, wait_s))
         return
     cfg = await app.limits.run(app._link, text, record, wait_s)
     t0 = time.monotonic()
     pipeline = await asyncio.to_thread(build, cfg, timer=time.perf_counter)
     app.cfg = cfg
-    app._set_pipeline(pipeline)
+    set_pipeline(app, pipeline)
     text("INFO", f"controller built for the vehicle's limits in {time.monotonic() - t0:.1f} s "
                  "(a compile on the first flight with new bounds, cached after)")
+
+
+def set_pipeline(app: Any, pipeline: Any) -> None:
+    """The runtime's pipeline, built now or once the limits are read; an injected solver hang
+    needs a solver process (``companion.control.faults.check_faults``)."""
+    app.pipeline = pipeline
+    check_faults(app.faults, pipeline.rmpc)
