@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from companion import ConfigError
+from companion.control.vehicle_limits_config import VehicleLimitsConfig
 from companion.core.errors import ParamError
 from companion.core.geometry import rectangle_corners_m
 from companion.core.params import (
@@ -282,6 +283,7 @@ class Config:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     live: LiveConfig = field(default_factory=LiveConfig)  # optional table [live]
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)  # optional
+    vehicle_limits: VehicleLimitsConfig = field(default_factory=VehicleLimitsConfig)  # optional
     source: str = ""
     raw: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
 

@@ -110,10 +110,13 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
     """``--config`` if given, else the config recorded on ``/config``; overrides applied."""
     if config is not None:
         return load_config(config, overrides)
+    # the bounds the flight built from the autopilot's limits (companion/control/vehicle_limits)
+    flown = [str(o) for m in reader.messages(topics=["/control/vehicle_limits"])
+             if m.data for o in m.data.get("overrides") or []]
     for m in reader.messages(topics=["/config"]):
         if m.data and isinstance(m.data.get("config"), dict):
             recorded = _as_flown(m.data["config"])
-            return config_from_dict(with_overrides(recorded, overrides),
+            return config_from_dict(with_overrides(recorded, [*flown, *overrides]),
                                     source=f"{m.data.get('source', '')} (recorded)")
     raise ReplayError("the log has no /config channel: pass --config FILE")
 

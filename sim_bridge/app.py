@@ -36,7 +36,7 @@ from sim_bridge.link import Address, LinkCounters, MavUdpLink
 from sim_bridge.physics.agv import AgvState, AgvTrajectory
 from sim_bridge.physics.vehicle import AttitudeCommand, VehicleState, initial_state
 from sim_bridge.px4 import Mode, Px4, Px4Params
-from sim_bridge.px4.services import Services, px4_param_specs
+from sim_bridge.px4.services import Services
 from sim_bridge.px4.streams import (
     PX4_NORMAL_RATES_HZ,
     PX4_ONBOARD_RATES_HZ,
@@ -44,6 +44,7 @@ from sim_bridge.px4.streams import (
     Streams,
 )
 from sim_bridge.px4.telemetry import Telemetry
+from sim_bridge.px4_params import px4_param_specs
 from sim_bridge.signing import SigningState
 from sim_bridge.transport import Transport
 from sim_bridge.truth import TruthPublisher, truth_record
@@ -141,7 +142,8 @@ class SimBridge:
     def _init_world(self) -> None:
         """The AGV, the camera and what happens to its frames."""
         sim = self.cfg.sim
-        self.agv = AgvTrajectory(sim.agv.trajectory, sim.agv.speed_scale, sim.agv.top_z_m)
+        self.agv = AgvTrajectory(sim.agv.trajectory, sim.agv.speed_scale, sim.agv.top_z_m,
+                                 ramp_accel_m_s2=sim.agv.ramp_accel_m_s2)
         self.camera = build_camera(self.cfg)
         cm = sim.camera_model
         self.cam_timing = CameraTiming(cm, sim.seed, clock_offset_s=self.boot_offset_s)
@@ -184,6 +186,11 @@ class SimBridge:
                                           on_change=self.services.on_param))
 
     # ------------------------------------------------------------------ lifecycle
+    @property
+    def frame_clients(self) -> int:
+        """Camera clients connected now (lockstep's start wait, sim_bridge/clocks.py)."""
+        return 0 if self._frame_server is None else self._frame_server.n_clients
+
     async def __aenter__(self) -> SimBridge:
         await self._stack.__aenter__()
         try:

@@ -83,7 +83,13 @@ async def run_lockstep(sim: SimBridge, duration_s: float) -> None:
         # answers frames has nothing to answer, and PX4 keeps the last setpoint.
         if sim.delivered_this_step and sim.unanswered > 0:
             try:
-                await asyncio.wait_for(sim.setpoint_event.wait(), cfg.lockstep_timeout_s)
+                # before any answer, a client that got the frame may still be building its
+                # controller (a frame nobody got waits the usual timeout)
+                first = (sim.services.setpoints == 0 and cfg.lockstep_start_timeout_s > 0
+                         and sim.frame_clients > 0)
+                await asyncio.wait_for(sim.setpoint_event.wait(),
+                                       cfg.lockstep_start_timeout_s if first
+                                       else cfg.lockstep_timeout_s)
             except TimeoutError:
                 sim.timeouts += 1
                 sim.unanswered = 0  # a frame left unanswered: start counting afresh

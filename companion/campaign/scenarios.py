@@ -43,13 +43,15 @@ class PathInfo:
     """An AGV path of the emulator at speed scale 1 (``sim_bridge/physics/agv.py``; a test
     checks these against it): the heading at t = 0 (rad, NED), the peak ground speed (m/s),
     heading rate (rad/s) and acceleration (m/s^2). Speed and heading rate scale with the speed
-    scale, acceleration with its square."""
+    scale, acceleration with its square (``accel_scales``; the ``ramp``'s acceleration is
+    ``sim.agv.ramp_accel_m_s2`` whatever the scale)."""
 
     trajectory: str
     yaw0_rad: float
     peak_speed_m_s: float
     peak_yaw_rate_rad_s: float
     peak_accel_m_s2: float
+    accel_scales: bool = True
 
 
 PATHS: dict[str, PathInfo] = {
@@ -58,6 +60,7 @@ PATHS: dict[str, PathInfo] = {
     "circle": PathInfo("circle", 0.0, 0.3000, 0.1000, 0.0300),
     "figure-eight": PathInfo("figure8", math.pi / 4, 0.4443, 0.3324, 0.0699),
     "stop-and-go": PathInfo("stop_and_go", math.atan(0.2), 0.5099, 0.0200, 0.2003),
+    "ramp": PathInfo("ramp", 0.0, 0.3000, 0.0, 1.0, accel_scales=False),
 }
 
 

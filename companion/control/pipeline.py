@@ -56,7 +56,7 @@ from companion.core.geometry import (
 from companion.core.latency import Prediction, predict_error_state
 from companion.core.lead import TiltLead
 from companion.core.moments import DegenerateTargetError, a_star, fold_s4
-from companion.core.prediction import predict_target_motion
+from companion.core.prediction import advance_target, predict_target_motion
 from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
@@ -210,12 +210,17 @@ class ControlPipeline:
         if es is None or vel is None:
             return None
         cfg = self.cfg
+        lat = cfg.control.latency
+        v_m, a_m = vel.v_a_ned_m_s, vel.a_a_ned_m_s2
+        if lat.enabled and lat.propagate_target and vel.source == "follow_target":
+            # the horizon starts where the latency prediction puts eta0: now + delay
+            v_m, a_m = advance_target(v_m, a_m, vel.yaw_rate_rad_s,
+                                      min(t_now + delay_s - t_s, lat.max_prediction_s))
         motion = predict_target_motion(
-            vel.v_a_ned_m_s, vel.a_a_ned_m_s2, vel.yaw_rate_rad_s, es.yaw_rad,
+            v_m, a_m, vel.yaw_rate_rad_s, es.yaw_rad,
             cfg.rmpc.horizon, cfg.rmpc.dt_s,
             None if self._dist is None else np.array(self._dist.estimate().d_ned_m_s2),
             cfg.rmpc.eta_max[4] if cfg.rmpc.target_speed_extrapolation == "box" else None)
-        lat = cfg.control.latency
         if not lat.enabled:
             return Predicted(es.eta_e, motion, None)
         v_a, vdot_a, psidot_a = motion.stage(0)
@@ -421,8 +426,10 @@ class ControlPipeline:
     def _target_velocity(self, t_s: float, store: TelemetryStore) -> VelocityEstimate:
         tgt = store.target
         if tgt is not None and t_s - tgt.t_s <= self.cfg.safety.follow_target_timeout_s:
-            return VelocityEstimate(np.array(tgt.vel_ned_m_s), np.array(tgt.acc_ned_m_s2),
-                                    tgt.yaw_rate_rad_s, "follow_target")
+            v, a = np.array(tgt.vel_ned_m_s), np.array(tgt.acc_ned_m_s2)
+            if self.cfg.control.latency.propagate_target:  # the sample at the frame's time
+                v, a = advance_target(v, a, tgt.yaw_rate_rad_s, t_s - tgt.t_s)
+            return VelocityEstimate(v, a, tgt.yaw_rate_rad_s, "follow_target")
         return VelocityEstimate(self._estimator.v_ned.copy(), np.zeros(3), 0.0, "image_estimator")
 
     def _reacquire(self, store: TelemetryStore, kin: KinematicsSample,

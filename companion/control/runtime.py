@@ -37,10 +37,11 @@ import numpy as np
 
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
-from companion.control.faults import FaultWindow, apply_faults, check_faults
+from companion.control.faults import FaultWindow, apply_faults
 from companion.control.knobs import warn_ineffective_knobs
 from companion.control.offboard import OffboardManager, OffboardPhase
-from companion.control.pipeline import StepResult
+from companion.control.outrun import OutrunMonitor
+from companion.control.pipeline import ControlPipeline, StepResult
 from companion.control.recording import (
     TOPIC_SAFETY,
     TOPIC_STEP,
@@ -53,6 +54,7 @@ from companion.control.seams import FrameSource
 from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import TimeBase
 from companion.control.vehicle import Vehicle
+from companion.control.vehicle_limits import VehicleLimitsStage, adopt_vehicle_limits, set_pipeline
 from companion.control.wiring import allow_rules, new_pipeline
 from companion.link import MavlinkLink, NoPeerError
 from companion.log import schemas as sch
@@ -145,8 +147,11 @@ class CompanionApp:
         self.clock = LogClock(cfg.logging.timestamps)
         self.recorder = FrameRecorder(cfg.logging)
         self.vehicle = Vehicle(cfg, self.timebase)
-        self.pipeline = new_pipeline(cfg, timer=time.perf_counter)
-        check_faults(faults, self.pipeline.rmpc)
+        self.vehicle.params = self.limits = VehicleLimitsStage(cfg)
+        self.outrun = OutrunMonitor()
+        self.pipeline: ControlPipeline  # with [vehicle_limits] from_autopilot: once they are read
+        if not cfg.vehicle_limits.from_autopilot:
+            set_pipeline(self, new_pipeline(cfg, timer=time.perf_counter))
         self.steps = 0
         self.sent = 0
         self._stop = asyncio.Event()
@@ -189,7 +194,7 @@ class CompanionApp:
         finally:
             if live is not None:
                 live.close()
-            close = getattr(self.pipeline.rmpc, "close", None)
+            close = getattr(getattr(getattr(self, "pipeline", None), "rmpc", None), "close", None)
             if callable(close):  # the solver's child process (rmpc.solve_isolation)
                 close()
         self._finish(logger)
@@ -313,6 +318,7 @@ class CompanionApp:
     # -- control ----------------------------------------------------------------------------
 
     async def _control(self, camera: FrameSource) -> None:
+        await adopt_vehicle_limits(self, new_pipeline)
         it = camera.__aiter__()
         exit_deadline: float | None = None
         while True:
@@ -481,6 +487,7 @@ class CompanionApp:
                                  - sum(rec["timings_ms"].values())}
         logger.log(TOPIC_STEP, t_log, rec, schema=sch.CONTROLLER_STEP)
         self._records.poses(t_log, self.store)
+        self.outrun.observe(self, res, t_s, t_log)
         if res.safety.changed or self.steps == 1:  # the initial state, then each transition
             logger.log_text(TOPIC_SAFETY, t_log,
                             f"{res.safety.level.value}: {res.safety.reason}",

@@ -56,6 +56,8 @@ class Vehicle:
         self.rx_count = 0
         self.link: MavlinkLink | None = None
         self.records: RuntimeLog | None = None
+        #: where PARAM_VALUEs go (companion/control/vehicle_limits.py), attached by the runtime
+        self.params: Any = None
 
     # -- receive ----------------------------------------------------------------------------
 
@@ -77,6 +79,8 @@ class Vehicle:
             self._on_autopilot_state(fields.get("system_status"))
         elif rx.name == "TIMESYNC" and from_autopilot:
             self._on_timesync(fields, rx.t_rx_ns)
+        elif rx.name == "PARAM_VALUE" and self.params is not None:
+            self.params.on_param_value(fields, rx.src_sysid, rx.src_compid)
         elif rx.name == "COMMAND_ACK":
             log.info("COMMAND_ACK command %s result %s", fields.get("command"),
                      fields.get("result"))

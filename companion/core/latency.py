@@ -34,7 +34,10 @@ class LatencyParams:
     ``auto_delay_probe_hz``; a sample above ``auto_delay_max_s`` is dropped (a reply queued
     behind a stall says nothing about the usual delay). ``max_prediction_s``: the prediction is
     never longer (a stale frame beyond it is predicted only this far, and the step notes it);
-    ``step_s``: integration step (s)."""
+    ``step_s``: integration step (s). ``propagate_target``: advance the target's
+    FOLLOW_TARGET sample (constant turn, :func:`companion.core.prediction.advance_target`)
+    from its receipt to the frame's time for the error state, and to the predicted state's
+    time for the horizon (docs/guides/vehicle-limits.md, the lag on curves)."""
 
     enabled: bool = True
     actuation_delay_s: float = 0.0
@@ -45,6 +48,7 @@ class LatencyParams:
     auto_delay_probe_hz: float = 10.0
     max_prediction_s: float = 0.3
     step_s: float = 0.01
+    propagate_target: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.actuation_delay_s) and 0.0 <= self.actuation_delay_s <= 1.0):

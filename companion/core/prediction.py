@@ -14,6 +14,30 @@ import numpy as np
 from companion.core.rmpc import TargetMotion
 
 
+def advance_target(v_ned_m_s: np.ndarray, a_ned_m_s2: np.ndarray, psidot_a_rad_s: float,
+                   dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The target's NED velocity and acceleration ``dt_s`` later (earlier if negative) under
+    the model of :func:`predict_target_motion`: constant turn rate, constant along-track
+    acceleration (the speed not below 0). A FOLLOW_TARGET sample is up to a period (0.1 s at
+    10 Hz) older or newer than the frame it is used with, and the horizon starts later still
+    (latency compensation): on a curve its velocity then points off by ``psidot dt``."""
+    v = np.array(v_ned_m_s, dtype=float).reshape(3)
+    a = np.array(a_ned_m_s2, dtype=float).reshape(3)
+    speed = float(np.hypot(v[0], v[1]))
+    if speed <= 1e-6 or dt_s == 0.0:
+        v[:2] = v[:2] + a[:2] * dt_s
+        return v, a
+    tangent = v[:2] / speed
+    a_along = float(a[:2] @ tangent)
+    sp = max(0.0, speed + a_along * dt_s)
+    th = float(psidot_a_rad_s) * dt_s
+    c, s = np.cos(th), np.sin(th)
+    rot = np.array([[c, -s], [s, c]])
+    v[:2] = rot @ tangent * sp
+    a[:2] = rot @ a[:2]
+    return v, a
+
+
 def predict_target_motion(
     v_a_ned_m_s: np.ndarray,
     a_a_ned_m_s2: np.ndarray,

@@ -66,6 +66,7 @@ AUTOPILOT_TELEMETRY: frozenset[str] = frozenset(
         "AUTOPILOT_VERSION",
         "TIMESYNC",
         "SYSTEM_TIME",  # its Unix time anchors `companion log export --tlog`
+        "PARAM_VALUE",  # the vehicle's limits (companion/link/params.py)
     }
 )
 
@@ -102,6 +103,8 @@ DEFAULT_NAN_ALLOWED: Mapping[str, frozenset[str]] = {
         }
     ),
     "HOME_POSITION": frozenset({"q", "approach_x", "approach_y", "approach_z"}),
+    # an INT32 travels byte-wise in the float: some bit patterns are NaN (params.py decodes)
+    "PARAM_VALUE": frozenset({"param_value"}),
 }
 _FT_CAP_FIELDS = {0: ("alt",), 1: ("vel",), 2: ("acc",), 3: ("attitude_q", "rates")}
 

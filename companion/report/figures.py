@@ -18,6 +18,7 @@ import numpy as np
 TOPIC_TRUTH = "/truth"
 TOPIC_STEP = "/control/step"
 TOPIC_SAT_OUT = "/mavlink/out/SET_ATTITUDE_TARGET"
+TOPIC_OUTRUN = "/control/outrun"  # companion/control/outrun.py
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,7 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     truth: list[Mapping[str, Any]] = []
     steps: list[Mapping[str, Any]] = []
     sat_times: list[int] = []
+    outrun: list[Mapping[str, Any]] = []
     for topic, t_ns, payload in messages:
         if topic == TOPIC_TRUTH:
             truth.append(payload)
@@ -48,6 +50,8 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
             steps.append(payload)
         elif topic == TOPIC_SAT_OUT:
             sat_times.append(t_ns)
+        elif topic == TOPIC_OUTRUN:
+            outrun.append(payload)
     truth.sort(key=lambda r: r["t_us"])
     steps.sort(key=lambda r: r["t_s"])
     out: dict[str, Any] = {
@@ -70,7 +74,23 @@ def compute_report(messages: Iterable[tuple[str, int, Mapping[str, Any]]],
     out["engaged"] = _engaged(truth, steps, st)
     out["engagement"] = _engagement(truth, steps, st)
     out["agv"] = _agv(truth)
+    out["outrun"] = _outrun(outrun)
     return out
+
+
+def _outrun(events: list[Mapping[str, Any]]) -> dict[str, Any]:
+    """What ``/control/outrun`` said: every quantity the target outran the configured bounds
+    in (its largest value, the bound, the keys to change), from the companion's own records."""
+    by: dict[str, dict[str, Any]] = {}
+    for e in sorted(events, key=lambda e: float(e.get("t_s", 0.0))):
+        if not e.get("outrun"):
+            continue
+        q = str(e.get("quantity"))
+        d = by.setdefault(q, {"quantity": q, "first_t_s": e.get("t_s"), "value": 0.0,
+                              "bound": e.get("bound"), "unit": e.get("unit"),
+                              "keys": e.get("keys")})
+        d["value"] = max(float(d["value"]), float(e.get("value") or 0.0))
+    return {"events": len(events), "outrun": list(by.values())}
 
 
 def _sim_t(rec: Mapping[str, Any]) -> float:

@@ -9,9 +9,15 @@ from typing import Any
 
 from companion.config import Config
 from companion.log.reader import LogReader
-from companion.report.figures import TOPIC_STEP, TOPIC_TRUTH, ReportSettings, compute_report
+from companion.report.figures import (
+    TOPIC_OUTRUN,
+    TOPIC_STEP,
+    TOPIC_TRUTH,
+    ReportSettings,
+    compute_report,
+)
 
-SCORED_TOPICS = (TOPIC_TRUTH, TOPIC_STEP, "/mavlink/out/SET_ATTITUDE_TARGET")
+SCORED_TOPICS = (TOPIC_TRUTH, TOPIC_STEP, "/mavlink/out/SET_ATTITUDE_TARGET", TOPIC_OUTRUN)
 
 
 def report_settings(cfg: Config) -> ReportSettings:

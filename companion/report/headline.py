@@ -159,6 +159,8 @@ def _health_rows(report: Mapping[str, Any]) -> list[Verdict]:
         "n/a" if n_tr is None else ("none" if n_tr == 0 else f"{n_tr} transitions"),
         "none", _judge(None if n_tr is None else n_tr == 0)))
 
+    rows.append(_outrun_row(report))
+
     med, p95 = _num(lat.get("frame_to_command_median_ms")), _num(lat.get("p95_ms"))
     rows.append(Verdict(
         "latency", "Frame -> command latency",
@@ -167,3 +169,18 @@ def _health_rows(report: Mapping[str, Any]) -> list[Verdict]:
         _judge(None if med is None or p95 is None else
                med <= LATENCY_MEDIAN_TARGET_MS and p95 <= LATENCY_P95_TARGET_MS)))
     return rows
+
+
+def _outrun_row(report: Mapping[str, Any]) -> Verdict:
+    """Whether the target stayed within what the configured bounds can follow
+    (``report["outrun"]``, from the companion's ``/control/outrun`` records)."""
+    out = report.get("outrun")
+    runs = out.get("outrun") if isinstance(out, Mapping) else None
+    return Verdict(
+        "outrun", "Target within the controller's bounds",
+        "n/a" if runs is None else ("yes" if not runs else "no: " + "; ".join(
+            f"{r.get('quantity')} {_num(r.get('value')) or 0:.2f} > "
+            f"{_num(r.get('bound')) or 0:.2f} {r.get('unit')}, raise {r.get('keys')}"
+            for r in runs)),
+        "speed, turn rate, acceleration within rmpc.eta_max / rmpc.u_max",
+        _judge(None if runs is None else not runs))

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from sim_bridge import ConfigError
-from sim_bridge.config.checks import checked, one_of, positive
+from sim_bridge.config.checks import checked, nonneg, one_of, positive
 from sim_bridge.config.links import FaultsConfig, ImpairmentConfig, LinkConfig, SigningConfig
 from sim_bridge.config.sensors import (
     CAMERA_LEVELS,
@@ -38,6 +38,7 @@ from sim_bridge.config.world import (
     TargetConfig,
 )
 from sim_bridge.impairment import ImpairmentParams
+from sim_bridge.px4_params import check_overrides
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "paper.toml"
 
@@ -65,6 +66,11 @@ class SimConfig:
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
     battery: BatteryConfig = field(default_factory=BatteryConfig)
     px4_control: Px4ControlConfig = field(default_factory=Px4ControlConfig)
+    #: lockstep: wall time the first frame a client gets waits for its answer (a client that
+    #: compiles its controller for the vehicle's limits first); 0: lockstep_timeout_s
+    lockstep_start_timeout_s: float = field(default=0.0, metadata=checked(nonneg))
+    #: [sim.params]: PX4 parameters served with other than PX4's defaults (sim_bridge.px4_params)
+    params: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.physics_dt_s > self.step_dt_s:
@@ -247,6 +253,15 @@ def _with_level(name: str, table: Any) -> Any:
     return {**levels[level], **table}
 
 
+def _params(table: Any) -> tuple[tuple[str, float], ...]:
+    """``[sim.params]``: ``NAME = number`` pairs, checked by :mod:`sim_bridge.px4_params`."""
+    if not isinstance(table, Mapping):
+        raise ConfigError("sim.params: must be a table")
+    pairs = tuple((str(k), _convert(v, "float", f"sim.params.{k}")) for k, v in table.items())
+    check_overrides(pairs)
+    return pairs
+
+
 def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
                      source: str = "") -> EmulatorConfig:
     """Validate a merged TOML document. ``scenario`` overrides ``sim.scenario``."""
@@ -271,8 +286,9 @@ def config_from_dict(data: Mapping[str, Any], scenario: str | None = None,
     if sig.key_file and source and not Path(sig.key_file).expanduser().is_absolute():
         subs["signing"] = dataclasses.replace(
             sig, key_file=str(Path(source).resolve().parent / sig.key_file))
+    subs["params"] = _params(sim_t.get("params", {}))
     scenarios = sim_t.get("scenarios", {})
-    sim_flat = {k: v for k, v in sim_t.items() if k != "scenarios"}
+    sim_flat = {k: v for k, v in sim_t.items() if k not in ("scenarios", "params")}
     sim = _build(SimConfig, sim_flat, "sim", extra=subs)
     name = scenario if scenario is not None else sim.scenario
     if not isinstance(scenarios, Mapping) or name not in scenarios:

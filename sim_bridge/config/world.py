@@ -48,10 +48,11 @@ class TargetConfig:
 @dataclass(frozen=True)
 class AgvConfig:
     trajectory: str = field(metadata=checked(one_of("paper", "line", "circle", "figure8",
-                                                  "stop_and_go")))
+                                                  "stop_and_go", "ramp")))
     speed_scale: float = field(metadata=checked(nonneg))
     rate_hz: float = field(metadata=checked(positive))
     top_z_m: float
+    ramp_accel_m_s2: float = field(default=1.0, metadata=checked(positive))  # trajectory "ramp"
 
 
 @dataclass(frozen=True)

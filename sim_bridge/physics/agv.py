@@ -18,6 +18,10 @@ acceleration with ``speed_scale**2``, yaw rate with ``speed_scale``):
   moves for 8 s with the smooth speed profile ``0.25 (1 - cos(2 pi tau'/8))`` m/s (zero speed and
   zero acceleration at both ends), then stops for 4 s, and repeats. The heading is the path's
   tangent, so while stopped the AGV keeps the last yaw.
+- ``ramp``: straight north from rest, accelerating at ``ramp_accel_m_s2`` (default 1.0 m/s^2)
+  up to the cruise speed ``0.3 speed_scale`` m/s, then cruising (yaw 0). Unlike the other kinds
+  ``speed_scale`` sets only the cruise speed: the acceleration is ``ramp_accel_m_s2`` whatever
+  the scale (``speed_scale = 10``: 3 m/s, reached after 3 s and 4.5 m).
 
 Every kind starts at the origin (``[0, 0, top_z_m]`` at ``t = 0``).
 """
@@ -34,7 +38,7 @@ from sim_bridge import ConfigError
 
 __all__ = ["KINDS", "AgvState", "AgvTrajectory"]
 
-KINDS = ("paper", "line", "circle", "figure8", "stop_and_go")
+KINDS = ("paper", "line", "circle", "figure8", "stop_and_go", "ramp")
 
 # Path parameters (metres, seconds). Kept here, with the docstring above, as the definition.
 _PAPER_VX_M_S = 0.1
@@ -51,6 +55,7 @@ _SG_STOP_S = 4.0
 _SG_VMAX_M_S = 0.5  # peak progress speed (m/s), reached mid-way through the go phase
 _SG_AMP_M = 1.0
 _SG_K_RAD_M = 0.2
+_RAMP_CRUISE_M_S = 0.3  # at speed scale 1
 
 
 def _vec3(x: Any, name: str) -> np.ndarray:
@@ -90,10 +95,12 @@ class AgvTrajectory:
     """An analytic AGV path: :meth:`state` gives position, velocity, acceleration and heading.
 
     ``kind`` is one of :data:`KINDS`; ``speed_scale`` (> 0) scales time along the path;
-    ``top_z_m`` is the NED z of the AGV top (constant).
+    ``top_z_m`` is the NED z of the AGV top (constant); ``ramp_accel_m_s2`` the ``ramp``
+    kind's acceleration (> 0).
     """
 
-    def __init__(self, kind: str, speed_scale: float = 1.0, top_z_m: float = 0.0) -> None:
+    def __init__(self, kind: str, speed_scale: float = 1.0, top_z_m: float = 0.0,
+                 ramp_accel_m_s2: float = 1.0) -> None:
         if kind not in KINDS:
             raise ConfigError(
                 f"sim.agv.trajectory: must be one of {', '.join(KINDS)}, got {kind!r}"
@@ -104,7 +111,12 @@ class AgvTrajectory:
             )
         if not math.isfinite(top_z_m):
             raise ConfigError(f"sim.agv.top_z_m: must be finite, got {top_z_m}")
+        if not (math.isfinite(ramp_accel_m_s2) and ramp_accel_m_s2 > 0):
+            raise ConfigError(
+                f"sim.agv.ramp_accel_m_s2: must be a finite number > 0, got {ramp_accel_m_s2}"
+            )
         self.kind = kind
+        self.ramp_accel_m_s2 = float(ramp_accel_m_s2)
         self.speed_scale = float(speed_scale)
         self.top_z_m = float(top_z_m)
         self._planar = {
@@ -113,11 +125,14 @@ class AgvTrajectory:
             "circle": self._circle,
             "figure8": self._figure8,
             "stop_and_go": self._stop_and_go,
+            "ramp": self._line,  # not used: state() computes the ramp in real time
         }[kind]
 
     def state(self, t_s: float) -> AgvState:
         """The AGV at time ``t_s`` (s since the start)."""
         s = self.speed_scale
+        if self.kind == "ramp":
+            return self._ramp(float(t_s))
         x, y, xd, yd, xdd, ydd, yaw, yaw_rate = self._planar(s * float(t_s))
         return AgvState(
             t_s=t_s,
@@ -127,6 +142,20 @@ class AgvTrajectory:
             yaw_rad=yaw,
             yaw_rate_rad_s=s * yaw_rate,
         )
+
+    def _ramp(self, t_s: float) -> AgvState:
+        """Straight north: constant acceleration from rest to the cruise speed, then cruise
+        (the acceleration steps at both ends, as a vehicle's speed controller at its limit)."""
+        a, v_c = self.ramp_accel_m_s2, _RAMP_CRUISE_M_S * self.speed_scale
+        t = max(t_s, 0.0)
+        t_c = v_c / a
+        if t < t_c:
+            x, v, acc = 0.5 * a * t * t, a * t, a
+        else:
+            x, v, acc = 0.5 * a * t_c * t_c + v_c * (t - t_c), v_c, 0.0
+        return AgvState(t_s=t_s, pos_ned_m=np.array([x, 0.0, self.top_z_m]),
+                        vel_ned_m_s=np.array([v, 0.0, 0.0]),
+                        acc_ned_m_s2=np.array([acc, 0.0, 0.0]), yaw_rad=0.0, yaw_rate_rad_s=0.0)
 
     # Each planar path returns (x, y, dx, dy, ddx, ddy, yaw, dyaw) in path time tau.
     @staticmethod

@@ -15,8 +15,6 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from sim_bridge.config import EmulatorConfig
-from sim_bridge.gcs import PARAM_TYPE_INT32, PARAM_TYPE_REAL32, ParamSpec
 from sim_bridge.link import Address, MavUdpLink
 from sim_bridge.px4.modes import ACCEPTED, DENIED, AttitudeTarget
 from sim_bridge.px4.streams import (
@@ -40,32 +38,6 @@ Handler = Callable[[MavUdpLink, Any, Address, float], None]
 _PARAM_FIELDS = {"MPC_THR_HOVER": "hover_thrust", "COM_OF_LOSS_T": "com_of_loss_t_s",
                  "COM_OBL_RC_ACT": "com_obl_rc_act", "COM_DISARM_PRFLT": "com_disarm_prflt_s",
                  "COM_DISARM_LAND": "com_disarm_land_s", "MPC_TILTMAX_AIR": "max_tilt_rad"}
-
-
-def px4_param_specs(cfg: EmulatorConfig) -> tuple[ParamSpec, ...]:
-    """The parameters a ground station sees (PX4 names, units and ranges; defaults from the
-    scenario where the emulator models them, PX4's defaults otherwise)."""
-    sim, link = cfg.sim, cfg.sim.link
-    real, i32 = PARAM_TYPE_REAL32, PARAM_TYPE_INT32
-    return (
-        ParamSpec("MAV_SYS_ID", i32, link.sysid, 1, 250),
-        ParamSpec("MAV_COMP_ID", i32, link.compid, 1, 250),
-        ParamSpec("MAV_TYPE", i32, 2, 0, 50),                  # quadrotor
-        ParamSpec("SYS_AUTOSTART", i32, 4001, 0, 9_999_999),   # generic quadrotor x
-        ParamSpec("MPC_THR_HOVER", real, sim.vehicle.hover_thrust, 0.1, 0.8),
-        ParamSpec("MPC_TILTMAX_AIR", real, round(math.degrees(sim.vehicle.max_tilt_rad), 3),
-                  20.0, 89.0),                                 # deg
-        ParamSpec("MPC_LAND_SPEED", real, 0.7, 0.6, 10.0),     # m/s (the emulator's fixed value)
-        ParamSpec("MPC_TKO_SPEED", real, 1.5, 1.0, 5.0),       # m/s (fixed)
-        ParamSpec("MIS_TAKEOFF_ALT", real, 2.5, 0.0, 80.0),    # m (fixed)
-        ParamSpec("COM_OF_LOSS_T", real, sim.px4.com_of_loss_t_s, 0.0, 60.0),  # s
-        ParamSpec("COM_OBL_RC_ACT", i32, sim.px4.com_obl_rc_act, 0, 7),
-        ParamSpec("COM_DISARM_PRFLT", real, sim.px4.com_disarm_prflt_s, -1.0, 20.0),  # s
-        ParamSpec("COM_DISARM_LAND", real, 2.0, -1.0, 20.0),   # s
-        ParamSpec("COM_RC_IN_MODE", i32, 4, 0, 4),             # 4: no RC (companion flight)
-        ParamSpec("NAV_DLL_ACT", i32, 0, 0, 6),                # GCS loss: disabled
-        ParamSpec("NAV_RCL_ACT", i32, 2, 0, 6),                # RC loss: Return
-    )
 
 
 class Services:

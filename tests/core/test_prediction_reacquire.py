@@ -88,3 +88,29 @@ def test_speed_cap_holds_the_acceleration_only_up_to_the_bound() -> None:
         assert np.allclose(predict_target_motion(vv, aa, 0.2, 0.1, n, dt,
                                                  speed_cap_m_s=1.0).v_a_m_s,
                            predict_target_motion(vv, aa, 0.2, 0.1, n, dt).v_a_m_s)
+
+
+def test_advance_target_is_exact_on_a_constant_turn_and_a_ramp() -> None:
+    """A FOLLOW_TARGET sample advanced by dt equals the target dt later: exact on a circle
+    (constant speed and turn) and on a straight constant acceleration."""
+    import math
+
+    from companion.core.prediction import advance_target
+
+    r, w = 3.0, 0.5  # 1.5 m/s on a 3 m circle
+
+    def circle(t: float) -> tuple[np.ndarray, np.ndarray]:
+        c, s = math.cos(w * t), math.sin(w * t)
+        return (np.array([r * w * c, r * w * s, 0.0]),
+                np.array([-r * w * w * s, r * w * w * c, 0.0]))
+
+    for t, dt in ((0.0, 0.1), (2.0, -0.06), (7.3, 0.25)):
+        v0, a0 = circle(t)
+        v, a = advance_target(v0, a0, w, dt)
+        ve, ae = circle(t + dt)
+        np.testing.assert_allclose(v, ve, atol=1e-12)
+        np.testing.assert_allclose(a, ae, atol=1e-12)
+    v, a = advance_target(np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), 0.0, 0.2)
+    np.testing.assert_allclose(v, [1.2, 0.0, 0.0]) and np.testing.assert_allclose(a, [1, 0, 0])
+    v, _ = advance_target(np.array([0.1, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.0, 0.5)
+    np.testing.assert_allclose(v, 0.0)  # braking to rest, not backwards

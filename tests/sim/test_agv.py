@@ -30,6 +30,8 @@ def test_derivatives_match_finite_differences(kind: str, t: float, scale: float)
         tau = (scale * t) % 12.0
         if min(abs(tau), abs(tau - 8.0), abs(tau - 12.0)) < 4 * H * scale:
             return
+    if kind == "ramp" and min(t, abs(t - 0.3 * scale)) < 4 * H:  # start and end of the ramp
+        return
     np.testing.assert_allclose((a.pos_ned_m - b.pos_ned_m) / (2 * H), s.vel_ned_m_s, atol=1e-7)
     np.testing.assert_allclose((a.vel_ned_m_s - b.vel_ned_m_s) / (2 * H), s.acc_ned_m_s2, atol=1e-7)
     dyaw = _wrap(a.yaw_rad - b.yaw_rad) / (2 * H)
@@ -62,7 +64,7 @@ def test_paper_path_values() -> None:
     np.testing.assert_allclose(p.pos_ned_m[:2], [0.1 * 2 * math.pi / 0.025, 0.0], atol=1e-9)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", [k for k in KINDS if k != "ramp"])
 def test_every_kind_starts_at_origin_and_speed_scale_rescales_time(kind: str) -> None:
     base = AgvTrajectory(kind, top_z_m=0.25)
     fast = AgvTrajectory(kind, speed_scale=2.0, top_z_m=0.25)
@@ -96,11 +98,36 @@ def test_stop_and_go_stops_smoothly_and_keeps_its_heading() -> None:
     assert states[-1].pos_ned_m[0] > 8.0
 
 
+@pytest.mark.parametrize(("scale", "accel"), [(10.0, 1.0), (5.0, 1.0), (10.0, 2.5)])
+def test_ramp_accelerates_from_rest_to_its_cruise_speed(scale: float, accel: float) -> None:
+    traj = AgvTrajectory("ramp", speed_scale=scale, top_z_m=0.1, ramp_accel_m_s2=accel)
+    cruise = 0.3 * scale
+    t_c = cruise / accel
+    s0 = traj.state(0.0)
+    np.testing.assert_allclose(s0.pos_ned_m, [0.0, 0.0, 0.1], atol=1e-15)
+    np.testing.assert_allclose(s0.vel_ned_m_s, 0.0, atol=1e-15)
+    np.testing.assert_allclose(s0.acc_ned_m_s2, [accel, 0.0, 0.0], atol=1e-15)
+    mid = traj.state(0.5 * t_c)
+    assert mid.vel_ned_m_s[0] == pytest.approx(0.5 * cruise) and mid.acc_ned_m_s2[0] == accel
+    end = traj.state(t_c + 2.0)
+    np.testing.assert_allclose(end.vel_ned_m_s, [cruise, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(end.acc_ned_m_s2, 0.0, atol=1e-15)
+    # distance: the ramp's cruise * t_c / 2, then cruise * 2 s; heading north all along
+    assert end.pos_ned_m[0] == pytest.approx(0.5 * cruise * t_c + 2.0 * cruise, rel=1e-12)
+    assert end.pos_ned_m[1] == 0.0 and end.yaw_rad == 0.0 and end.yaw_rate_rad_s == 0.0
+    # the position is continuous through the end of the ramp
+    a, b = traj.state(t_c - 1e-9), traj.state(t_c + 1e-9)
+    np.testing.assert_allclose(a.pos_ned_m, b.pos_ned_m, atol=1e-8)
+    np.testing.assert_allclose(a.vel_ned_m_s, b.vel_ned_m_s, atol=1e-8)
+
+
 def test_bad_arguments_name_the_key() -> None:
     with pytest.raises(ConfigError, match=r"sim\.agv\.trajectory"):
         AgvTrajectory("spiral")
     with pytest.raises(ConfigError, match=r"sim\.agv\.speed_scale"):
         AgvTrajectory("paper", speed_scale=0.0)
+    with pytest.raises(ConfigError, match=r"sim\.agv\.ramp_accel_m_s2"):
+        AgvTrajectory("ramp", ramp_accel_m_s2=0.0)
     with pytest.raises(ConfigError, match=r"pos_ned_m"):
         from sim_bridge.physics.agv import AgvState
 

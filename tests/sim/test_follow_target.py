@@ -24,9 +24,9 @@ def _codec(sysid: int = 42) -> mavlink2.MAVLink:
 
 
 @settings(max_examples=100, deadline=None)
-@given(t=st.floats(0.0, 251.0), kind=st.sampled_from(["paper", "circle", "figure8"]))
+@given(t=st.floats(0.0, 251.0), kind=st.sampled_from(["paper", "circle", "figure8", "ramp"]))
 def test_round_trip_through_pymavlink(t: float, kind: str) -> None:
-    s = AgvTrajectory(kind, top_z_m=-0.2).state(t)
+    s = AgvTrajectory(kind, speed_scale=10.0 if kind == "ramp" else 1.0, top_z_m=-0.2).state(t)
     fields = follow_target_fields(s, int(t * 1000), *ORIGIN)
     tx, rx = _codec(), _codec(1)
     buf = tx.follow_target_encode(**fields).pack(tx)

@@ -32,11 +32,12 @@ from sim_bridge.gcs import (
     to_wire,
 )
 from sim_bridge.px4.streams import CAPABILITIES
+from sim_bridge.px4_params import px4_param_specs
 from tests.sim.harness import MavClient, RunningSim, make_config, run_sim
 
 ROOT = Path(__file__).resolve().parents[2]
 REQUEST_AUTOPILOT_CAPABILITIES = 520
-N_PARAMS = 16
+N_PARAMS = len(px4_param_specs(make_config()))  # sim_bridge/px4_params.py
 
 
 # ------------------------------------------------------------------------ the pure store

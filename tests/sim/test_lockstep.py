@@ -121,3 +121,30 @@ def test_offboard_loss_counts_simulated_time(client: MavClient) -> None:
     t_lost = float(lost[0].split()[0])
     assert abs(t_lost - (t_last_ms / 1000 + 1.0 + 0.05)) < 0.051, (t_lost, t_last_ms)
 
+
+
+def test_the_first_frame_waits_for_a_client_still_building_its_controller(
+        client: MavClient) -> None:
+    """sim.lockstep_start_timeout_s: the first frame a client got waits that long for its
+    first answer (a companion compiling its controller for the vehicle's limits), every later
+    one lockstep_timeout_s. The emulator's clock stands still meanwhile."""
+    cfg = _lockstep_cfg(client, timeout_s=0.2, lockstep_start_timeout_s=30.0)
+    q = [1.0, 0.0, 0.0, 0.0]
+    with run_sim(cfg, duration_s=5.0) as rs:
+        client.target = ("127.0.0.1", rs.ports["offboard"])
+        cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=10.0)
+        try:
+            hdr, _ = read_frame(cam)  # the first frame this client gets
+            time.sleep(2.0)  # "building": 10 ordinary timeouts long
+            t_before = rs.call(lambda: rs.sim.t_s)
+            timeouts_before = rs.call(lambda: rs.sim.stats().lockstep_timeouts)
+            client.send(client.mav.set_attitude_target_encode(
+                hdr["t_us"] // 1000, 1, 1, 7, q, 0, 0, 0, 0.5))
+            hdr2, _ = read_frame(cam)
+        finally:
+            cam.close()
+        rs.stop()
+    assert t_before == hdr["t_us"] / 1e6  # the clock waited at the first frame's step
+    assert hdr2["t_us"] == hdr["t_us"] + 50_000  # and went on with the answer
+    # frames nobody got before the client connected waited the ordinary timeout only
+    assert timeouts_before == hdr["t_us"] // 50_000
