@@ -88,13 +88,36 @@ def test_an_escaping_target_cuts_the_preflight_stream_to_the_escape_time() -> No
     m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
     m.on_heartbeat(_hb(0.0, True, 3))
     assert _stream(m, 0.0, 1.2, escaping=True) == [(1.0, "set_mode")]
-    # a gap in the stream (safety silence) restarts the clock for the cut stream as well
+    # a pause in the stream longer than STREAM_GAP_S (safety silence) restarts the clock for
+    # the cut stream as well
     m = OffboardManager(cfg)
     m.on_heartbeat(_hb(0.0, True, 3))
     assert _stream(m, 0.0, 0.2, escaping=True) == []
     m.on_stream_gap()
-    assert _stream(m, 0.5, 0.7, escaping=True) == []
-    assert _stream(m, 0.7, 0.8, escaping=True) == [(0.75, "set_mode")]
+    assert _stream(m, 0.8, 1.0, escaping=True) == []
+    assert _stream(m, 1.0, 1.1, escaping=True) == [(1.05, "set_mode")]
+
+
+def test_a_short_pause_in_the_stream_keeps_the_preflight_stream() -> None:
+    """A stale frame (one missing setpoint) is no loss of PX4's offboard signal
+    (COM_OF_LOSS_T 1 s): the 1 s stream is not restarted; a pause beyond STREAM_GAP_S is."""
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_heartbeat(_hb(0.0, True, 3))
+    acts = []
+    for k in range(0, 24):
+        t = 0.05 * k
+        if k % 3 == 1:  # every third setpoint missing
+            m.on_stream_gap()
+            continue
+        m.on_streamed(t)
+        acts += [(round(t, 2), a.kind) for a in m.step(t)]
+    assert acts[:1] == [(1.0, "set_mode")]
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_heartbeat(_hb(0.0, True, 3))
+    m.on_streamed(0.0)
+    assert m.step(0.0) == []
+    # 0.6 s without a setpoint: the stream starts over at 0.6 and is long enough at 1.6
+    assert _stream(m, 0.6, 1.65, escaping=False) == [(1.6, "set_mode")]
 
 
 def test_an_escape_stream_longer_than_the_stream_is_refused() -> None:
