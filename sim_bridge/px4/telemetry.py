@@ -66,6 +66,17 @@ class Telemetry:
         self._vel_noise = tm.velocity_noise_m_s
         #: our TIMESYNC requests' ``ts1`` (ns) -> the simulation time they were sent
         self.timesync_sent_ns: dict[int, float] = {}
+        # messages whose encoding draws no random numbers and changes nothing (TIMESYNC
+        # records its stamp): one encoding serves every link at the same time
+        noisy = set()
+        if self._accel_noise > 0 or np.any(self._accel_bias):
+            noisy.add(HIGHRES_IMU)
+        if self._vel_noise > 0:
+            noisy.add(LOCAL_POSITION_NED)
+        self._shareable = frozenset({
+            HEARTBEAT, SYS_STATUS, ATTITUDE_QUATERNION, ATTITUDE, ATTITUDE_TARGET, HIGHRES_IMU,
+            LOCAL_POSITION_NED, GLOBAL_POSITION_INT, EXTENDED_SYS_STATE, SYSTEM_TIME,
+            HOME_POSITION, AUTOPILOT_VERSION} - noisy)
 
     def ned_to_global(self, pos: np.ndarray) -> tuple[float, float, float]:
         tg = self.sim.cfg.target
@@ -146,7 +157,11 @@ class Telemetry:
                               rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
 
     def send_streams(self, t: float) -> None:
+        """Send every stream message due at ``t`` on every link. A message due on both links
+        is encoded once when its encoding draws no noise and has no side effect (the links
+        pack it each with their own sequence number): the same fields either way."""
         faults = self.sim.cfg.sim.faults
+        encoded: dict[int, Any] = {}
         for name, streams in self.streams.items():
             link = self.sim.links[name]
             for mid in streams.due(t):
@@ -156,7 +171,13 @@ class Telemetry:
                     self.sim.transport.tx(link, self.encode_nan(link, mid, t),
                                           rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
                     continue
-                self.send_message(link, mid, t)
+                msg = encoded.get(mid)
+                if msg is None:
+                    msg = self.encode(link, mid, t)
+                    if mid in self._shareable:
+                        encoded[mid] = msg
+                self.sim.transport.tx(link, msg,
+                                      rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
 
     def encode_nan(self, link: MavUdpLink, mid: int, t: float) -> Any:
         """The state message ``mid`` with NaN attitude/velocity (injected fault)."""
