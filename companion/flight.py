@@ -146,10 +146,11 @@ def write_merged_config(config: Path, overrides: Sequence[str], path: Path) -> d
 
 
 def check_emulator_config(path: Path, scenario: str, env: Mapping[str, str]) -> None:
-    """Have the emulator validate ``path`` (``sim-bridge --check-config``); raise
+    """Have the emulator validate ``path`` for a lockstep flight (``sim-bridge --check-config
+    --lockstep``: a knob with no effect in lockstep is refused by name); raise
     :class:`ConfigError` with its message if it refuses."""
-    r = subprocess.run([sys.executable, "-m", "sim_bridge", "--check-config", "--config",
-                        str(path), "--scenario", scenario, "--log-level", "ERROR"],
+    r = subprocess.run([sys.executable, "-m", "sim_bridge", "--check-config", "--lockstep",
+                        "--config", str(path), "--scenario", scenario, "--log-level", "ERROR"],
                        capture_output=True, text=True, env=dict(env), timeout=120.0)
     if r.returncode != 0:
         lines = [ln for ln in (r.stderr + r.stdout).splitlines() if ln.strip()]

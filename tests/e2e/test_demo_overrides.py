@@ -31,6 +31,7 @@ pytestmark = pytest.mark.slow
     ("nosuch.key=1", "nosuch"),                    # a table neither program reads
     ("controller.kind=pid", "controller.kind"),    # a value the companion refuses
     ("controller.no_such_gain=1", "controller.no_such_gain"),
+    ("sim.camera.rate_hz=30", "sim.camera.rate_hz"),  # no effect in the demo's lockstep
 ])
 def test_an_unknown_or_bad_key_is_refused_naming_it(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], override: str, named: str,
