@@ -159,19 +159,47 @@ def _edge_points_batch(
     does not bias the levels. The edges' profiles are stacked as rows of one array sampled
     over the longest half length; every operation is row-wise and confined to the row's own
     profile, and the rows are split again at the end."""
-    s = settings
-    step = s.profile_step_px
-    # Per-edge scalars in plain Python; the rows of all edges are then built by whole-array
-    # operations (the same arithmetic per element as one edge at a time: bit-identical).
+    rows = _profile_rows(segs, rs, settings)
+    if rows is None:
+        return [None] * len(segs)
+    lay = rows.lay
+    # the samples land in float64 rows padded by one column (+inf) so that every range end
+    # below is a valid index of the flattened array: no separate float copy of the profiles
+    padded = np.empty((lay.n_rows, lay.n_k + 1))
+    padded[:, lay.n_k] = np.inf
+    padded[:, :lay.n_k] = cv2.remap(gray, rows.map_x, rows.map_y, cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_REPLICATE)
+    e, width, ok = _crossings(padded, lay, settings)
+    return _edge_points(rows, e, width, ok, len(segs))
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """The profiles of one batch: which edges (``used``, in row order) with how many profiles
+    each, the row layout, each row's base point on its edge, the edges' unit directions and the
+    sampling maps (float32, as ``cv2.remap`` takes them)."""
+
+    used: list[int]
+    counts: list[int]
+    lay: _Layout
+    base: FloatArray
+    t_all: FloatArray
+    map_x: npt.NDArray[np.float32]
+    map_y: npt.NDArray[np.float32]
+
+
+def _profile_rows(segs: list[tuple[FloatArray, FloatArray]], rs: list[float],
+                  s: EdgeSettings) -> _Rows | None:
+    """Where the profiles of the edges ``segs`` (half lengths ``rs``) are sampled, or ``None``
+    if no edge is long enough. Per-edge scalars in plain Python; the rows of all edges are then
+    built by whole-array operations (the same arithmetic per element as one edge at a time:
+    bit-identical)."""
     n_segs = len(segs)
     a_all = np.array([a for a, _ in segs], dtype=np.float64).reshape(n_segs, 2)
     d_all = np.array([b for _, b in segs], dtype=np.float64).reshape(n_segs, 2) - a_all
     lengths = np.hypot(d_all[:, 0], d_all[:, 1]).tolist()
-    bases: list[FloatArray | None] = []
-    normals: list[FloatArray | None] = []
-    used: list[int] = []  # edges measured, in row order
+    used: list[int] = []
     counts: list[int] = []
-    margins: list[float] = []
     spacings: list[float] = []
     for i, r in enumerate(rs):
         margin = 1.5 * r + 1.0
@@ -181,50 +209,45 @@ def _edge_points_batch(
         n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
         used.append(i)
         counts.append(n_samples)
-        margins.append(margin)
         spacings.append((length - 2 * margin) / (n_samples - 1))
     if not used:
-        return [None] * n_segs
-    lay = _layout(tuple(used), tuple(counts), tuple(rs), step)
-    ks, n_k, seg_of_row, n_rows = lay.ks, lay.n_k, lay.seg_of_row, lay.n_rows
-    mid, first, last_1, own_seg = lay.mid, lay.first, lay.last_1, lay.own_seg
+        return None
+    lay = _layout(tuple(used), tuple(counts), tuple(rs), s.profile_step_px)
+    along = lay.in_row * np.array(spacings)[lay.pos_of_row] + lay.margin_row
+    t_all = d_all / np.array(lengths)[:, None]
+    t_rows = t_all[lay.seg_of_row]
+    base = a_all[lay.seg_of_row] + along[:, None] * t_rows
+    # outward normal (t_y, -t_x) for a clockwise-on-screen polygon; the maps are computed in
+    # float64 and rounded once to float32 on the way out (as astype would)
+    map_x = np.empty((lay.n_rows, lay.n_k), dtype=np.float32)
+    map_y = np.empty((lay.n_rows, lay.n_k), dtype=np.float32)
+    np.add(base[:, :1], lay.ks[None, :] * t_rows[:, 1:], out=map_x)
+    np.add(base[:, 1:], lay.ks[None, :] * -t_rows[:, :1], out=map_y)
+    return _Rows(used, counts, lay, base, t_all, map_x, map_y)
+
+
+def _crossings(padded: FloatArray, lay: _Layout, s: EdgeSettings
+               ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+    """Per row: the edge's offset along the profile, its transition width (px) and whether it
+    was measured. ``padded``: the profiles (one per row, ``lay.n_k`` samples) and a +inf
+    column."""
+    step = s.profile_step_px
+    ks, n_rows, n_k = lay.ks, lay.n_rows, lay.n_k
+    mid, first, last_1, not_own = lay.mid, lay.first, lay.last_1, lay.not_own_seg
     row_start, dist_start = lay.row_start, lay.dist_start
     in_lo_bound, out_hi_bound, width_hi = lay.in_lo_bound, lay.out_hi_bound, lay.width_hi
-    along = lay.in_row * np.repeat(spacings, counts) + np.repeat(margins, counts)
-    t_all = d_all / np.array(lengths)[:, None]
-    t_rows = t_all[seg_of_row]
-    base_all = a_all[seg_of_row] + along[:, None] * t_rows
-    # outward normal (t_y, -t_x) for a clockwise-on-screen polygon
-    map_x = base_all[:, :1] + ks[None, :] * t_rows[:, 1:]
-    map_y = base_all[:, 1:] + ks[None, :] * -t_rows[:, :1]
-    row0 = 0
-    for i in range(n_segs):
-        if i in used:
-            n_samples = counts[used.index(i)]
-            bases.append(base_all[row0:row0 + n_samples])
-            normals.append(np.array([t_all[i, 1], -t_all[i, 0]]))
-            row0 += n_samples
-        else:
-            bases.append(None)
-            normals.append(None)
-    prof = cv2.remap(
-        gray,
-        map_x.astype(np.float32),
-        map_y.astype(np.float32),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    ).astype(np.float64)
+    prof = padded[:, :n_k]
+    flat = padded.ravel()
     # Row-wise look-ups below index the flattened arrays (one 1-D take instead of a 2-D fancy
     # index). csum: running sums, one leading zero per row.
     csum = np.zeros((n_rows, n_k + 1))
     np.cumsum(prof, axis=1, out=csum[:, 1:])
     csum_f = csum.ravel()
-    # rows padded by one column so that every range end is a valid index of the flat array
-    flat = np.concatenate((prof, np.full((n_rows, 1), np.inf)), axis=1).ravel()
     bounds = np.empty(2 * n_rows, dtype=np.intp)
     e = np.zeros(n_rows)
     width = np.ones(n_rows)
     ok = np.zeros(n_rows, dtype=bool)
+    dist = np.empty((n_rows, n_k - 1))
     # np.clip(x, lo, hi) is np.minimum(np.maximum(x, lo), hi) (the same values; without its
     # Python-level wrapper, which cost more than the arithmetic on these arrays).
     for _ in range(3):
@@ -251,11 +274,14 @@ def _edge_points_batch(
         contrast = inside - outside
         level = 0.5 * (inside + outside)
         above = prof >= level[:, None]
-        cross = above[:, :-1] > above[:, 1:]  # above, then not above (bools: a & ~b)
-        cross &= own_seg
-        gap = mid[None, :] - e[:, None]
-        np.abs(gap, out=gap)
-        dist = np.where(cross, gap, np.inf)
+        # no crossing where a sample is not above and the next is, or is, or outside the row's
+        # own profile (bools: ~(a & ~b) is a <= b); such places are at +inf distance
+        no_cross = above[:, :-1] <= above[:, 1:]
+        if not_own is not None:
+            no_cross |= not_own
+        np.subtract(mid[None, :], e[:, None], out=dist)
+        np.abs(dist, out=dist)
+        np.copyto(dist, np.inf, where=no_cross)
         idx = dist.argmin(axis=1)
         ok = np.isfinite(dist.ravel()[dist_start + idx]) & (contrast >= s.min_contrast)
         at = row_start + idx
@@ -269,22 +295,24 @@ def _edge_points_batch(
         slopes = np.maximum(np.maximum(flat[lo] - flat[lo + 1], v0 - v1), flat[hi] - flat[hi + 1])
         slope = np.maximum(slopes / step, 1e-6)
         width = np.where(ok, np.minimum(np.maximum(contrast / slope, 0.5), width_hi), width)
-    out: list[tuple[FloatArray, float, int] | None] = []
+    return e, width, ok
+
+
+def _edge_points(rows: _Rows, e: FloatArray, width: FloatArray, ok: npt.NDArray[np.bool_],
+                 n_segs: int) -> list[tuple[FloatArray, float, int] | None]:
+    """The batch's rows split back into edges: per edge its points, median width and profiles
+    tried, or ``None`` when fewer than ``max(4, 30 %)`` of its profiles measured the edge."""
+    out: list[tuple[FloatArray, float, int] | None] = [None] * n_segs
     row0 = 0
-    for maybe_base, maybe_normal in zip(bases, normals, strict=True):
-        if maybe_base is None or maybe_normal is None:
-            out.append(None)
-            continue
-        base, normal_out = maybe_base, maybe_normal
-        n_samples = base.shape[0]
+    for i, n_samples in zip(rows.used, rows.counts, strict=True):
         sl = slice(row0, row0 + n_samples)
         row0 += n_samples
         ok_e = ok[sl]
         if ok_e.sum() < max(4, 0.3 * n_samples):
-            out.append(None)
             continue
-        pts = base[ok_e] + e[sl][ok_e, None] * normal_out[None, :]
-        out.append((pts, _median(width[sl][ok_e]), n_samples))
+        normal_out = np.array([rows.t_all[i, 1], -rows.t_all[i, 0]])
+        pts = rows.base[sl][ok_e] + e[sl][ok_e, None] * normal_out[None, :]
+        out[i] = (pts, _median(width[sl][ok_e]), n_samples)
     return out
 
 
@@ -299,11 +327,14 @@ class _Layout:
     seg_of_row: npt.NDArray[np.intp]
     n_rows: int
     in_row: npt.NDArray[np.intp]  # the row's index among its edge's rows
+    pos_of_row: npt.NDArray[np.intp]  # the row's edge's position in ``used``
+    margin_row: FloatArray  # the row's edge's end margin (px): 1.5 r + 1
     rr: FloatArray  # the row's half length
     mid: FloatArray
     first: npt.NDArray[np.intp]  # index of k = -r
     last_1: npt.NDArray[np.intp]  # index of k = +r, minus one
-    own_seg: npt.NDArray[np.bool_]  # both ends of the segment in the row's own profile
+    not_own_seg: npt.NDArray[np.bool_] | None  # a segment not in the row's own profile
+    # (an end beyond its half length); None when every row spans the whole array
     row_start: npt.NDArray[np.intp]  # row offsets in the flat arrays (n_k + 1 wide)
     dist_start: npt.NDArray[np.intp]
     in_lo_bound: FloatArray
@@ -328,13 +359,17 @@ def _layout(used: tuple[int, ...], counts: tuple[int, ...], rs: tuple[float, ...
     n_rows = seg_of_row.shape[0]
     rows = np.arange(n_rows)
     rr = np.array(rs)[seg_of_row]
+    pos_of_row = np.repeat(np.arange(len(used)), counts)
+    margin_row = np.repeat([1.5 * rs[i] + 1.0 for i in used], counts)
     mid = (ks[:-1] + ks[1:]) / 2
     # a row's own profile: |k| <= r (the same samples as a profile of half length r)
     first = np.rint((r_max - rr) / step).astype(np.intp)
+    not_own = ~(np.abs(mid)[None, :] < rr[:, None])
     lay = _Layout(
-        ks=ks, n_k=n_k, seg_of_row=seg_of_row, n_rows=n_rows, in_row=rows - first_row, rr=rr,
+        ks=ks, n_k=n_k, seg_of_row=seg_of_row, n_rows=n_rows, in_row=rows - first_row,
+        pos_of_row=pos_of_row, margin_row=margin_row, rr=rr,
         mid=mid, first=first, last_1=n_k - 2 - first,
-        own_seg=(np.abs(mid)[None, :] < rr[:, None]),
+        not_own_seg=not_own if not_own.any() else None,
         row_start=rows * (n_k + 1), dist_start=rows * (n_k - 1),
         in_lo_bound=1.0 - rr, out_hi_bound=rr - 1.0, width_hi=2.0 * rr,
     )
