@@ -248,29 +248,22 @@ def _crossings(padded: FloatArray, lay: _Layout, s: EdgeSettings
     width = np.ones(n_rows)
     ok = np.zeros(n_rows, dtype=bool)
     dist = np.empty((n_rows, n_k - 1))
-    # np.clip(x, lo, hi) is np.minimum(np.maximum(x, lo), hi) (the same values; without its
-    # Python-level wrapper, which cost more than the arithmetic on these arrays).
-    for _ in range(3):
-        # plateau windows just beyond the transition, kept inside the sampled profile
-        near = 0.5 + 0.9 * np.maximum(width, 1.0)
-        in_hi = np.minimum(np.maximum(e - near, in_lo_bound), 0.0)
-        out_lo = np.minimum(np.maximum(e + near, 0.0), out_hi_bound)
-        # window means as differences of running sums: index ranges of the uniform k grid
-        i0 = ks.searchsorted(in_hi - 1.0, side="left")
-        i1 = ks.searchsorted(in_hi, side="right")
+    mode = s.outside_level
+    for it in range(3):
+        # plateau windows (index ranges of the uniform k grid) just beyond the transition; the
+        # first pass starts every row at e = 0, width 1: its windows are the layout's
+        i0, i1, j0, j1 = (lay.start_windows[mode] if it == 0 else
+                          _windows(ks, in_lo_bound, out_hi_bound, e, width, mode))
+        # window means as differences of running sums
         inside = (csum_f[row_start + i1] - csum_f[row_start + i0]) / np.maximum(i1 - i0, 1)
-        if s.outside_level == "min":
+        if mode == "min":
             # darkest sample in [e + 0.5, out_lo + 1]: a range minimum per row (0 if empty)
-            j0 = ks.searchsorted(e + 0.5, side="left")
-            j1 = ks.searchsorted(out_lo + 1.0, side="right")
             bounds[0::2] = row_start + j0
             bounds[1::2] = row_start + j1
             outside = np.minimum.reduceat(flat, bounds)[0::2]
             outside = np.where(j1 > j0, outside, 0.0)
-        else:
-            o0 = ks.searchsorted(out_lo, side="left")
-            o1 = ks.searchsorted(out_lo + 1.0, side="right")
-            outside = (csum_f[row_start + o1] - csum_f[row_start + o0]) / np.maximum(o1 - o0, 1)
+        else:  # the mean of [out_lo, out_lo + 1]
+            outside = (csum_f[row_start + j1] - csum_f[row_start + j0]) / np.maximum(j1 - j0, 1)
         contrast = inside - outside
         level = 0.5 * (inside + outside)
         above = prof >= level[:, None]
@@ -296,6 +289,32 @@ def _crossings(padded: FloatArray, lay: _Layout, s: EdgeSettings
         slope = np.maximum(slopes / step, 1e-6)
         width = np.where(ok, np.minimum(np.maximum(contrast / slope, 0.5), width_hi), width)
     return e, width, ok
+
+
+_Windows = tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.intp],
+                 npt.NDArray[np.intp]]
+
+
+def _windows(ks: FloatArray, in_lo_bound: FloatArray, out_hi_bound: FloatArray, e: FloatArray,
+             width: FloatArray, mode: str) -> _Windows:
+    """Index ranges ``[i0, i1)`` of the inside plateau and ``[j0, j1)`` of the outside one on
+    the k grid, per row, for edges at ``e`` of transition width ``width``: the inside window
+    ``[in_hi - 1, in_hi]``, the outside one ``[e + 0.5, out_lo + 1]`` (``"min"``) or
+    ``[out_lo, out_lo + 1]`` (``"mean"``), kept inside the row's profile.
+
+    np.clip(x, lo, hi) is written np.minimum(np.maximum(x, lo), hi) (the same values; without
+    its Python-level wrapper, which cost more than the arithmetic on these arrays)."""
+    near = 0.5 + 0.9 * np.maximum(width, 1.0)
+    in_hi = np.minimum(np.maximum(e - near, in_lo_bound), 0.0)
+    out_lo = np.minimum(np.maximum(e + near, 0.0), out_hi_bound)
+    i0 = ks.searchsorted(in_hi - 1.0, side="left")
+    i1 = ks.searchsorted(in_hi, side="right")
+    if mode == "min":
+        j0 = ks.searchsorted(e + 0.5, side="left")
+    else:
+        j0 = ks.searchsorted(out_lo, side="left")
+    j1 = ks.searchsorted(out_lo + 1.0, side="right")
+    return i0, i1, j0, j1
 
 
 def _edge_points(rows: _Rows, e: FloatArray, width: FloatArray, ok: npt.NDArray[np.bool_],
@@ -340,6 +359,7 @@ class _Layout:
     in_lo_bound: FloatArray
     out_hi_bound: FloatArray
     width_hi: FloatArray
+    start_windows: dict[str, _Windows]  # the first pass's windows, per outside_level
 
 
 _LAYOUTS: dict[tuple[tuple[int, ...], tuple[int, ...], tuple[float, ...], float], _Layout] = {}
@@ -365,15 +385,20 @@ def _layout(used: tuple[int, ...], counts: tuple[int, ...], rs: tuple[float, ...
     # a row's own profile: |k| <= r (the same samples as a profile of half length r)
     first = np.rint((r_max - rr) / step).astype(np.intp)
     not_own = ~(np.abs(mid)[None, :] < rr[:, None])
+    in_lo_bound, out_hi_bound = 1.0 - rr, rr - 1.0
+    e0, width0 = np.zeros(n_rows), np.ones(n_rows)
+    start = {mode: _windows(ks, in_lo_bound, out_hi_bound, e0, width0, mode)
+             for mode in ("min", "mean")}
     lay = _Layout(
         ks=ks, n_k=n_k, seg_of_row=seg_of_row, n_rows=n_rows, in_row=rows - first_row,
         pos_of_row=pos_of_row, margin_row=margin_row, rr=rr,
         mid=mid, first=first, last_1=n_k - 2 - first,
         not_own_seg=not_own if not_own.any() else None,
         row_start=rows * (n_k + 1), dist_start=rows * (n_k - 1),
-        in_lo_bound=1.0 - rr, out_hi_bound=rr - 1.0, width_hi=2.0 * rr,
+        in_lo_bound=in_lo_bound, out_hi_bound=out_hi_bound, width_hi=2.0 * rr,
+        start_windows=start,
     )
-    for a in vars(lay).values():
+    for a in [*vars(lay).values(), *(w for ws in start.values() for w in ws)]:
         if isinstance(a, np.ndarray):
             a.setflags(write=False)
     if len(_LAYOUTS) >= 256:  # edges shorter than the sample cap vary: keep the cache small
