@@ -132,17 +132,16 @@ def _blur_half_px(r: float, width: float, settings: EdgeSettings) -> float:
 def _fit_points(pts: FloatArray, width: float, n_samples: int) -> EdgeFit:
     """Total-least-squares line through the edge points, with one outlier pass (texture or a
     side face can fool a few profiles)."""
-    c, direction = _tls_line(pts)
-    res = np.abs((pts - c) @ np.array([-direction[1], direction[0]]))
+    c, d, cos, sin = _tls(pts)
+    res = np.abs(d @ np.array([-sin, cos]))  # distances from the line (the centred points')
     mad = _median(res) * 1.4826 + 0.05
     keep = res <= max(3.0 * mad, 0.3)
     n_keep = int(np.count_nonzero(keep))
     if n_keep >= 4 and n_keep < keep.shape[0]:
-        kept = pts[keep]
-        c, direction = _tls_line(kept)
-        res = np.abs((kept - c) @ np.array([-direction[1], direction[0]]))
+        c, d, cos, sin = _tls(pts[keep])
+        res = np.abs(d @ np.array([-sin, cos]))
     rms = math.sqrt(float(np.dot(res, res)) / res.shape[0])
-    return EdgeFit(c, direction, rms, n_keep / n_samples)
+    return EdgeFit(c, np.array([cos, sin]), rms, n_keep / n_samples)
 
 
 def _edge_points_batch(
@@ -415,8 +414,9 @@ def _median(x: FloatArray) -> float:
     return float(xs[h]) if n % 2 else float(0.5 * (xs[h - 1] + xs[h]))
 
 
-def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Total-least-squares line: (centroid, unit direction).
+def _tls(points: FloatArray) -> tuple[FloatArray, FloatArray, float, float]:
+    """Total-least-squares line: (centroid, the centred points, the unit direction's cos and
+    sin).
 
     The direction is the principal axis of the points' 2 x 2 scatter matrix, in closed form
     (the angle ``atan2(2 sxy, sxx - syy) / 2``): the same line as the first right singular vector
@@ -426,7 +426,7 @@ def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     d = points - c
     (sxx, sxy), (_, syy) = (d.T @ d).tolist()
     half = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-    return c, np.array([math.cos(half), math.sin(half)])
+    return c, d, math.cos(half), math.sin(half)
 
 
 def _intersect(e1: EdgeFit, e2: EdgeFit) -> FloatArray | None:
