@@ -146,6 +146,7 @@ class RectangleDetector(QuadDetectorBase):
         pts = rectangle_corners_m(length_m, width_m)  # FL, FR, RR, RL
         pts.setflags(write=False)
         self._target_points_m = pts
+        self._edge_by_contrast: dict[float, EdgeSettings] = {}
 
 
     def analyse(
@@ -163,10 +164,16 @@ class RectangleDetector(QuadDetectorBase):
                 return DetectionReport(
                     None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
             threshold, contrast = levels
-            edge_settings = dataclasses.replace(
-                edge_settings,
-                min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
-                                 0.5 * s.min_level_contrast))
+            # one settings object per level contrast (an integer number of grey levels: a few
+            # hundred at most), not a dataclasses.replace with its validation every frame
+            cached = self._edge_by_contrast.get(contrast)
+            if cached is None:
+                cached = dataclasses.replace(
+                    edge_settings,
+                    min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
+                                     0.5 * s.min_level_contrast))
+                self._edge_by_contrast[contrast] = cached
+            edge_settings = cached
         else:
             threshold = s.threshold
         if s.presmooth_px > 0:
