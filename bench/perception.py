@@ -9,7 +9,8 @@ any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one
 
 ``--flight`` times ``Perception.process`` on a flight log's own frames in order, with the
 region-of-interest tracking the live process uses (the in-flight case), wall per frame and the
-mean CPU (thread time) per frame, which the machine's load inflates far less.
+mean CPU (thread time) per frame, which the machine's load inflates far less, and each frame's
+worst corner error against the emulator's projected corners (``/truth``) where the log has them.
 """
 
 from __future__ import annotations
@@ -165,7 +166,11 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
 
     cfg = load_config()
     frames = []
+    truth: list[Any] = []  # the emulator's projected top corners per frame (None if absent)
     with LogReader(path, verify=False) as r:
+        true_px = {d["frame_seq"]: d.get("top_corners_px")
+                   for d in (m.data or {} for m in r.messages(topics=["/truth"]))
+                   if d.get("frame_seq") is not None}
         if any(c.topic == "/perception/input" for c in r.channels):
             # crops of what perception read, pasted back where they were (docs/reference/logging.md)
             crops = {}
@@ -179,6 +184,7 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
                 if img is not None:
                     frames.append(canvas.paste(img, inp["x0"], inp["y0"], inp["width"],
                                                inp["height"]).copy())
+                    truth.append(true_px.get((m.data or {}).get("frame_seq")))
                 if len(frames) >= n:
                     break
         else:  # logs written before crops: every frame whole
@@ -189,16 +195,24 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
                     break
     perception = Perception(cfg.camera, cfg.target)
     times = []
-    ok = 0
+    found = []
     cpu0 = time.thread_time()
     for img in frames:
         res, dt = _timed(perception.process, img)
         times.append(dt)
-        ok += res.status == "ok"
+        found.append(res.corners_px)
     cpu_ms = 1e3 * (time.thread_time() - cpu0) / max(len(frames), 1)
+    ok = sum(c is not None for c in found)
+    # the worst corner against the projected true corners after the best one-to-one matching
+    # (the order is the detector's business), on frames with both
+    errs = [set_error_px(c, np.asarray(t)) for c, t in zip(found, truth, strict=False)
+            if c is not None and t is not None]
     out = {"frames": len(frames), "detected": ok, "roi_hits": perception.roi_hits,
            "perception_process": _stats(times), "cpu_ms_per_frame": cpu_ms,
            "loadavg_1min": os.getloadavg()[0]}
+    if errs:
+        out["corner_err_px"] = {"frames": len(errs), "median": float(np.median(errs)),
+                                "max": float(max(errs))}
     if as_json:
         print(json.dumps(out))
         return 0
@@ -208,6 +222,10 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
     print(f"  perception_process       median {s['median_ms']:6.2f} ms  p95 {s['p95_ms']:6.2f}  "
           f"max {s['max_ms']:6.2f}; CPU {cpu_ms:.2f} ms per frame (thread time, wall "
           "figures grow with the load)")
+    if errs:
+        e = out["corner_err_px"]
+        print(f"  worst corner vs the projected truth: median {e['median']:.4f} px, max "
+              f"{e['max']:.4f} px over {e['frames']} frames")
     return 0
 
 

@@ -132,17 +132,16 @@ def _blur_half_px(r: float, width: float, settings: EdgeSettings) -> float:
 def _fit_points(pts: FloatArray, width: float, n_samples: int) -> EdgeFit:
     """Total-least-squares line through the edge points, with one outlier pass (texture or a
     side face can fool a few profiles)."""
-    c, direction = _tls_line(pts)
-    res = np.abs((pts - c) @ np.array([-direction[1], direction[0]]))
+    c, d, cos, sin = _tls(pts)
+    res = np.abs(d @ np.array([-sin, cos]))  # distances from the line (the centred points')
     mad = _median(res) * 1.4826 + 0.05
     keep = res <= max(3.0 * mad, 0.3)
     n_keep = int(np.count_nonzero(keep))
     if n_keep >= 4 and n_keep < keep.shape[0]:
-        kept = pts[keep]
-        c, direction = _tls_line(kept)
-        res = np.abs((kept - c) @ np.array([-direction[1], direction[0]]))
+        c, d, cos, sin = _tls(pts[keep])
+        res = np.abs(d @ np.array([-sin, cos]))
     rms = math.sqrt(float(np.dot(res, res)) / res.shape[0])
-    return EdgeFit(c, direction, rms, n_keep / n_samples)
+    return EdgeFit(c, np.array([cos, sin]), rms, n_keep / n_samples)
 
 
 def _edge_points_batch(
@@ -159,19 +158,47 @@ def _edge_points_batch(
     does not bias the levels. The edges' profiles are stacked as rows of one array sampled
     over the longest half length; every operation is row-wise and confined to the row's own
     profile, and the rows are split again at the end."""
-    s = settings
-    step = s.profile_step_px
-    # Per-edge scalars in plain Python; the rows of all edges are then built by whole-array
-    # operations (the same arithmetic per element as one edge at a time: bit-identical).
+    rows = _profile_rows(segs, rs, settings)
+    if rows is None:
+        return [None] * len(segs)
+    lay = rows.lay
+    # the samples land in float64 rows padded by one column (+inf) so that every range end
+    # below is a valid index of the flattened array: no separate float copy of the profiles
+    padded = np.empty((lay.n_rows, lay.n_k + 1))
+    padded[:, lay.n_k] = np.inf
+    padded[:, :lay.n_k] = cv2.remap(gray, rows.map_x, rows.map_y, cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_REPLICATE)
+    e, width, ok = _crossings(padded, lay, settings)
+    return _edge_points(rows, e, width, ok, len(segs))
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """The profiles of one batch: which edges (``used``, in row order) with how many profiles
+    each, the row layout, each row's base point on its edge, the edges' unit directions and the
+    sampling maps (float32, as ``cv2.remap`` takes them)."""
+
+    used: list[int]
+    counts: list[int]
+    lay: _Layout
+    base: FloatArray
+    t_all: FloatArray
+    map_x: npt.NDArray[np.float32]
+    map_y: npt.NDArray[np.float32]
+
+
+def _profile_rows(segs: list[tuple[FloatArray, FloatArray]], rs: list[float],
+                  s: EdgeSettings) -> _Rows | None:
+    """Where the profiles of the edges ``segs`` (half lengths ``rs``) are sampled, or ``None``
+    if no edge is long enough. Per-edge scalars in plain Python; the rows of all edges are then
+    built by whole-array operations (the same arithmetic per element as one edge at a time:
+    bit-identical)."""
     n_segs = len(segs)
     a_all = np.array([a for a, _ in segs], dtype=np.float64).reshape(n_segs, 2)
     d_all = np.array([b for _, b in segs], dtype=np.float64).reshape(n_segs, 2) - a_all
     lengths = np.hypot(d_all[:, 0], d_all[:, 1]).tolist()
-    bases: list[FloatArray | None] = []
-    normals: list[FloatArray | None] = []
-    used: list[int] = []  # edges measured, in row order
+    used: list[int] = []
     counts: list[int] = []
-    margins: list[float] = []
     spacings: list[float] = []
     for i, r in enumerate(rs):
         margin = 1.5 * r + 1.0
@@ -181,81 +208,72 @@ def _edge_points_batch(
         n_samples = int(min(s.max_samples_per_edge, max(4, math.floor(length - 2 * margin))))
         used.append(i)
         counts.append(n_samples)
-        margins.append(margin)
         spacings.append((length - 2 * margin) / (n_samples - 1))
     if not used:
-        return [None] * n_segs
-    lay = _layout(tuple(used), tuple(counts), tuple(rs), step)
-    ks, n_k, seg_of_row, n_rows = lay.ks, lay.n_k, lay.seg_of_row, lay.n_rows
-    mid, first, last_1, own_seg = lay.mid, lay.first, lay.last_1, lay.own_seg
+        return None
+    lay = _layout(tuple(used), tuple(counts), tuple(rs), s.profile_step_px)
+    along = lay.in_row * np.array(spacings)[lay.pos_of_row] + lay.margin_row
+    t_all = d_all / np.array(lengths)[:, None]
+    t_rows = t_all[lay.seg_of_row]
+    base = a_all[lay.seg_of_row] + along[:, None] * t_rows
+    # outward normal (t_y, -t_x) for a clockwise-on-screen polygon; the maps are computed in
+    # float64 and rounded once to float32 on the way out (as astype would)
+    map_x = np.empty((lay.n_rows, lay.n_k), dtype=np.float32)
+    map_y = np.empty((lay.n_rows, lay.n_k), dtype=np.float32)
+    np.add(base[:, :1], lay.ks[None, :] * t_rows[:, 1:], out=map_x)
+    np.add(base[:, 1:], lay.ks[None, :] * -t_rows[:, :1], out=map_y)
+    return _Rows(used, counts, lay, base, t_all, map_x, map_y)
+
+
+def _crossings(padded: FloatArray, lay: _Layout, s: EdgeSettings
+               ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.bool_]]:
+    """Per row: the edge's offset along the profile, its transition width (px) and whether it
+    was measured. ``padded``: the profiles (one per row, ``lay.n_k`` samples) and a +inf
+    column."""
+    step = s.profile_step_px
+    ks, n_rows, n_k = lay.ks, lay.n_rows, lay.n_k
+    mid, first, last_1, not_own = lay.mid, lay.first, lay.last_1, lay.not_own_seg
     row_start, dist_start = lay.row_start, lay.dist_start
     in_lo_bound, out_hi_bound, width_hi = lay.in_lo_bound, lay.out_hi_bound, lay.width_hi
-    along = lay.in_row * np.repeat(spacings, counts) + np.repeat(margins, counts)
-    t_all = d_all / np.array(lengths)[:, None]
-    t_rows = t_all[seg_of_row]
-    base_all = a_all[seg_of_row] + along[:, None] * t_rows
-    # outward normal (t_y, -t_x) for a clockwise-on-screen polygon
-    map_x = base_all[:, :1] + ks[None, :] * t_rows[:, 1:]
-    map_y = base_all[:, 1:] + ks[None, :] * -t_rows[:, :1]
-    row0 = 0
-    for i in range(n_segs):
-        if i in used:
-            n_samples = counts[used.index(i)]
-            bases.append(base_all[row0:row0 + n_samples])
-            normals.append(np.array([t_all[i, 1], -t_all[i, 0]]))
-            row0 += n_samples
-        else:
-            bases.append(None)
-            normals.append(None)
-    prof = cv2.remap(
-        gray,
-        map_x.astype(np.float32),
-        map_y.astype(np.float32),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    ).astype(np.float64)
+    prof = padded[:, :n_k]
+    flat = padded.ravel()
     # Row-wise look-ups below index the flattened arrays (one 1-D take instead of a 2-D fancy
     # index). csum: running sums, one leading zero per row.
     csum = np.zeros((n_rows, n_k + 1))
     np.cumsum(prof, axis=1, out=csum[:, 1:])
     csum_f = csum.ravel()
-    # rows padded by one column so that every range end is a valid index of the flat array
-    flat = np.concatenate((prof, np.full((n_rows, 1), np.inf)), axis=1).ravel()
     bounds = np.empty(2 * n_rows, dtype=np.intp)
     e = np.zeros(n_rows)
     width = np.ones(n_rows)
     ok = np.zeros(n_rows, dtype=bool)
-    # np.clip(x, lo, hi) is np.minimum(np.maximum(x, lo), hi) (the same values; without its
-    # Python-level wrapper, which cost more than the arithmetic on these arrays).
-    for _ in range(3):
-        # plateau windows just beyond the transition, kept inside the sampled profile
-        near = 0.5 + 0.9 * np.maximum(width, 1.0)
-        in_hi = np.minimum(np.maximum(e - near, in_lo_bound), 0.0)
-        out_lo = np.minimum(np.maximum(e + near, 0.0), out_hi_bound)
-        # window means as differences of running sums: index ranges of the uniform k grid
-        i0 = ks.searchsorted(in_hi - 1.0, side="left")
-        i1 = ks.searchsorted(in_hi, side="right")
+    dist = np.empty((n_rows, n_k - 1))
+    mode = s.outside_level
+    for it in range(3):
+        # plateau windows (index ranges of the uniform k grid) just beyond the transition; the
+        # first pass starts every row at e = 0, width 1: its windows are the layout's
+        i0, i1, j0, j1 = (lay.start_windows[mode] if it == 0 else
+                          _windows(ks, in_lo_bound, out_hi_bound, e, width, mode))
+        # window means as differences of running sums
         inside = (csum_f[row_start + i1] - csum_f[row_start + i0]) / np.maximum(i1 - i0, 1)
-        if s.outside_level == "min":
+        if mode == "min":
             # darkest sample in [e + 0.5, out_lo + 1]: a range minimum per row (0 if empty)
-            j0 = ks.searchsorted(e + 0.5, side="left")
-            j1 = ks.searchsorted(out_lo + 1.0, side="right")
             bounds[0::2] = row_start + j0
             bounds[1::2] = row_start + j1
             outside = np.minimum.reduceat(flat, bounds)[0::2]
             outside = np.where(j1 > j0, outside, 0.0)
-        else:
-            o0 = ks.searchsorted(out_lo, side="left")
-            o1 = ks.searchsorted(out_lo + 1.0, side="right")
-            outside = (csum_f[row_start + o1] - csum_f[row_start + o0]) / np.maximum(o1 - o0, 1)
+        else:  # the mean of [out_lo, out_lo + 1]
+            outside = (csum_f[row_start + j1] - csum_f[row_start + j0]) / np.maximum(j1 - j0, 1)
         contrast = inside - outside
         level = 0.5 * (inside + outside)
         above = prof >= level[:, None]
-        cross = above[:, :-1] > above[:, 1:]  # above, then not above (bools: a & ~b)
-        cross &= own_seg
-        gap = mid[None, :] - e[:, None]
-        np.abs(gap, out=gap)
-        dist = np.where(cross, gap, np.inf)
+        # no crossing where a sample is not above and the next is, or is, or outside the row's
+        # own profile (bools: ~(a & ~b) is a <= b); such places are at +inf distance
+        no_cross = above[:, :-1] <= above[:, 1:]
+        if not_own is not None:
+            no_cross |= not_own
+        np.subtract(mid[None, :], e[:, None], out=dist)
+        np.abs(dist, out=dist)
+        np.copyto(dist, np.inf, where=no_cross)
         idx = dist.argmin(axis=1)
         ok = np.isfinite(dist.ravel()[dist_start + idx]) & (contrast >= s.min_contrast)
         at = row_start + idx
@@ -269,22 +287,50 @@ def _edge_points_batch(
         slopes = np.maximum(np.maximum(flat[lo] - flat[lo + 1], v0 - v1), flat[hi] - flat[hi + 1])
         slope = np.maximum(slopes / step, 1e-6)
         width = np.where(ok, np.minimum(np.maximum(contrast / slope, 0.5), width_hi), width)
-    out: list[tuple[FloatArray, float, int] | None] = []
+    return e, width, ok
+
+
+_Windows = tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.intp],
+                 npt.NDArray[np.intp]]
+
+
+def _windows(ks: FloatArray, in_lo_bound: FloatArray, out_hi_bound: FloatArray, e: FloatArray,
+             width: FloatArray, mode: str) -> _Windows:
+    """Index ranges ``[i0, i1)`` of the inside plateau and ``[j0, j1)`` of the outside one on
+    the k grid, per row, for edges at ``e`` of transition width ``width``: the inside window
+    ``[in_hi - 1, in_hi]``, the outside one ``[e + 0.5, out_lo + 1]`` (``"min"``) or
+    ``[out_lo, out_lo + 1]`` (``"mean"``), kept inside the row's profile.
+
+    np.clip(x, lo, hi) is written np.minimum(np.maximum(x, lo), hi) (the same values; without
+    its Python-level wrapper, which cost more than the arithmetic on these arrays)."""
+    near = 0.5 + 0.9 * np.maximum(width, 1.0)
+    in_hi = np.minimum(np.maximum(e - near, in_lo_bound), 0.0)
+    out_lo = np.minimum(np.maximum(e + near, 0.0), out_hi_bound)
+    i0 = ks.searchsorted(in_hi - 1.0, side="left")
+    i1 = ks.searchsorted(in_hi, side="right")
+    if mode == "min":
+        j0 = ks.searchsorted(e + 0.5, side="left")
+    else:
+        j0 = ks.searchsorted(out_lo, side="left")
+    j1 = ks.searchsorted(out_lo + 1.0, side="right")
+    return i0, i1, j0, j1
+
+
+def _edge_points(rows: _Rows, e: FloatArray, width: FloatArray, ok: npt.NDArray[np.bool_],
+                 n_segs: int) -> list[tuple[FloatArray, float, int] | None]:
+    """The batch's rows split back into edges: per edge its points, median width and profiles
+    tried, or ``None`` when fewer than ``max(4, 30 %)`` of its profiles measured the edge."""
+    out: list[tuple[FloatArray, float, int] | None] = [None] * n_segs
     row0 = 0
-    for maybe_base, maybe_normal in zip(bases, normals, strict=True):
-        if maybe_base is None or maybe_normal is None:
-            out.append(None)
-            continue
-        base, normal_out = maybe_base, maybe_normal
-        n_samples = base.shape[0]
+    for i, n_samples in zip(rows.used, rows.counts, strict=True):
         sl = slice(row0, row0 + n_samples)
         row0 += n_samples
         ok_e = ok[sl]
         if ok_e.sum() < max(4, 0.3 * n_samples):
-            out.append(None)
             continue
-        pts = base[ok_e] + e[sl][ok_e, None] * normal_out[None, :]
-        out.append((pts, _median(width[sl][ok_e]), n_samples))
+        normal_out = np.array([rows.t_all[i, 1], -rows.t_all[i, 0]])
+        pts = rows.base[sl][ok_e] + e[sl][ok_e, None] * normal_out[None, :]
+        out[i] = (pts, _median(width[sl][ok_e]), n_samples)
     return out
 
 
@@ -299,16 +345,20 @@ class _Layout:
     seg_of_row: npt.NDArray[np.intp]
     n_rows: int
     in_row: npt.NDArray[np.intp]  # the row's index among its edge's rows
+    pos_of_row: npt.NDArray[np.intp]  # the row's edge's position in ``used``
+    margin_row: FloatArray  # the row's edge's end margin (px): 1.5 r + 1
     rr: FloatArray  # the row's half length
     mid: FloatArray
     first: npt.NDArray[np.intp]  # index of k = -r
     last_1: npt.NDArray[np.intp]  # index of k = +r, minus one
-    own_seg: npt.NDArray[np.bool_]  # both ends of the segment in the row's own profile
+    not_own_seg: npt.NDArray[np.bool_] | None  # a segment not in the row's own profile
+    # (an end beyond its half length); None when every row spans the whole array
     row_start: npt.NDArray[np.intp]  # row offsets in the flat arrays (n_k + 1 wide)
     dist_start: npt.NDArray[np.intp]
     in_lo_bound: FloatArray
     out_hi_bound: FloatArray
     width_hi: FloatArray
+    start_windows: dict[str, _Windows]  # the first pass's windows, per outside_level
 
 
 _LAYOUTS: dict[tuple[tuple[int, ...], tuple[int, ...], tuple[float, ...], float], _Layout] = {}
@@ -328,17 +378,26 @@ def _layout(used: tuple[int, ...], counts: tuple[int, ...], rs: tuple[float, ...
     n_rows = seg_of_row.shape[0]
     rows = np.arange(n_rows)
     rr = np.array(rs)[seg_of_row]
+    pos_of_row = np.repeat(np.arange(len(used)), counts)
+    margin_row = np.repeat([1.5 * rs[i] + 1.0 for i in used], counts)
     mid = (ks[:-1] + ks[1:]) / 2
     # a row's own profile: |k| <= r (the same samples as a profile of half length r)
     first = np.rint((r_max - rr) / step).astype(np.intp)
+    not_own = ~(np.abs(mid)[None, :] < rr[:, None])
+    in_lo_bound, out_hi_bound = 1.0 - rr, rr - 1.0
+    e0, width0 = np.zeros(n_rows), np.ones(n_rows)
+    start = {mode: _windows(ks, in_lo_bound, out_hi_bound, e0, width0, mode)
+             for mode in ("min", "mean")}
     lay = _Layout(
-        ks=ks, n_k=n_k, seg_of_row=seg_of_row, n_rows=n_rows, in_row=rows - first_row, rr=rr,
+        ks=ks, n_k=n_k, seg_of_row=seg_of_row, n_rows=n_rows, in_row=rows - first_row,
+        pos_of_row=pos_of_row, margin_row=margin_row, rr=rr,
         mid=mid, first=first, last_1=n_k - 2 - first,
-        own_seg=(np.abs(mid)[None, :] < rr[:, None]),
+        not_own_seg=not_own if not_own.any() else None,
         row_start=rows * (n_k + 1), dist_start=rows * (n_k - 1),
-        in_lo_bound=1.0 - rr, out_hi_bound=rr - 1.0, width_hi=2.0 * rr,
+        in_lo_bound=in_lo_bound, out_hi_bound=out_hi_bound, width_hi=2.0 * rr,
+        start_windows=start,
     )
-    for a in vars(lay).values():
+    for a in [*vars(lay).values(), *(w for ws in start.values() for w in ws)]:
         if isinstance(a, np.ndarray):
             a.setflags(write=False)
     if len(_LAYOUTS) >= 256:  # edges shorter than the sample cap vary: keep the cache small
@@ -355,8 +414,9 @@ def _median(x: FloatArray) -> float:
     return float(xs[h]) if n % 2 else float(0.5 * (xs[h - 1] + xs[h]))
 
 
-def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Total-least-squares line: (centroid, unit direction).
+def _tls(points: FloatArray) -> tuple[FloatArray, FloatArray, float, float]:
+    """Total-least-squares line: (centroid, the centred points, the unit direction's cos and
+    sin).
 
     The direction is the principal axis of the points' 2 x 2 scatter matrix, in closed form
     (the angle ``atan2(2 sxy, sxx - syy) / 2``): the same line as the first right singular vector
@@ -366,7 +426,7 @@ def _tls_line(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     d = points - c
     (sxx, sxy), (_, syy) = (d.T @ d).tolist()
     half = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-    return c, np.array([math.cos(half), math.sin(half)])
+    return c, d, math.cos(half), math.sin(half)
 
 
 def _intersect(e1: EdgeFit, e2: EdgeFit) -> FloatArray | None:

@@ -189,9 +189,11 @@ def touches_border(points: npt.ArrayLike, width: int, height: int, margin_px: fl
 def check_quad(corners: npt.ArrayLike, width: int, height: int, limits: QuadLimits) -> str | None:
     """First failed plausibility check as a reason string, or ``None`` if plausible."""
     c = np.asarray(corners, dtype=np.float64)
-    if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+    if c.shape != (4, 2):
         return "corners not finite (4, 2)"
-    p = _pts(c)
+    p = _pts(c)  # plain floats from here on (numpy's per-call cost dominates on 4 corners)
+    if not all(math.isfinite(x) and math.isfinite(y) for x, y in p):
+        return "corners not finite (4, 2)"
     if not _is_convex(p):
         return "not a convex quadrilateral"
     area = abs(_signed_area(p))
@@ -207,6 +209,8 @@ def check_quad(corners: npt.ArrayLike, width: int, height: int, limits: QuadLimi
     hi = limits.expected_aspect * limits.max_aspect_distortion
     if not lo <= ratio <= hi:
         return f"aspect ratio {ratio:.2f} outside [{lo:.2f}, {hi:.2f}]"
-    if touches_border(c, width, height, limits.border_margin_px):
+    m = limits.border_margin_px
+    hx, hy = width - 1 - m, height - 1 - m  # touches_border of a quad
+    if any(x <= m or y <= m or x >= hx or y >= hy for x, y in p):
         return "touches image border: partially visible"
     return None

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -145,6 +146,7 @@ class RectangleDetector(QuadDetectorBase):
         pts = rectangle_corners_m(length_m, width_m)  # FL, FR, RR, RL
         pts.setflags(write=False)
         self._target_points_m = pts
+        self._edge_by_contrast: dict[float, EdgeSettings] = {}
 
 
     def analyse(
@@ -162,10 +164,16 @@ class RectangleDetector(QuadDetectorBase):
                 return DetectionReport(
                     None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
             threshold, contrast = levels
-            edge_settings = dataclasses.replace(
-                edge_settings,
-                min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
-                                 0.5 * s.min_level_contrast))
+            # one settings object per level contrast (an integer number of grey levels: a few
+            # hundred at most), not a dataclasses.replace with its validation every frame
+            cached = self._edge_by_contrast.get(contrast)
+            if cached is None:
+                cached = dataclasses.replace(
+                    edge_settings,
+                    min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
+                                     0.5 * s.min_level_contrast))
+                self._edge_by_contrast[contrast] = cached
+            edge_settings = cached
         else:
             threshold = s.threshold
         if s.presmooth_px > 0:
@@ -220,7 +228,7 @@ class RectangleDetector(QuadDetectorBase):
         lim = self.limits
         if area < lim.min_area_px:
             return Rejection(f"too small: blob area {area:.0f} px^2 < {lim.min_area_px:.0f}")
-        if touches_border(contour.reshape(-1, 2), w, h, lim.border_margin_px):
+        if _box_touches_border(cv2.boundingRect(contour), w, h, lim.border_margin_px):
             return Rejection("touches image border: partially visible")
         quad = _approx_quad(contour)
         if quad is None:
@@ -240,16 +248,17 @@ class RectangleDetector(QuadDetectorBase):
             if refined is None:
                 return Rejection("edges not measurable (low contrast or too short)", ordered)
             corners, fits = refined
-        shift = float(np.max(np.linalg.norm(corners - ordered, axis=1)))
+        # plain floats on 4 corners (numpy's per-call cost dominates; the same values)
+        shift = max(math.sqrt(dx * dx + dy * dy) for dx, dy in (corners - ordered).tolist())
         limit = s.max_corner_shift_px + 0.05 * math.sqrt(quad_area)
         if shift > limit:
             return Rejection(f"refinement moved a corner by {shift:.1f} px", ordered)
         reason = check_quad(corners, w, h, lim)
         if reason is not None:
             return Rejection(reason, corners)
-        valid = float(np.mean([f.valid_fraction for f in fits]))
-        rms = float(np.sqrt(np.mean([f.rms_px**2 for f in fits])))
-        quality = float(np.clip(valid * math.exp(-rms), 0.0, 1.0))
+        valid = sum(f.valid_fraction for f in fits) / len(fits)
+        rms = math.sqrt(sum(f.rms_px**2 for f in fits) / len(fits))
+        quality = min(max(valid * math.exp(-rms), 0.0), 1.0)
         flags: tuple[str, ...] = ()
         if touches_border(corners, w, h, lim.border_margin_px + s.profile_half_px):
             flags = ("near border",)
@@ -325,6 +334,17 @@ def _bright_window(gray: npt.NDArray[np.uint8], threshold: int, radius: int
     pad = 2 * radius
     rows, cols = gray.shape[:2]
     return max(x - pad, 0), max(y - pad, 0), min(x + w + pad, cols), min(y + h + pad, rows)
+
+
+def _box_touches_border(box: Sequence[int], width: int, height: int,
+                        margin_px: float) -> bool:
+    """:func:`~companion.perception.plausibility.touches_border` of a contour from its bounding
+    box ``(x, y, w, h)`` (``cv2.boundingRect``: integer points, so its extremes are the
+    points' own minima and maxima)."""
+    x, y, bw, bh = box
+    lo = margin_px
+    return (x <= lo or y <= lo or x + bw - 1 >= width - 1 - lo
+            or y + bh - 1 >= height - 1 - lo)
 
 
 def _approx_quad(contour: npt.NDArray[np.int32]) -> FloatArray | None:
