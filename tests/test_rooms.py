@@ -29,9 +29,6 @@ SPLITTING: dict[str, str] = {
     "companion/core/rmpc.py": "the RMPC's NLP construction, solve and soft copy (rti split)",
     "companion/core/rmpc_problem.py::build_nlp": "the RMPC's NLP construction (rti split)",
     "companion/perception/edges.py::_edge_points_batch": "perception hot loop (lean pass)",
-    "companion/log/lag.py": "log analysis (lean pass)",
-    "companion/log/reader.py": "log reader (lean pass)",
-    "companion/log/writer.py": "log writer (lean pass)",
 }
 
 _EXCEPTION_LINE = re.compile(r"^- `(?P<path>[^`]+)` \(max (?P<max>\d+) lines\): (?P<why>\S.*)$")
