@@ -28,9 +28,6 @@ HOT_PATH = ("companion/control", "companion/link", "companion/perception", "comp
 SPLITTING: dict[str, str] = {
     "companion/core/rmpc.py": "the RMPC's NLP construction, solve and soft copy (rti split)",
     "companion/core/rmpc_problem.py::build_nlp": "the RMPC's NLP construction (rti split)",
-    "companion/log/lag.py": "log analysis (lean pass)",
-    "companion/log/reader.py": "log reader (lean pass)",
-    "companion/log/writer.py": "log writer (lean pass)",
 }
 
 _EXCEPTION_LINE = re.compile(r"^- `(?P<path>[^`]+)` \(max (?P<max>\d+) lines\): (?P<why>\S.*)$")

@@ -54,8 +54,7 @@ class EstimatorFeed:
             self._control_since = t_now
         since = self._control_since
         own = self.cfg.control.estimator.autopilot_thrust and mode is not None and mode.armed
-        events: list[tuple[float, int, Any]] = [
-            (k.t_s, 0, k) for k in store.kinematics_history if f.t_s is None or k.t_s > f.t_s]
+        events = _newer_kinematics(store, f.t_s)
         if f.params.accelerometer and events and store.accel:
             newest_v = events[-1][0]
             events += [(a.t_s, 1, a) for a in store.accel
@@ -103,10 +102,38 @@ class EstimatorFeed:
         cmds = self._commands
         if not cmds or cmds[0][0] > t0 + 1e-9 or t1 <= t0:
             return None
+        # a command that ends by t0 adds nothing: start at the newest one in force at t0,
+        # found from the newest back (the history is in time order), and stop at the first
+        # taking effect at or after t1: the same additions in the same order as a walk over
+        # the whole history, so the same bits
+        n = len(cmds)
+        i = n - 1
+        while i > 0 and cmds[i][0] > t0:
+            i -= 1
         total = 0.0
-        for i, (te, _, thr) in enumerate(cmds):
-            end = cmds[i + 1][0] if i + 1 < len(cmds) else math.inf
+        while i < n:
+            te, _, thr = cmds[i]
+            if te >= t1:
+                break
+            end = cmds[i + 1][0] if i + 1 < n else math.inf
             lo, hi = max(te, t0), min(end, t1)
             if hi > lo:
                 total += thr * (hi - lo)
+            i += 1
         return total / (t1 - t0)
+
+
+def _newer_kinematics(store: TelemetryStore, t_s: float | None) -> list[tuple[float, int, Any]]:
+    """The velocity samples newer than the filter's time ``t_s`` (all when ``None``), oldest
+    first, as ``(t_s, 0, sample)`` events. The store keeps them in time order (it rejects
+    an older one), so the walk goes from the newest back and stops at the filter's time."""
+    hist = store.kinematics_history
+    if t_s is None:
+        return [(k.t_s, 0, k) for k in hist]
+    out: list[tuple[float, int, Any]] = []
+    for k in reversed(hist):
+        if not k.t_s > t_s:
+            break
+        out.append((k.t_s, 0, k))
+    out.reverse()
+    return out

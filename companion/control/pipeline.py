@@ -100,6 +100,9 @@ class ControlPipeline:
             if est.enabled else None)
         # (t_effect_s, u: the vehicle's acceleration/yaw rate asked for (4,), thrust sent)
         self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)
+        # the same history as (t_effect_s, u), kept beside it so the latency prediction gets
+        # its input history without a 64-tuple list built every step
+        self._inputs: deque[tuple[float, np.ndarray]] = deque(maxlen=64)
         self._feed = (None if self._dist is None
                       else EstimatorFeed(cfg, self._dist, self._commands))
         self._lead = TiltLead(cfg.control.lead)
@@ -225,7 +228,7 @@ class ControlPipeline:
             return Predicted(es.eta_e, motion, None)
         v_a, vdot_a, psidot_a = motion.stage(0)
         pred: Prediction | None = predict_error_state(
-            es.eta_e, t_s, t_now + delay_s, [(t, u) for t, u, _ in self._commands], v_a, vdot_a,
+            es.eta_e, t_s, t_now + delay_s, self._inputs, v_a, vdot_a,
             psidot_a, cfg.rmpc.desired_depth_m, lat)
         assert pred is not None
         if not np.all(np.isfinite(pred.eta_e)):
@@ -366,8 +369,9 @@ class ControlPipeline:
         # own controller and ignores the stream, so the latency prediction must integrate
         # zero acceleration there, not the inputs we streamed
         flown = u is not None and in_control is not False
-        self._commands.append((t_eff, np.array(u, dtype=float) if flown else np.zeros(4),
-                               sp.thrust_norm))
+        u_flown = np.array(u, dtype=float) if flown else np.zeros(4)
+        self._commands.append((t_eff, u_flown, sp.thrust_norm))
+        self._inputs.append((t_eff, u_flown))
 
     def _setpoint(self, u: np.ndarray, yaw_rad: float, dt_s: float,
                   est: DisturbanceEstimate | None,

@@ -1,7 +1,8 @@
 """What the companion knows about the vehicle and the target, with the time it learnt it.
 
 Fed with decoded MAVLink messages as ``(name, fields, t_s)``: ``fields`` is the message's field
-dict (pymavlink ``to_dict()`` live, the logged JSON in replay), ``t_s`` the message's time on
+dict (live :func:`companion.link.message_fields`, decoded once by the link; in replay
+pymavlink's ``to_dict()`` of the logged frame: the same values), ``t_s`` the message's time on
 the companion's time base (see :class:`companion.control.timebase.TimeBase`). The same store
 serves the live process and the replay, so both compute identical commands from identical inputs.
 

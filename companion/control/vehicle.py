@@ -27,7 +27,7 @@ from companion.control.recording import TOPIC_OFFBOARD, TOPIC_SAFETY, RuntimeLog
 from companion.control.timebase import TimeBase
 from companion.control.timesync import ActuationDelayMeter, TimeSync
 from companion.control.wiring import is_autopilot, new_store
-from companion.link import MavlinkLink, NoPeerError, Received
+from companion.link import MavlinkLink, NoPeerError, Received, message_fields
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,8 @@ class Vehicle:
     def on_rx(self, rx: Received) -> None:
         """The link's callback for every accepted message."""
         assert self.records is not None
-        fields = rx.msg.to_dict()
+        # decoded once by the link (message_fields), shared with the log writer
+        fields = rx.fields if rx.fields is not None else message_fields(rx.msg)
         self.records.received(rx, fields)
         t_s = self.timebase.message_s(rx.name, fields, rx.t_rx_ns)
         self.store.ingest(rx.name, fields, t_s, rx.src_sysid)

@@ -37,7 +37,7 @@ from companion.link.errors import LinkError, NoPeerError
 from companion.link.filters import AllowRule, ValueLimits, default_allow_rules
 from companion.link.guard import GuardParams, SourceGuard
 from companion.link.messages import Received, Sent
-from companion.link.receive import ReceivePath, new_parser
+from companion.link.receive import ReceivePath, new_parser, reset_parser
 from companion.link.signing import SignatureVerifier, load_signing_key, signing_timestamp_now
 from companion.link.transport import (
     StreamProtocol,
@@ -140,6 +140,7 @@ class MavlinkLink(LinkCommands):
         self._rx = ReceivePath(rules, self.guard, self.guard_params, self.limits,
                                self._verifier, self._enc, self.counters, on_reject)
         self._stream_parser: Any = None
+        self._dgram_parser: Any = new_parser()  # reset per datagram (reset_parser)
         self._queue: asyncio.Queue[Any] | None = None
         self._transport: Any = None
         self._serial_fd: int | None = None
@@ -367,7 +368,8 @@ class MavlinkLink(LinkCommands):
         if why is not None:
             self._rx.reject(why, data, t)
             return
-        parser = new_parser()  # fresh per datagram: one bad datagram cannot poison others
+        # reset per datagram: one bad datagram cannot poison others
+        parser = reset_parser(self._dgram_parser)
         for m in self._parse(parser, data):
             self._handle(m, t, addr)
         if parser.buf_len() > 0:

@@ -14,7 +14,10 @@ from typing import Any
 @dataclass(frozen=True)
 class Received:
     """One accepted MAVLink 2 frame. ``msg`` is the pymavlink message object (treat as
-    read-only), ``raw`` the exact bytes received, ``t_rx_ns`` the link clock at receipt."""
+    read-only), ``raw`` the exact bytes received, ``t_rx_ns`` the link clock at receipt,
+    ``fields`` the message's fields as :func:`message_fields` gives them, decoded once by the
+    link and shared read-only by the telemetry store, the log clock and the log payload
+    (``None`` when built elsewhere: the users then decode ``msg`` themselves)."""
 
     msg: Any
     raw: bytes
@@ -25,6 +28,7 @@ class Received:
     name: str
     seq: int
     signed: bool
+    fields: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)

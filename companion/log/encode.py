@@ -179,12 +179,18 @@ def xyzw(q_wxyz: Sequence[float]) -> dict[str, float]:
     return {"x": x, "y": y, "z": z, "w": w}
 
 
-def mavlink_payload(direction: str, item: Any) -> dict[str, Any]:
+def _fields(item: Any) -> dict[str, Any]:
+    """The message's fields: decoded once by the link on receipt (``Received.fields``)."""
     from companion.link import message_fields
 
+    fields = getattr(item, "fields", None)
+    return fields if fields is not None else message_fields(item.msg)
+
+
+def mavlink_payload(direction: str, item: Any) -> dict[str, Any]:
     out: dict[str, Any] = {
         "raw_b64": base64.b64encode(item.raw).decode("ascii"),
-        "fields": message_fields(item.msg),
+        "fields": _fields(item),
     }
     if direction == "in":
         out.update(

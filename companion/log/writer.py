@@ -19,33 +19,28 @@ are NOT copied: do not mutate them after handing them over.
 
 from __future__ import annotations
 
-import errno
 import logging
 import math
-import os
 import queue
 import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType
 
-from companion import __version__
 from companion.log import McapLogError
 from companion.log import schemas as sch
 from companion.log.encode import (
     IMAGE_ENCODINGS,
-    encode_image,
-    encode_json,
-    mavlink_payload,
     stamp,
     xyz,
     xyzw,
 )
+from companion.log.writer_thread import STOP, Sink, WriterThread
 
 log = logging.getLogger(__name__)
 
@@ -54,17 +49,7 @@ _COMPRESSION = {
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
-_STOP = object()
-_MAX_HOLD_S = 0.05  # the longest a hold (McapLogger.hold) delays the writer per message
 _FSYNC_POLICIES = ("interval", "close", "never")
-
-
-def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
-    import cv2
-
-    h, w = image.shape[:2]
-    size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    return np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
 
 
 class LogObserver(Protocol):
@@ -90,43 +75,7 @@ class LoggerStats:
     errors: int
 
 
-class _Sink:
-    """File wrapper counting bytes so ``tell()`` works on pipes too (the MCAP writer needs it)."""
-
-    def __init__(self, f: IO[bytes]) -> None:
-        self._f = f
-        self._n = 0
-        self.fsync_ok = True
-
-    def write(self, data: bytes) -> int:
-        self._f.write(data)
-        self._n += len(data)
-        return len(data)
-
-    def tell(self) -> int:
-        return self._n
-
-    def flush(self) -> None:
-        self._f.flush()
-
-    def fsync(self) -> None:
-        if not self.fsync_ok:
-            return
-        try:
-            os.fsync(self._f.fileno())
-        except OSError as e:
-            if e.errno in (errno.EINVAL, errno.EROFS, errno.ENOTSUP, errno.ESPIPE):
-                self.fsync_ok = False  # a pipe or special file: nothing to sync
-                log.debug("fsync not supported on this log output: %s", e)
-            else:
-                raise
-
-    def close(self) -> None:
-        self._f.close()
-
-
-
-class McapLogger:
+class McapLogger(WriterThread):
     """``with McapLogger(path, chunk_size, flush_interval_s, queue_size) as lg: lg.log(...)``.
 
     Topics are registered lazily: the first ``log`` on a topic fixes its schema name (or call
@@ -166,7 +115,7 @@ class McapLogger:
         self.max_pending_image_bytes = max_pending_image_bytes
         self.block_on_backlog = block_on_backlog
         # cleared while the control step runs: the writer thread then waits between messages
-        # (at most _MAX_HOLD_S) instead of taking the GIL from the step (hold / release)
+        # (at most MAX_HOLD_S) instead of taking the GIL from the step (hold / release)
         self._may_write = threading.Event()
         self._may_write.set()
         self._pending_image_bytes = 0
@@ -187,7 +136,7 @@ class McapLogger:
         self._last_err_warn = -math.inf
         self._failure: BaseException | None = None
         self._thread: threading.Thread | None = None
-        self._sink: _Sink | None = None
+        self._sink: Sink | None = None
         self._open = False
         self._closed = False
         #: Set before :meth:`open` to see every channel; a failing observer is dropped, never
@@ -227,7 +176,7 @@ class McapLogger:
             f = open(self.path, "wb")  # noqa: SIM115 - owned by the writer thread, closed there
         except OSError as e:
             raise McapLogError(f"cannot open log file {str(self.path)!r}: {e.strerror}") from e
-        self._sink = _Sink(f)
+        self._sink = Sink(f)
         self._open = True
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
         self._thread.start()
@@ -244,7 +193,7 @@ class McapLogger:
         assert self._thread is not None
         while self._thread.is_alive():
             try:
-                self._q.put(_STOP, timeout=0.1)
+                self._q.put(STOP, timeout=0.1)
                 break
             except queue.Full:
                 continue
@@ -460,7 +409,7 @@ class McapLogger:
         self.register(topic, schema)
 
     def hold(self) -> None:
-        """Keep the writer thread off the GIL until :meth:`release` (at most ``_MAX_HOLD_S``
+        """Keep the writer thread off the GIL until :meth:`release` (at most ``MAX_HOLD_S``
         per message): the control step holds it while it computes. The writer serialises
         messages in Python; with CPython's 5 ms switch interval a step that wants the GIL back
         from it can wait up to that long. Logging itself is unchanged (nothing is dropped; a
@@ -496,143 +445,3 @@ class McapLogger:
         with self._lock:
             self._enqueued += 1
         return True
-
-    def _schema_text(self, name: str) -> bytes:
-        if name in self._extra:
-            return encode_json(self._extra[name])
-        if name in sch.PROTOBUF_SCHEMAS:
-            return sch.protobuf_schema_bytes(name)
-        return sch.schema_bytes(name)
-
-    def _run(self) -> None:
-        assert self._sink is not None
-        sink = self._sink
-        channels: dict[str, int] = {}
-        schema_ids: dict[str, int] = {}
-        writer: Writer | None = None
-        next_flush = time.monotonic() + self.flush_interval_s
-        try:
-            writer = Writer(sink, chunk_size=self.chunk_size, compression=self._compression)  # type: ignore[arg-type]
-            writer.start(profile="", library=f"companion-{__version__}")
-            self._flush(writer, sink)
-            while True:
-                timeout = max(0.0, next_flush - time.monotonic())
-                try:
-                    item = self._q.get(timeout=timeout)
-                except queue.Empty:
-                    item = None
-                if item is _STOP:
-                    break
-                if item is not None:
-                    self._may_write.wait(_MAX_HOLD_S)
-                    self._write(writer, item, channels, schema_ids)
-                if time.monotonic() >= next_flush:
-                    self._flush(writer, sink)
-                    next_flush = time.monotonic() + self.flush_interval_s
-            writer.finish()  # type: ignore[no-untyped-call]
-            sink.flush()
-            if self.fsync_policy != "never":
-                self._fsync(sink)
-            with self._lock:
-                self._flushed = self._written
-        except BaseException as e:  # disk full, broken pipe...: stop logging, never the flight
-            with self._space:
-                self._failure = e
-                self._space.notify_all()
-            log.error("MCAP writer stopped: %r (%d items written)", e, self._written)
-            self._drain_after_failure()
-        finally:
-            try:
-                sink.close()
-            except OSError as e:
-                log.error("closing %s: %s", self.path, e)
-
-    def _drain_after_failure(self) -> None:
-        while True:
-            try:
-                item = self._q.get(timeout=0.05 if not self._closed else 0.0)
-            except queue.Empty:
-                if self._closed:
-                    return
-                continue
-            if item is _STOP:
-                return
-            with self._lock:
-                self._dropped += 1
-
-    def _flush(self, writer: Writer, sink: _Sink) -> None:
-        n = self._written
-        writer.flush()  # type: ignore[no-untyped-call]  # closes the chunk, flushes the stream
-        if self.fsync_policy == "interval":
-            self._fsync(sink)
-        with self._lock:
-            self._flushed = n
-
-    def _fsync(self, sink: _Sink) -> None:
-        t0 = time.perf_counter()
-        sink.fsync()
-        self.fsync_time_s += time.perf_counter() - t0
-        self.fsync_count += 1
-
-    def _write(
-        self,
-        writer: Writer,
-        item: tuple[Any, ...],
-        channels: dict[str, int],
-        schema_ids: dict[str, int],
-    ) -> None:
-        kind, topic, t, pub, payload = item
-        try:
-            if kind == "json":
-                schema_name, data = self._topics[topic], encode_json(payload)
-            elif kind == "bytes":
-                schema_name, data = self._topics[topic], bytes(payload)
-            elif kind == "image":
-                image, enc, frame_id, stamp_ns, scale, quality = payload
-                try:
-                    small = _downscale(image, scale) if scale != 1.0 else image
-                    schema_name, data = encode_image(small, enc, stamp_ns, frame_id, quality)
-                finally:
-                    with self._space:
-                        self._pending_image_bytes -= int(image.nbytes)
-                        self._space.notify_all()
-            else:
-                schema_name, data = self._topics[topic], encode_json(mavlink_payload(*payload))
-        except (McapLogError, TypeError, ValueError, AttributeError) as e:
-            now = time.monotonic()
-            with self._lock:
-                self._errors += 1
-                warn = now - self._last_err_warn >= 1.0
-                if warn:
-                    self._last_err_warn = now
-            if warn:
-                log.warning("MCAP: cannot encode an item for %s: %s", topic, e)
-            return
-        cid = channels.get(topic)
-        if cid is None:
-            sid = schema_ids.get(schema_name)
-            if sid is None:
-                sid = writer.register_schema(
-                    schema_name, sch.encodings(schema_name)[0], self._schema_text(schema_name)
-                )
-                schema_ids[schema_name] = sid
-            cid = writer.register_channel(topic, sch.encodings(schema_name)[1], sid)
-            channels[topic] = cid
-            enc_s, enc_m = sch.encodings(schema_name)
-            self._observe("add_channel", topic, schema_name, enc_s,
-                          self._schema_text(schema_name), enc_m)
-        writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
-        with self._lock:
-            self._written += 1
-        self._observe("message", topic, t, data)
-
-    def _observe(self, what: str, *args: Any) -> None:
-        if self.observer is None:
-            return
-        try:
-            getattr(self.observer, what)(*args)
-        except Exception as e:  # the live view is optional: stop feeding it, keep logging
-            log.error("log observer failed, detached: %r", e)
-            self.observer = None
-
-

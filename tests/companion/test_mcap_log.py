@@ -358,9 +358,9 @@ def test_a_held_writer_waits_for_release_and_loses_nothing(
     """The control step holds the writer thread off the GIL (McapLogger.hold); messages logged
     meanwhile wait in the queue and are all written once released, in order; a hold never
     outlives its cap (close does not hang on a logger left held)."""
-    import companion.log.writer as writer_mod
+    import companion.log.writer_thread as writer_thread
 
-    monkeypatch.setattr(writer_mod, "_MAX_HOLD_S", 30.0)
+    monkeypatch.setattr(writer_thread, "MAX_HOLD_S", 30.0)
     path = tmp_path / "held.mcap"
     with McapLogger(path, chunk_size=1 << 20, flush_interval_s=0.05) as lg:
         lg.hold()
@@ -376,7 +376,7 @@ def test_a_held_writer_waits_for_release_and_loses_nothing(
     with LogReader(path) as r:
         assert [m.data["i"] for m in r.messages() if m.data is not None] == list(range(20))
 
-    monkeypatch.setattr(writer_mod, "_MAX_HOLD_S", 0.01)
+    monkeypatch.setattr(writer_thread, "MAX_HOLD_S", 0.01)
     path2 = tmp_path / "left-held.mcap"
     with McapLogger(path2, chunk_size=1 << 20, flush_interval_s=0.05) as lg:
         lg.hold()  # never released: each message waits at most the cap
