@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Protocol
 
+from sim_bridge import ConfigError
 from sim_bridge.config import EmulatorConfig
 from sim_bridge.physics.px4_control import Px4Gains
 from sim_bridge.physics.rigid_body import AirframeParams, Px4VehicleModel
@@ -80,6 +81,8 @@ def build_vehicle_model(cfg: EmulatorConfig) -> VehicleDynamics:
     sim = cfg.sim
     v, b = sim.vehicle, sim.battery
     loss_per_s = b.thrust_loss_per_min / 60.0
+    if v.attitude_model == "rotorpy":
+        return _rotorpy_vehicle(cfg)
     if v.attitude_model == "px4":
         c = sim.px4_control
         return Px4VehicleModel(
@@ -116,6 +119,25 @@ def build_vehicle_model(cfg: EmulatorConfig) -> VehicleDynamics:
         disturbance(cfg),
         dt_s=sim.physics_dt_s,
     )
+
+
+def _rotorpy_vehicle(cfg: EmulatorConfig) -> VehicleDynamics:
+    """PX4's cascade on rotorpy's vehicle (optional extra ``.[rotorpy]``;
+    docs/reference/rotorpy.md)."""
+    try:
+        from sim_bridge.physics.rotorpy_vehicle import RotorpyAirframe, RotorpyVehicleModel
+    except ImportError as e:
+        raise ConfigError("sim.vehicle.attitude_model = \"rotorpy\" needs the optional extra: "
+                          f"pip install '.[rotorpy]' ({e})") from e
+    sim = cfg.sim
+    v, b = sim.vehicle, sim.battery
+    airframe = RotorpyAirframe(
+        true_hover_thrust=v.true_hover_thrust_full_battery, motor_curve_factor=v.motor_curve_factor,
+        mass_error=v.mass_error, battery_loss_per_s=b.thrust_loss_per_min / 60.0,
+        battery_max_loss=b.max_thrust_loss, ground_z_m=cfg.ground_z_m)
+    return RotorpyVehicleModel(px4_gains(cfg), airframe, disturbance(cfg).params,
+                               dt_s=sim.physics_dt_s,
+                               wind_altitude_m=max(0.5, cfg.ground_z_m - cfg.scenario.uav_pose[2]))
 
 
 def vehicle_is_ideal(cfg: EmulatorConfig) -> bool:

@@ -59,7 +59,7 @@ class VehicleConfig:
     max_tilt_rad: float = field(metadata=checked(lambda x: None if 0 < x < math.pi / 2 else
                                             "must be in (0, pi/2)"))
     attitude_model: str = field(default="first-order",
-                                metadata=checked(one_of("first-order", "px4")))
+                                metadata=checked(one_of("first-order", "px4", "rotorpy")))
     level: str = field(default="ideal", metadata=checked(one_of(*VEHICLE_LEVELS)))
     true_hover_thrust: float = field(default=0.0, metadata=checked(
         lambda x: None if 0 <= x < 1 else "must be in (0, 1), or 0 (derived)"))
