@@ -17,26 +17,26 @@ import pytest
 
 pytest.importorskip("rotorpy")
 
-import rotorpy  # noqa: E402
-from rotorpy.vehicles.multirotor import Multirotor  # noqa: E402
+import rotorpy
+from rotorpy.vehicles.multirotor import Multirotor
 
-from sim_bridge.config import load_config, with_sim  # noqa: E402
-from sim_bridge.physics.px4_control import Px4Gains  # noqa: E402
-from sim_bridge.physics.rigid_body import Px4VehicleModel  # noqa: E402
-from sim_bridge.physics.rotorpy_vehicle import (  # noqa: E402
+from sim_bridge.config import load_config, with_sim
+from sim_bridge.physics.px4_control import Px4Gains
+from sim_bridge.physics.rigid_body import Px4VehicleModel
+from sim_bridge.physics.rotorpy_vehicle import (
     RotorpyAirframe,
     RotorpyVehicleModel,
     enu_from_ned,
     ned_from_enu,
     quad_params,
 )
-from sim_bridge.physics.rotorpy_wind import (  # noqa: E402
+from sim_bridge.physics.rotorpy_wind import (
     DrydenParams,
     DrydenWind,
     GustCoefficients,
     dryden_length_scales_m,
 )
-from sim_bridge.physics.vehicle import (  # noqa: E402
+from sim_bridge.physics.vehicle import (
     AttitudeCommand,
     DisturbanceParams,
     VehicleState,
@@ -44,7 +44,7 @@ from sim_bridge.physics.vehicle import (  # noqa: E402
     initial_state,
     quat_from_euler,
 )
-from sim_bridge.vehicle_model import build_vehicle_model  # noqa: E402
+from sim_bridge.vehicle_model import build_vehicle_model
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "rotorpy.toml"
