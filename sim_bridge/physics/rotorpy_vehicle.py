@@ -14,9 +14,11 @@ Per sub-step ``dt_s`` (the emulator's ``physics_dt_s``)::
                                             ``motor_curve_factor``), thrust ~ w^2, battery b(t)
     rotorpy: s' = Multirotor._s_dot_fn(s, w_cmd)   integrated by classic RK4 over dt_s
 
-RK4 and not rotorpy's ``Multirotor.step`` (scipy ``solve_ivp``, RK45): the same derivative, ~10x
-less CPU (9 ms per 2.5 ms sub-step with solve_ivp here, 0.9 ms with RK4), and a fixed step the
-lockstep emulator can reproduce; the test suite checks both integrations agree.
+The derivative is rotorpy's, transcribed to floats (:mod:`sim_bridge.physics.rotorpy_dynamics`,
+checked against rotorpy's own function), and integrated by RK4 rather than rotorpy's
+``Multirotor.step`` (scipy ``solve_ivp``, RK45): 9 ms of CPU per 2.5 ms sub-step with solve_ivp
+here, 0.9 ms with RK4 on rotorpy's numpy derivative, ~0.1 ms on the transcription; the fixed
+step is one the lockstep emulator reproduces. The tests check the integrations agree.
 
 Frames: rotorpy's world is ENU with z up from the ground (``ground_z_m`` NED is rotorpy's z = 0,
 its ground plane), its body FLU; the emulator's world is NED, its body FRD. Rotor order and spin
@@ -54,6 +56,7 @@ from sim_bridge.physics.px4_control import (
     thrust_curve_inverse,
 )
 from sim_bridge.physics.rigid_body import CascadeState, battery_factor
+from sim_bridge.physics.rotorpy_dynamics import RotorpyDerivative
 from sim_bridge.physics.rotorpy_wind import DrydenParams, DrydenWind, WindState
 from sim_bridge.physics.vehicle import (
     G_M_S2,
@@ -164,6 +167,7 @@ class RotorpyVehicleModel:
         self.quad = quad_params(airframe, gains.thr_mdl_fac)
         self.multirotor = Multirotor(self.quad, control_abstraction="cmd_motor_speeds",
                                      aero=airframe.aero, enable_ground=True)
+        self.derivative = RotorpyDerivative(self.quad, aero=airframe.aero, enable_ground=True)
         self.mass_kg = float(self.quad["mass"])
         self.k_eta = float(self.quad["k_eta"])
         self.w_max_rad_s = float(self.quad["rotor_speed_max"])
@@ -257,11 +261,11 @@ class RotorpyVehicleModel:
     def _rk4(self, x: np.ndarray, w_cmd: np.ndarray) -> np.ndarray:
         """One classic RK4 step of rotorpy's derivative with the rotor commands held; then
         rotorpy's own post-step: unit quaternion, ground contact."""
-        f, h = self.multirotor._s_dot_fn, self.dt_s
-        k1 = f(0.0, x, w_cmd)
-        k2 = f(0.0, x + 0.5 * h * k1, w_cmd)
-        k3 = f(0.0, x + 0.5 * h * k2, w_cmd)
-        k4 = f(0.0, x + h * k3, w_cmd)
+        f, h = self.derivative, self.dt_s
+        k1 = f(x, w_cmd)
+        k2 = f(x + 0.5 * h * k1, w_cmd)
+        k3 = f(x + 0.5 * h * k2, w_cmd)
+        k4 = f(x + h * k3, w_cmd)
         y: np.ndarray = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         y[_Q:_Q + 4] /= np.linalg.norm(y[_Q:_Q + 4])
         if y[_X + 2] <= _ON_GROUND_Z_M:
@@ -314,13 +318,14 @@ class RotorpyVehicleModel:
     def wind_accel_ned_m_s2(self, x: np.ndarray) -> np.ndarray:
         """The acceleration the wind causes now (NED): rotorpy's body force with the air
         velocity minus the force in still air, over the mass."""
-        mr = self.multirotor
-        qv = x[_Q:_Q + 4]
-        w_enu_flu = _rot_xyzw(qv)
-        body_w, rotors = x[_W:_W + 3], x[_ROT:_ROT + 4]
-        v = x[_V:_V + 3]
-        f_wind, _ = mr.compute_body_wrench(body_w, rotors, w_enu_flu.T @ (v - x[_WIND:_WIND + 3]))
-        f_still, _ = mr.compute_body_wrench(body_w, rotors, w_enu_flu.T @ v)
+        wrench = self.derivative.body_wrench
+        w_enu_flu = _rot_xyzw(x[_Q:_Q + 4])
+        body_w = (float(x[_W]), float(x[_W + 1]), float(x[_W + 2]))
+        rotors, v = x[_ROT:_ROT + 4], x[_V:_V + 3]
+        va_wind = w_enu_flu.T @ (v - x[_WIND:_WIND + 3])
+        va_still = w_enu_flu.T @ v
+        f_wind, _ = wrench(body_w, rotors, (va_wind[0], va_wind[1], va_wind[2]))
+        f_still, _ = wrench(body_w, rotors, (va_still[0], va_still[1], va_still[2]))
         a = w_enu_flu @ (np.asarray(f_wind) - np.asarray(f_still)) / self.mass_kg
         return np.array([a[1], a[0], -a[2]], dtype=float)
 
