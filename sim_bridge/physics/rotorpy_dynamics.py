@@ -1,5 +1,6 @@
 """rotorpy's multirotor derivative (``rotorpy.vehicles.multirotor.Multirotor._s_dot_fn`` and
-``compute_body_wrench``, rotorpy 3.0.0) transcribed to Python floats.
+``compute_body_wrench``, rotorpy 3.0.0) and its ground contact (``_handle_vehicle_on_ground``)
+transcribed to Python floats.
 
 Why: rotorpy's numpy version costs ~220 us per evaluation here (small-array numpy, scipy's
 ``Rotation``, dict packing); RK4 at the emulator's 2.5 ms physics step evaluates it 80 times per
@@ -7,9 +8,11 @@ Why: rotorpy's numpy version costs ~220 us per evaluation here (small-array nump
 budget on this loaded machine. This transcription computes the same numbers in ~20 us;
 ``tests/sim/test_rotorpy.py`` checks it against rotorpy's own function on random states (with
 wind, aerodynamics, ground contact) to 1e-9 relative, and the integration against rotorpy's
-``Multirotor.step``. Nothing is simplified: the same terms in the same frames (world ENU-like
-z up, body z up; quaternion x, y, z, w, normalised for the rotation as scipy does, not for its
-derivative, as rotorpy does).
+``Multirotor.step``. It also spares the emulator rotorpy's ``multirotor`` module, which imports
+``scipy.integrate`` (20 s of start-up at load 28 here, past the companion's 60 s wait for the
+first camera frame in a campaign). Nothing is simplified: the same terms in the same frames
+(world z up, body z up; quaternion x, y, z, w, normalised for the rotation as scipy does, not for
+its derivative, as rotorpy does).
 
 Per rotor i at ``r_i`` with speed ``w_i``, the body air velocity ``va = R^T (v - wind)`` and the
 rotor's local air velocity ``l_i = va + omega x r_i``::
@@ -52,6 +55,27 @@ class RotorpyDerivative:
                     float(quad.get("c_Dz", 0.0)))
         self.inv_tau_m = 1.0 / float(quad["tau_m"])
         self.aero, self.enable_ground, self.g = aero, enable_ground, g_m_s2
+        self.ground_friction_beta = max(0.1, min(0.5, float(quad.get("ground_friction_beta",
+                                                                     0.3))))
+
+    def on_ground(self, s: Any) -> bool:
+        """rotorpy's ``_on_ground``: at or below its ground plane z = 0 (1 mm)."""
+        return bool(self.enable_ground and float(s[2]) <= 0.001)
+
+    def ground_contact(self, s: np.ndarray) -> np.ndarray:
+        """rotorpy's ``_handle_vehicle_on_ground`` after a step that ends on the ground: on the
+        plane, no downward speed, horizontal speed x (1 - beta) (friction), no rotation, level
+        with the heading kept (its ``flatten_attitude``, with scipy's rotations as rotorpy)."""
+        from scipy.spatial.transform import Rotation  # the emulator imports scipy.spatial anyway
+
+        out = s.copy()
+        out[2] = 0.0
+        out[5] = max(0.0, float(out[5]))
+        out[3:5] *= 1.0 - self.ground_friction_beta
+        out[10:13] = 0.0
+        heading = Rotation.from_quat(out[6:10]).as_euler("XYZ", degrees=False)[2]
+        out[6:10] = Rotation.from_euler("Z", heading, degrees=False).as_quat()
+        return out
 
     def body_wrench(self, omega: tuple[float, float, float], speeds: Any,
                     va: tuple[float, float, float]) -> tuple[list[float], list[float]]:

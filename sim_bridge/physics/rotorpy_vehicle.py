@@ -1,10 +1,11 @@
 """The emulator's vehicle on rotorpy (MIT; github.com/spencerfolk/rotorpy): PX4's attitude and rate
 cascade (ours, :mod:`sim_bridge.physics.px4_control`) commands the rotor speeds of rotorpy's
-``Multirotor`` (rigid body, first-order rotor-speed dynamics, parasitic drag, rotor drag, induced
-inflow, translational lift, blade flapping), the airframe is rotorpy's AscTec Hummingbird preset
-with its maximum rotor speed scaled so that it hovers at our vehicle's true hover thrust, and the
-wind is rotorpy's Dryden turbulence (:mod:`sim_bridge.physics.rotorpy_wind`). The same interface
-as :class:`sim_bridge.physics.rigid_body.Px4VehicleModel`; docs/reference/rotorpy.md.
+``Multirotor`` (its equations, :mod:`sim_bridge.physics.rotorpy_dynamics`: rigid body, first-order
+rotor-speed dynamics, parasitic drag, rotor drag, induced inflow, translational lift, blade
+flapping), the airframe is rotorpy's AscTec Hummingbird preset with its maximum rotor speed scaled
+so that it hovers at our vehicle's true hover thrust, and the wind is rotorpy's Dryden turbulence
+(:mod:`sim_bridge.physics.rotorpy_wind`). The same interface as
+:class:`sim_bridge.physics.rigid_body.Px4VehicleModel`; docs/reference/rotorpy.md.
 
 Per sub-step ``dt_s`` (the emulator's ``physics_dt_s``)::
 
@@ -37,7 +38,6 @@ from typing import Any
 
 import numpy as np
 from rotorpy.vehicles.hummingbird_params import quad_params as hummingbird_params
-from rotorpy.vehicles.multirotor import Multirotor
 
 from sim_bridge.physics.px4_control import (
     QUAD_X_POS,
@@ -165,8 +165,6 @@ class RotorpyVehicleModel:
             raise ValueError("dt_s must be > 0")
         self.gains, self.params, self.dt_s = gains, airframe, dt_s
         self.quad = quad_params(airframe, gains.thr_mdl_fac)
-        self.multirotor = Multirotor(self.quad, control_abstraction="cmd_motor_speeds",
-                                     aero=airframe.aero, enable_ground=True)
         self.derivative = RotorpyDerivative(self.quad, aero=airframe.aero, enable_ground=True)
         self.mass_kg = float(self.quad["mass"])
         self.k_eta = float(self.quad["k_eta"])
@@ -268,9 +266,8 @@ class RotorpyVehicleModel:
         k4 = f(x + h * k3, w_cmd)
         y: np.ndarray = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         y[_Q:_Q + 4] /= np.linalg.norm(y[_Q:_Q + 4])
-        if y[_X + 2] <= _ON_GROUND_Z_M:
-            st = self.multirotor._handle_vehicle_on_ground(Multirotor._unpack_state(y))
-            y = np.asarray(Multirotor._pack_state(st), dtype=float)
+        if f.on_ground(y):
+            y = f.ground_contact(y)
         return y
 
     def step(self, s: VehicleState, cmd: AttitudeCommand, duration_s: float) -> VehicleState:

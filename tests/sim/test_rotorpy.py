@@ -137,7 +137,7 @@ def test_rk4_integration_matches_rotorpys_own_step() -> None:
     wh = m.w_hover_rad_s
     for i in range(200):  # 0.5 s
         cmd = np.array([wh * 1.03, wh * 0.97, wh * 0.99, wh * 1.01]) if i < 60 else np.full(4, wh)
-        x = m._rk4(x, cmd)
+        x = m._rk4(x, cmd)  # the float transcription of rotorpy's derivative, RK4
         state = oracle.step(state, {"cmd_motor_speeds": cmd}, m.dt_s)
     ref = Multirotor._pack_state(state)
     assert abs(x[3] - ref[3]) + abs(x[4] - ref[4]) > 0  # it moved: a real comparison
@@ -349,3 +349,34 @@ def test_float_derivative_equals_rotorpys() -> None:
             ref = theirs._s_dot_fn(0.0, x, cmd)
             got = ours(x, cmd)
             assert got == pytest.approx(ref, rel=1e-9, abs=1e-9), i
+
+
+def test_ground_contact_equals_rotorpys() -> None:
+    m = RotorpyVehicleModel(Px4Gains(), RotorpyAirframe(true_hover_thrust=0.5))
+    theirs = Multirotor(m.quad, control_abstraction="cmd_motor_speeds", aero=True,
+                        enable_ground=True)
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        x = rng.normal(size=20)
+        x[2] = -abs(x[2]) * 1e-3
+        x[6:10] /= np.linalg.norm(x[6:10])
+        assert m.derivative.on_ground(x) and theirs._on_ground(Multirotor._unpack_state(x))
+        ref = Multirotor._pack_state(theirs._handle_vehicle_on_ground(
+            Multirotor._unpack_state(x.copy())))
+        got = m.derivative.ground_contact(x)
+        assert got[:6] == pytest.approx(ref[:6], abs=1e-12)
+        assert got[10:] == pytest.approx(ref[10:], abs=1e-12)
+        # the same rotation (q and -q alike)
+        assert abs(float(got[6:10] @ ref[6:10])) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_lifts_off_from_the_ground_and_lands_back() -> None:
+    cfg = _ideal_world()
+    m = build_vehicle_model(cfg)
+    s = initial_state((0.0, 0.0, cfg.ground_z_m), on_ground=True)
+    s = m.step(s, AttitudeCommand(0.0, 0.0, 0.0, 0.3), 1.0)  # below hover: stays put
+    assert s.on_ground and s.pos_ned_m[2] == pytest.approx(cfg.ground_z_m)
+    s = m.step(s, AttitudeCommand(0.0, 0.0, 0.0, 0.7), 1.0)
+    assert not s.on_ground and s.pos_ned_m[2] < cfg.ground_z_m - 0.5
+    s = m.step(s, AttitudeCommand(0.0, 0.0, 0.0, 0.3), 3.0)
+    assert s.on_ground and s.pos_ned_m[2] == pytest.approx(cfg.ground_z_m)
