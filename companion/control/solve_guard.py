@@ -86,10 +86,10 @@ def _child_main(conn: multiprocessing.connection.Connection, rmpc: RmpcParams,
         return
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     signal.signal(signal.SIGPROF, signal.SIG_DFL)  # the CPU-time bound ends the process
-    from companion.core.rmpc import _Solver  # the core's solver wrapper, same cache
+    from companion.core.rmpc_nlp import NlpSolver  # the core's solver wrapper, same cache
 
     try:
-        solvers = {kind: _Solver(rmpc, camera, terminal, soft=soft, solver=name)
+        solvers = {kind: NlpSolver(rmpc, camera, terminal, soft=soft, solver=name)
                    for kind, (soft, name) in kinds.items()}
     except Exception as exc:  # reported to the parent, which raises RmpcBuildError
         conn.send(("failed", f"{type(exc).__name__}: {exc}"))

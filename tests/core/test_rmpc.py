@@ -429,8 +429,8 @@ def test_nlp_visibility_rows_use_the_disturbance(cfg: Config, design: TerminalDe
     import casadi as ca
 
     from companion.core.dynamics import euler_step
-    from companion.core.rmpc import _row_value
     from companion.core.rmpc_problem import build_nlp, stage_motion
+    from companion.core.rmpc_recovery import _row_value
 
     nlp, lay = build_nlp(cfg.rmpc, cfg.camera, design, soft=False)
     g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
