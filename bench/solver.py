@@ -3,10 +3,13 @@
 Closed loops on the nominal error model plus a random disturbance |rho| <= 1e-4 (seeded):
 400 steps from the paper's initial state (all steps and the first 40 alone), and from the
 `edge` initial state; then the same paper loop with a plain warm-started IPOPT of the same
-problem (same compiled NLP functions) in the same process. Times are measured AROUND the
-Python call ``Rmpc.solve`` (perf_counter), i.e. including the Python-side packing and checks;
-the compiled solver's own evaluation time (``RmpcResult.solve_time_s``) is reported alongside as
-``internal_*``.
+problem (same compiled NLP functions) in the same process; then the same paper and edge loops
+with the real-time iteration (``rmpc.solver = "rti"``: linearisation + DAQP QP + nonlinear
+check, the full NLP behind it when the check rejects). Times are measured AROUND the Python
+call ``Rmpc.solve`` (perf_counter, and ``cpu_*``: this process's CPU time, process_time, which
+a busy machine inflates less), i.e. including the Python-side packing and checks; the solver's
+own time (``RmpcResult.solve_time_s``: the compiled NLP's evaluation, or the RTI's
+linearisation + QP + check) is reported alongside as ``internal_*``.
 
     python bench/solver.py [--json] [--steps 400] [--seed 1]
 """
@@ -36,8 +39,9 @@ EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
 RHO = 1e-4
 
 
-def _summary(times_s: list[float], results: list[RmpcResult]) -> dict[str, Any]:
-    t = np.array(times_s) * 1e3
+def _summary(times_s: list[tuple[float, float]], results: list[RmpcResult]) -> dict[str, Any]:
+    t = np.array([w for w, _ in times_s]) * 1e3
+    cpu = np.array([c for _, c in times_s]) * 1e3
     modes = [r.mode for r in results]
     conv = np.array([ti for ti, m in zip(t, modes, strict=True) if m == "optimal"])
     internal = np.array([r.solve_time_s for r in results]) * 1e3
@@ -47,6 +51,11 @@ def _summary(times_s: list[float], results: list[RmpcResult]) -> dict[str, Any]:
         "median_ms": float(np.median(t)),
         "p95_ms": float(np.percentile(t, 95)),
         "max_ms": float(t.max()),
+        "cpu_median_ms": float(np.median(cpu)),
+        "cpu_p95_ms": float(np.percentile(cpu, 95)),
+        "cpu_mean_ms": float(np.mean(cpu)),
+        "rti_flown": int(sum(r.status.startswith("rti:") and "nlp: " not in r.status
+                             for r in results)),
         "converged_median_ms": float(np.median(conv)) if conv.size else float("nan"),
         "converged_p95_ms": float(np.percentile(conv, 95)) if conv.size else float("nan"),
         "internal_median_ms": float(np.nanmedian(internal)),
@@ -58,13 +67,14 @@ def _summary(times_s: list[float], results: list[RmpcResult]) -> dict[str, Any]:
     }
 
 
-def _run(mpc: Rmpc, eta0: np.ndarray, steps: int, seed: int) -> tuple[list[float], list[Any]]:
-    times: list[float] = []
+def _run(mpc: Rmpc, eta0: np.ndarray, steps: int,
+         seed: int) -> tuple[list[tuple[float, float]], list[Any]]:
+    times: list[tuple[float, float]] = []
 
     def timed(m: Rmpc, e: np.ndarray, tm: TargetMotion) -> RmpcResult:
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         r = m.solve(e, tm)
-        times.append(time.perf_counter() - t0)
+        times.append((time.perf_counter() - t0, time.process_time() - c0))
         return r
 
     mpc.reset()
@@ -82,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config()
     design = design_terminal(cfg.rmpc, cfg.camera)
     t0 = time.perf_counter()
-    mpc = Rmpc(cfg.rmpc, cfg.camera, design, clock=time.perf_counter)
+    mpc = Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp"), cfg.camera, design,
+               clock=time.perf_counter)
     build_s = time.perf_counter() - t0
     paper0 = initial_error(*PAPER_POSE)
     edge0 = initial_error(*EDGE_POSE)
@@ -93,7 +104,19 @@ def main(argv: list[str] | None = None) -> int:
     times_e, res_e = _run(mpc, edge0, args.steps, args.seed)
     edge = _summary(times_e, res_e)
 
-    ipopt_cfg = dataclasses.replace(cfg.rmpc, solver="ipopt")
+    rti_cfg = dataclasses.replace(cfg.rmpc, solver="rti")
+    t0 = time.perf_counter()
+    rti = Rmpc(rti_cfg, cfg.camera, design, clock=time.perf_counter)
+    rti_build_s = time.perf_counter() - t0
+    times_r, res_r = _run(rti, paper0, args.steps, args.seed)
+    rti_paper = _summary(times_r, res_r)
+    rti_first = _summary(times_r[:40], res_r[:40])
+    times_re, res_re = _run(rti, edge0, args.steps, args.seed)
+    rti_edge = _summary(times_re, res_re)
+    u_nlp = np.array([r.u0 for r in res])
+    u_rti = np.array([r.u0 for r in res_r])
+
+    ipopt_cfg = dataclasses.replace(cfg.rmpc, solver="nlp", nlp_solver="ipopt")
     t0 = time.perf_counter()
     ipopt = Rmpc(ipopt_cfg, cfg.camera, design, clock=time.perf_counter)
     ipopt_build_s = time.perf_counter() - t0
@@ -102,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out: dict[str, Any] = {
         "solver": cfg.rmpc.solver,
+        "nlp_solver": cfg.rmpc.nlp_solver,
         "median_ms": paper["median_ms"],
         "p95_ms": paper["p95_ms"],
         "max_ms": paper["max_ms"],
@@ -114,6 +138,11 @@ def main(argv: list[str] | None = None) -> int:
         "ipopt_paper": ip,
         "build_s": build_s,
         "ipopt_build_s": ipopt_build_s,
+        "rti_paper": rti_paper,
+        "rti_paper_first40": rti_first,
+        "rti_edge": rti_edge,
+        "rti_build_s": rti_build_s,
+        "rti_vs_nlp_max_abs_u0_paper": float(np.max(np.abs(u_rti - u_nlp))),
         "cache_hit": [c is not None and not c.compiled_now for c in mpc.compiled],
         "loadavg_1min": os.getloadavg()[0],
         "cpus": os.cpu_count(),
@@ -122,20 +151,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
-    print(f"RMPC solve time ({cfg.rmpc.solver}, N={cfg.rmpc.horizon}), measured around the "
+    print(f"RMPC solve time (N={cfg.rmpc.horizon}), measured around the "
           f"Python call; load avg {out['loadavg_1min']:.2f} on {out['cpus']} CPUs")
     print(f"build {build_s:.2f} s (cache hit: {out['cache_hit']})")
-    rows = [("paper, all", paper), ("paper, first 40", first), ("edge, all", edge),
-            ("paper, ipopt", ip)]
-    print(f"{'run':<17}{'median':>9}{'p95':>9}{'max':>9}{'conv.med':>10}{'conv.p95':>10}"
-          f"{'internal':>10}{'it.med':>8}{'it.max':>8}{'fail':>6}{'recov':>6}{'fallb':>6}")
+    rows = [("nlp paper, all", paper), ("nlp paper, 1st 40", first), ("nlp edge, all", edge),
+            ("ipopt paper", ip), ("rti paper, all", rti_paper),
+            ("rti paper, 1st 40", rti_first), ("rti edge, all", rti_edge)]
+    print(f"{'run':<19}{'median':>8}{'p95':>8}{'max':>8}{'cpu.med':>8}{'cpu.p95':>8}"
+          f"{'intern':>8}{'it.med':>7}{'it.max':>7}{'fail':>5}{'recov':>6}{'fallb':>6}"
+          f"{'rti':>5}")
     for name, s in rows:
-        print(f"{name:<17}{s['median_ms']:>9.3f}{s['p95_ms']:>9.3f}{s['max_ms']:>9.3f}"
-              f"{s['converged_median_ms']:>10.3f}{s['converged_p95_ms']:>10.3f}"
-              f"{s['internal_median_ms']:>10.3f}{s['iterations_median']:>8.0f}"
-              f"{s['iterations_max']:>8d}{s['failures']:>6d}{s['recovery']:>6d}"
-              f"{s['fallback']:>6d}")
-    print(f"ipopt / {cfg.rmpc.solver} median ratio: {out['ratio_ipopt_over_fatrop']:.2f}")
+        print(f"{name:<19}{s['median_ms']:>8.3f}{s['p95_ms']:>8.3f}{s['max_ms']:>8.2f}"
+              f"{s['cpu_median_ms']:>8.3f}{s['cpu_p95_ms']:>8.3f}"
+              f"{s['internal_median_ms']:>8.3f}{s['iterations_median']:>7.0f}"
+              f"{s['iterations_max']:>7d}{s['failures']:>5d}{s['recovery']:>6d}"
+              f"{s['fallback']:>6d}{s['rti_flown']:>5d}")
+    print("(ms; rti: steps that flew the RTI's plan; the others solved the full NLP)")
+    print(f"ipopt / fatrop median ratio: {out['ratio_ipopt_over_fatrop']:.2f}; rti vs nlp, "
+          f"paper loop: max |u0 difference| {out['rti_vs_nlp_max_abs_u0_paper']:.2e}")
     return 0
 
 

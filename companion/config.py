@@ -318,10 +318,28 @@ def config_from_dict(data: Mapping[str, Any], source: str = "") -> Config:
             raise ConfigError(f"{f.name}: missing table [{f.name}]")
         table = data[f.name]
         if f.name == "rmpc" and isinstance(table, Mapping):
-            table = _with_target_corners(table, sections["target"])
+            table = _with_target_corners(_legacy_solver(table), sections["target"])
         sections[f.name] = _build(_resolve(f.type), table, f.name)
     plain = {k: v for k, v in data.items() if k not in _FOREIGN_TABLES}
     return Config(**sections, source=source, raw=types.MappingProxyType(plain))
+
+
+LEGACY_NLP_SOLVERS = ("fatrop", "ipopt")
+"""What ``rmpc.solver`` named before ``"nlp" | "rti"``: the NLP solver (now
+``rmpc.nlp_solver``)."""
+
+
+def _legacy_solver(table: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A config written before ``rmpc.solver = "nlp" | "rti"`` existed (every log recorded
+    before it) says ``solver = "fatrop"`` or ``"ipopt"``: that is the full NLP with that NLP
+    solver, so it is read as ``solver = "nlp"``, ``nlp_solver = <it>`` and replays as flown."""
+    old = table.get("solver")
+    if old not in LEGACY_NLP_SOLVERS:
+        return table
+    if "nlp_solver" in table and table["nlp_solver"] != old:
+        raise ConfigError(f"rmpc.solver: {old!r} (the old spelling of rmpc.nlp_solver) "
+                          f"contradicts rmpc.nlp_solver = {table['nlp_solver']!r}")
+    return {**table, "solver": "nlp", "nlp_solver": old}
 
 
 def _with_target_corners(table: Mapping[str, Any], target: TargetConfig) -> dict[str, Any]:

@@ -127,6 +127,12 @@ class RmpcParams:
     enable_tube: bool
     enable_terminal: bool
     recovery_penalty: float = field(metadata=checked(positive))
+    # How each step's hard problem is solved (docs/reference/solver.md): "nlp" (the full NLP by
+    # nlp_solver, in the solver child process with rmpc.solve_isolation = "process") or "rti"
+    # (real-time iteration: one QP from the NLP linearised at the shifted previous solution,
+    # solved in-process; a solution the nonlinear check rejects is solved as "nlp").
+    # A config written before this key existed says "fatrop"/"ipopt" here: companion.config
+    # reads that as solver = "nlp" with that nlp_solver (how such a log replays as flown).
     solver: str
     jit: bool
     cache_dir: str
@@ -197,6 +203,17 @@ class RmpcParams:
     # machine's descheduling must not cut a finite solve; the wall wait is then only a backstop,
     # max(10 s, 20 x max_solve_time_s)).
     solve_time_clock: str = "wall"
+    # The NLP solver of the hard problem ("fatrop", structure-exploiting, or "ipopt"); the
+    # soft copy is always solved with ipopt (companion.core.rmpc_nlp.RECOVERY_SOLVER).
+    nlp_solver: str = "fatrop"
+    # solver = "rti": QPs per step at most (the second and later re-linearised at the previous
+    # QP's solution) before a plan still violating the nonlinear hard rows by more than
+    # rti_tol goes to the full NLP.
+    rti_max_qp: int = field(default=2, metadata=checked(positive))
+    # solver = "rti": how far a hard row of the nonlinear problem (tube, visibility, terminal:
+    # natural units, not squared; state box: state units) may be exceeded by the RTI plan
+    # rolled out through the nonlinear model. docs/reference/solver.md says why this value.
+    rti_tol: float = field(default=1.0e-6, metadata=checked(positive))
 
     def __post_init__(self) -> None:
         if self.visibility_pairing not in ("spec", "causal"):
@@ -231,8 +248,10 @@ class RmpcParams:
         if self.recovery_eps is not None and not (
                 math.isfinite(self.recovery_eps) and self.recovery_eps > 0):
             raise ParamError(f"rmpc.recovery_eps: must be > 0 (got {self.recovery_eps})")
-        if self.solver not in ("fatrop", "ipopt"):
-            raise ParamError(f"rmpc.solver: {self.solver!r} is not 'fatrop' or 'ipopt'")
+        if self.solver not in ("nlp", "rti"):
+            raise ParamError(f"rmpc.solver: {self.solver!r} is not 'nlp' or 'rti'")
+        if self.nlp_solver not in ("fatrop", "ipopt"):
+            raise ParamError(f"rmpc.nlp_solver: {self.nlp_solver!r} is not 'fatrop' or 'ipopt'")
         if self.tube_h < 1:
             raise ParamError("rmpc.tube_h: must be >= 1 (X(n) must not shrink below eps)")
         if self.u_max[2] >= self.g_m_s2:

@@ -45,6 +45,7 @@ from companion.core.rmpc_recovery import (
     slack_guess,
     velocity_box_return,
 )
+from companion.core.rmpc_rti import RtiSolver
 from companion.core.rmpc_types import (
     ConstraintViolation,
     Evaluation,
@@ -87,12 +88,13 @@ log = logging.getLogger(__name__)
 class Rmpc:
     """The RMPC of spec 6, built (and compiled, or loaded from the cache) once.
 
-    ``rmpc.solver`` picks fatrop or ipopt; ``rmpc.jit`` compiles the NLP functions (cached in
-    ``rmpc.cache_dir``). ``solve`` is not thread-safe (it keeps the warm start). ``clock``
-    (seconds, e.g. ``time.perf_counter``, given by the shell: the core reads no clock) times
-    each solve for ``RmpcResult.solve_time_s``; without it that is NaN. ``backend`` (built
-    from this controller once its solvers are compiled) runs the NLP evaluations elsewhere
-    (:class:`SolveBackend`); :meth:`close` stops it.
+    ``rmpc.solver`` picks the full NLP (``rmpc.nlp_solver``: fatrop or ipopt) or the
+    real-time iteration in front of it (:mod:`companion.core.rmpc_rti`); ``rmpc.jit``
+    compiles the NLP functions (cached in ``rmpc.cache_dir``). ``solve`` is not thread-safe
+    (it keeps the warm start). ``clock`` (seconds, e.g. ``time.perf_counter``, given by the
+    shell: the core reads no clock) times each solve for ``RmpcResult.solve_time_s``; without
+    it that is NaN. ``backend`` (built from this controller once its solvers are compiled)
+    runs the NLP evaluations elsewhere (:class:`SolveBackend`); :meth:`close` stops it.
     """
 
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
@@ -113,8 +115,14 @@ class Rmpc:
             )
             if on
         )
-        self._hard = NlpSolver(rmpc, camera, terminal, soft=False, solver=rmpc.solver,
-                             clock=clock)
+        self._clock = clock
+        self._hard = NlpSolver(rmpc, camera, terminal, soft=False, solver=rmpc.nlp_solver,
+                               clock=clock)
+        # rmpc.solver = "rti": the in-process real-time iteration, the full NLP behind it
+        self._rti = RtiSolver(rmpc, camera, terminal) if rmpc.solver == "rti" else None
+        self.rti_accepted = 0  # steps the RTI's plan flew
+        self.rti_rejected = 0  # steps it handed to the full NLP (check or QP failed)
+        self.rti_qps = 0  # QPs solved
         self._soft = (
             NlpSolver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER, clock=clock)
             if self.groups
@@ -168,11 +176,16 @@ class Rmpc:
         par = np.append(target.packed(), e0[3])
         self._s4_ref = float(e0[3])
         eta_g, u_g = self._guess(e0, target)
+        certificate = self._infeasibility_certificate(e0, target)
+        note, rti_iters, rti_time = "", 0, 0.0
+        if self._rti is not None and certificate is None:
+            out = self._rti_step(e0, par, u_g, target)
+            if isinstance(out, RmpcResult):
+                return out
+            note, rti_iters, rti_time = out
         if self.backend is not None:
             self.backend.start_step()
-
         lay = self._hard.layout
-        certificate = self._infeasibility_certificate(e0, target)
         if certificate is None:
             lbx, ubx = self._hard.bounds(e0, target)
             w0 = self._pack(lay, eta_g, u_g)
@@ -180,15 +193,49 @@ class Rmpc:
                 ok, status, _, w, cost, iters, t_wall = self._hard.solve(w0, par, lbx, ubx,
                                                                          self.backend)
             except SolveAborted as exc:
-                return self._aborted(e0, target, str(exc), str(exc), 0, math.nan)
+                return self._aborted(e0, target, note + str(exc), note + str(exc), rti_iters,
+                                     math.nan)
         else:  # provably infeasible: do not spend the solver's iterations on finding out
             ok, status, w, cost, iters, t_wall = False, certificate, np.zeros(0), 0.0, 0, 0.0
+        status, iters, t_wall = note + status, iters + rti_iters, t_wall + rti_time
         hard_status = status
         if ok:
             eta_p, u_p = self._unpack(lay, w)
             self._prev = (eta_p, u_p)
             return RmpcResult(True, "optimal", status, hard_status, cost, iters, t_wall,
                               _ro(u_p[0]), _ro(eta_p), _ro(u_p), 0.0, self.groups, target)
+        return self._recover(e0, target, par, eta_g, u_g, (note, hard_status, iters, t_wall))
+
+    def _rti_step(self, e0: np.ndarray, par: np.ndarray, u_g: np.ndarray,
+                  target: TargetMotion) -> RmpcResult | tuple[str, int, float]:
+        """The RTI of the hard problem (``rmpc.solver = "rti"``): its result if the nonlinear
+        check passed, else what the full NLP's status is prefixed with, the QP iterations and
+        the time spent (the step then solves the full NLP)."""
+        assert self._rti is not None
+        lay = self._hard.layout
+        lbx, ubx = self._hard.bounds(e0, target)
+        t0 = self._clock() if self._clock is not None else math.nan
+        out = self._rti.step(e0, par, u_g, lbx[lay.x_index[1:]].ravel(),
+                             ubx[lay.x_index[1:]].ravel())
+        t_wall = self._clock() - t0 if self._clock is not None else math.nan
+        self.rti_qps += out.qps
+        if out.ok:
+            self.rti_accepted += 1
+            self._prev = (out.eta, out.u)
+            return RmpcResult(True, "optimal", out.status, out.status, out.cost,
+                              out.qp_iterations, t_wall, _ro(out.u[0]), _ro(out.eta),
+                              _ro(out.u), 0.0, self.groups, target)
+        self.rti_rejected += 1
+        log.info("RMPC %s: solving the full NLP", out.status)
+        return f"{out.status}; nlp: ", out.qp_iterations, t_wall
+
+    def _recover(self, e0: np.ndarray, target: TargetMotion, par: np.ndarray,
+                 eta_g: np.ndarray, u_g: np.ndarray,
+                 hard: tuple[str, str, int, float]) -> RmpcResult:
+        """The hard problem failed: the soft copy, else the terminal-law fallback. ``hard``:
+        (the RTI's note, the hard attempt's status, iterations and time so far)."""
+        note, hard_status, iters, t_wall = hard
+        status = hard_status
         log.info("RMPC hard problem failed (%s): trying the soft copy", status)
         if self._soft is not None:
             slay = self._soft.layout
@@ -208,17 +255,18 @@ class Rmpc:
                 sok, sstatus, _, sw, scost, sit, st_wall = self._soft.solve(
                     sw0, spar, slbx, subx, self.backend)
             except SolveAborted as exc:
-                return self._aborted(e0, target, str(exc), hard_status, iters, math.nan)
+                return self._aborted(e0, target, note + str(exc), hard_status, iters, math.nan)
             iters += sit
             t_wall += st_wall
             if sok:
                 eta_p, u_p = self._unpack(slay, sw)
                 self._prev = (eta_p, u_p)
                 slack = float(np.max(sw[slay.slack_index], initial=0.0))
-                return RmpcResult(True, "recovery", sstatus, hard_status, scost, iters, t_wall,
+                return RmpcResult(True, "recovery", note + sstatus, hard_status, scost, iters,
+                                  t_wall,
                                   _ro(u_p[0]), _ro(eta_p), _ro(u_p), max(slack, 0.0),
                                   self.groups, target)
-            status = sstatus
+            status = note + sstatus
             log.warning("RMPC soft copy failed too (%s): terminal-law fallback", sstatus)
         eta_f, u_f = self._rollout(e0, target)
         self._prev = None

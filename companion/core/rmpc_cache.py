@@ -158,3 +158,67 @@ def _generate_and_compile(solver: ca.Function, directory: Path, tag: str) -> Com
         if obj.exists():
             obj.unlink()
         return CompiledNlp(library=library, key=key, compiled_now=True)
+
+
+def compiled_functions(functions: list[ca.Function], cache_dir: str, tag: str) -> CompiledNlp:
+    """The shared library holding plain CasADi ``functions`` (load each with
+    ``ca.external(name, library)``), compiled on a cache miss; the same cache as the NLPs'
+    (:func:`compiled_nlp`): the library is named by the hash of its generated source, and an
+    alias named by the functions' serialized graphs skips the generation on a later start."""
+    directory = Path(cache_dir).expanduser()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RmpcBuildError(f"rmpc.cache_dir: cannot create {directory}: {exc}") from exc
+    h = hashlib.sha256()
+    for f in functions:
+        h.update(f.serialize().encode() + b"\0")
+    for part in (tag, str(getattr(ca, "__version__", "?")), " ".join(COMPILER_FLAGS)):
+        h.update(b"\0" + part.encode())
+    alias = directory / f"rmpc_{tag}_{h.hexdigest()[:24]}.alias"
+    prefix = f"rmpc_{tag}_"
+    try:
+        name = alias.read_text().strip()
+    except OSError:
+        name = ""
+    if name.startswith(prefix) and name.endswith(".so") and "/" not in name \
+            and (directory / name).exists():
+        return CompiledNlp(library=directory / name, key=name[len(prefix):-3],
+                           compiled_now=False)
+    found = _compile_source(directory, tag, functions)
+    tmp = alias.with_name(f"{alias.name}.tmp{os.getpid()}")
+    try:
+        tmp.write_text(found.library.name + "\n")
+        os.replace(tmp, alias)
+    except OSError as exc:  # a read-only cache still works, without the shortcut
+        log.debug("RMPC %s: alias not written: %s", tag, exc)
+    return found
+
+
+def _compile_source(directory: Path, tag: str, functions: list[ca.Function]) -> CompiledNlp:
+    """Generate the C source of ``functions`` and compile it (atomic rename into the cache)."""
+    with tempfile.TemporaryDirectory(prefix="rmpc_gen_") as tmp:
+        src_path = Path(tmp) / f"rmpc_{tag}.c"
+        gen = ca.CodeGenerator(src_path.name)
+        for f in functions:
+            gen.add(f)
+        gen.generate(str(tmp) + os.sep)
+        key = cache_key(src_path.read_text())
+        library = directory / f"rmpc_{tag}_{key}.so"
+        if library.exists():
+            return CompiledNlp(library=library, key=key, compiled_now=False)
+        log.info("RMPC %s: compiling %s (one-off, a few seconds)", tag, library.name)
+        name = f"rmpc_{tag}_{key}.tmp{os.getpid()}"
+        try:
+            importer = ca.Importer(str(src_path), "shell", {
+                "flags": list(COMPILER_FLAGS), "directory": str(directory) + os.sep,
+                "name": name, "temp_suffix": False, "cleanup": False})
+        except RuntimeError as exc:
+            raise RmpcBuildError(f"RMPC {tag}: compilation failed: {exc}") from exc
+        built = Path(importer.library())
+        del importer
+        os.replace(built, library)
+        obj = directory / f"{name}.o"
+        if obj.exists():
+            obj.unlink()
+        return CompiledNlp(library=library, key=key, compiled_now=True)

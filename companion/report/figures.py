@@ -329,6 +329,13 @@ def _solver(steps: list[Mapping[str, Any]]) -> dict[str, Any]:
         "optimal": sum(1 for r in recs if r["mode"] == "optimal"),
         "recoveries": sum(1 for r in recs if r["mode"] == "recovery"),
         "fallbacks": sum(1 for r in recs if r["mode"] == "fallback"),
+        # rmpc.solver = "rti" (docs/reference/solver.md): steps that flew the real-time
+        # iteration's plan, and steps whose RTI plan the check rejected (the full NLP then
+        # solved them: their mode above is that solve's); both 0 with the full NLP
+        "rti_flown": sum(1 for r in recs if str(r["status"]).startswith("rti: ")
+                         and "; nlp: " not in str(r["status"])),
+        "rti_to_nlp": sum(1 for r in recs if str(r["status"]).startswith("rti: ")
+                          and "; nlp: " in str(r["status"])),
         "median_ms": float(np.median(ms)) if ms.size else None,
         "p95_ms": float(np.percentile(ms, 95)) if ms.size else None,
         "max_ms": float(np.max(ms)) if ms.size else None,

@@ -1,0 +1,142 @@
+"""The real-time iteration (``rmpc.solver = "rti"``, companion/core/rmpc_rti.py) against the
+full NLP: same commands on the paper's closed loop within a stated tolerance, every accepted
+plan feasible for the nonlinear problem, a violated plan caught, deterministic replay, the old
+spelling of ``rmpc.solver`` read as the full NLP."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from companion.config import ConfigError, config_from_dict, load_config, read_document
+from companion.core.design import design_terminal
+from companion.core.rmpc import Rmpc, RmpcResult, check_solution
+from companion.core.rmpc_scenario import closed_loop, initial_error
+
+PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
+EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
+STEPS = 200  # 10 s of the paper's loop: engagement and tracking
+RHO = 1e-4
+
+
+@pytest.fixture(scope="module")
+def cfg():  # type: ignore[no-untyped-def]
+    return load_config()
+
+
+@pytest.fixture(scope="module")
+def design(cfg):  # type: ignore[no-untyped-def]
+    return design_terminal(cfg.rmpc, cfg.camera)
+
+
+@pytest.fixture(scope="module")
+def rti(cfg, design):  # type: ignore[no-untyped-def]
+    return Rmpc(dataclasses.replace(cfg.rmpc, solver="rti"), cfg.camera, design)
+
+
+@pytest.fixture(scope="module")
+def nlp(cfg, design):  # type: ignore[no-untyped-def]
+    return Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp"), cfg.camera, design)
+
+
+def _u0(mpc: Rmpc, pose: tuple, steps: int = STEPS) -> tuple[np.ndarray, list[RmpcResult]]:
+    mpc.reset()
+    loop = closed_loop(mpc, initial_error(*pose), steps, RHO, 1)
+    return np.array([s.result.u0 for s in loop]), [s.result for s in loop]
+
+
+def test_rti_and_nlp_agree_on_the_paper_loop(cfg, rti, nlp) -> None:  # type: ignore[no-untyped-def]
+    """Tolerance: an input difference du changes the next state by at most dt |du| (the
+    velocity rows, and s4 for the yaw rate), so |du| <= rho / dt keeps the two controllers'
+    one-step difference inside the disturbance bound rho the tube is tightened for:
+    1e-4 / 0.05 = 2e-3 (m/s^2, rad/s). Measured: 4.7e-4."""
+    u_rti, res = _u0(rti, PAPER_POSE)
+    u_nlp, _ = _u0(nlp, PAPER_POSE)
+    tol = cfg.rmpc.rho / cfg.rmpc.dt_s
+    diff = np.max(np.abs(u_rti - u_nlp))
+    assert diff <= tol, diff
+    # most steps flew the RTI's plan (not the NLP behind it)
+    assert sum(r.status.startswith("rti: 1 QP") or r.status.startswith("rti: 2 QP")
+               for r in res) >= 0.9 * STEPS
+
+
+def test_every_accepted_rti_plan_passes_the_independent_check(cfg, design, rti) -> None:  # type: ignore[no-untyped-def]
+    """check_solution (numpy, independent of the compiled rows) finds every plan the RTI flew
+    feasible for the nonlinear problem: dynamics, boxes, tube, corners, terminal set."""
+    for pose in (PAPER_POSE, EDGE_POSE):
+        _, res = _u0(rti, pose, 120)
+        flown = [r for r in res if r.status.startswith("rti:") and "nlp" not in r.status]
+        assert flown
+        for r in flown:
+            assert check_solution(r, rti.cfg, cfg.camera, design,
+                                  tol=cfg.rmpc.rti_tol + 1e-9) == [], r.status
+
+
+def test_the_check_catches_a_violated_plan(cfg, design, rti) -> None:  # type: ignore[no-untyped-def]
+    """A plan pushed off the solution (every input at the box's corner) is rejected by the
+    RTI's own nonlinear check and by check_solution: it would steer the corners out."""
+    _, res = _u0(rti, PAPER_POSE, 40)
+    good = res[-1]
+    solver = rti._rti
+    assert solver is not None
+    eta0 = good.eta_pred[0]
+    par = np.append(good.target.packed(), eta0[3])
+    lay = rti._hard.layout
+    lbx, ubx = rti._hard.bounds(eta0, good.target)
+    lo, hi = lbx[lay.x_index[1:]].ravel(), ubx[lay.x_index[1:]].ravel()
+    eta, path, _ = solver.rows(good.u_pred.ravel(), eta0, par)
+    assert solver.violation(eta, path, good.u_pred, lo, hi) <= cfg.rmpc.rti_tol
+    bad_u = np.tile(np.asarray(cfg.rmpc.u_max), (cfg.rmpc.horizon, 1))
+    eta_b, path_b, _ = solver.rows(bad_u.ravel(), eta0, par)
+    assert solver.violation(eta_b, path_b, bad_u, lo, hi) > 0.1
+    bad = dataclasses.replace(good, u0=bad_u[0], u_pred=bad_u, eta_pred=eta_b)
+    kinds = {v.constraint for v in check_solution(bad, rti.cfg, cfg.camera, design)}
+    assert "visibility" in kinds or "tube" in kinds, kinds
+
+
+def test_a_rejected_rti_step_solves_the_full_nlp(cfg, design) -> None:  # type: ignore[no-untyped-def]
+    """With one QP a step and no tolerance to speak of, the engagement's first plan (far
+    from the optimum: the linearisation's error is large) is rejected: the step is the full
+    NLP's (said in the status, counted) and its plan passes the check."""
+    p = dataclasses.replace(cfg.rmpc, solver="rti", rti_max_qp=1, rti_tol=1e-12)
+    mpc = Rmpc(p, cfg.camera, design)
+    _, res = _u0(mpc, EDGE_POSE, 3)
+    first = res[0]
+    assert first.status.startswith("rti: ") and "nlp: " in first.status, first.status
+    assert mpc.rti_rejected >= 1
+    if first.mode == "optimal":
+        assert check_solution(first, p, cfg.camera, design) == []
+
+
+def test_rti_is_deterministic_and_reset_restores_it(rti) -> None:  # type: ignore[no-untyped-def]
+    """Replay is exact: the same inputs give the same commands bit for bit, and reset()
+    forgets the warm start completely."""
+    a, _ = _u0(rti, EDGE_POSE, 60)
+    b, _ = _u0(rti, EDGE_POSE, 60)
+    assert np.array_equal(a, b)
+
+
+def test_rti_cost_is_the_nlp_cost(cfg, rti) -> None:  # type: ignore[no-untyped-def]
+    """The Gauss-Newton residuals square to the NLP's own objective (same cost)."""
+    _, res = _u0(rti, PAPER_POSE, 20)
+    for r in res[5:]:
+        assert r.cost == pytest.approx(rti._objective(r.eta_pred, r.u_pred, r.target),
+                                       rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("old", ["fatrop", "ipopt"])
+def test_an_old_config_reads_as_the_full_nlp(old: str) -> None:
+    """A log recorded before rmpc.solver = "nlp" | "rti" says solver = "fatrop": it replays
+    with the full NLP by that solver, as it was flown."""
+    doc = read_document("config/paper.toml")
+    rm = {k: v for k, v in doc["rmpc"].items() if k not in ("nlp_solver",)}
+    rm["solver"] = old
+    cfg = config_from_dict({**doc, "rmpc": rm})
+    assert cfg.rmpc.solver == "nlp" and cfg.rmpc.nlp_solver == old
+    with pytest.raises(ConfigError, match="nlp_solver"):
+        config_from_dict({**doc, "rmpc": {**rm, "nlp_solver": "ipopt" if old == "fatrop"
+                                          else "fatrop"}})
+    with pytest.raises(ConfigError, match=r"rmpc\.solver"):
+        config_from_dict({**doc, "rmpc": {**rm, "solver": "qpoases"}})
