@@ -190,7 +190,7 @@ class RtiSolver:
         return max(
             float(np.max(np.sqrt(np.maximum(path, 0.0)) - self.path_root, initial=-np.inf)),
             float(np.max(states - state_hi)), float(np.max(state_lo - states)),
-            float(np.max(np.abs(u) - self.u_max)),
+            float(np.max(np.abs(np.ravel(u)) - self.u_max)),
         )
 
     def step(self, eta0: np.ndarray, par: np.ndarray, u_guess: np.ndarray,
