@@ -46,8 +46,10 @@ def build_controller(cfg: Config, terminal: TerminalDesign) -> Controller:
     if kind not in CONTROLLER_KINDS:  # config validation makes this unreachable
         raise ValueError(f"controller.kind: {kind!r} is not one of {CONTROLLER_KINDS}")
     params = rmpc_params_for(kind, cfg.rmpc)
-    # rmpc.solve_isolation = "process": every step's solves bounded in wall time in a child
-    # process (companion.control.solve_guard, docs/reference/reliability.md)
+    # rmpc.solve_isolation = "process": every step's NLP solves bounded in wall time in a child
+    # process (companion.control.solve_guard, docs/reference/reliability.md). With
+    # rmpc.solver = "rti" the real-time iteration runs in this process (a bounded QP:
+    # docs/reference/solver.md) and the child solves only the steps the RTI hands to the NLP.
     backend = (process_backend(params, cfg.camera, terminal)
                if params.solve_isolation == "process" else None)
     return Rmpc(params, cfg.camera, terminal, clock=time.perf_counter, backend=backend)
