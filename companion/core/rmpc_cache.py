@@ -160,20 +160,21 @@ def _generate_and_compile(solver: ca.Function, directory: Path, tag: str) -> Com
         return CompiledNlp(library=library, key=key, compiled_now=True)
 
 
-def compiled_functions(functions: list[ca.Function], cache_dir: str, tag: str) -> CompiledNlp:
-    """The shared library holding plain CasADi ``functions`` (load each with
-    ``ca.external(name, library)``), compiled on a cache miss; the same cache as the NLPs'
-    (:func:`compiled_nlp`): the library is named by the hash of its generated source, and an
-    alias named by the functions' serialized graphs skips the generation on a later start."""
+def compiled_functions(build: Callable[[], list[ca.Function]], cache_dir: str, tag: str,
+                       alias_key: str) -> CompiledNlp:
+    """The shared library holding the plain CasADi functions ``build()`` returns (load each
+    with ``ca.external(name, library)``), compiled on a cache miss; the same cache as the
+    NLPs' (:func:`compiled_nlp`): the library is named by the hash of its generated source.
+    ``alias_key`` names an alias file that finds the library without calling ``build`` (which
+    derives the functions symbolically: ~0.5 s of CPU); it must hash everything the functions
+    are built from (the caller's problem and the code that builds them)."""
     directory = Path(cache_dir).expanduser()
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise RmpcBuildError(f"rmpc.cache_dir: cannot create {directory}: {exc}") from exc
     h = hashlib.sha256()
-    for f in functions:
-        h.update(f.serialize().encode() + b"\0")
-    for part in (tag, str(getattr(ca, "__version__", "?")), " ".join(COMPILER_FLAGS)):
+    for part in (alias_key, tag, str(getattr(ca, "__version__", "?")), " ".join(COMPILER_FLAGS)):
         h.update(b"\0" + part.encode())
     alias = directory / f"rmpc_{tag}_{h.hexdigest()[:24]}.alias"
     prefix = f"rmpc_{tag}_"
@@ -185,7 +186,7 @@ def compiled_functions(functions: list[ca.Function], cache_dir: str, tag: str) -
             and (directory / name).exists():
         return CompiledNlp(library=directory / name, key=name[len(prefix):-3],
                            compiled_now=False)
-    found = _compile_source(directory, tag, functions)
+    found = _compile_source(directory, tag, build())
     tmp = alias.with_name(f"{alias.name}.tmp{os.getpid()}")
     try:
         tmp.write_text(found.library.name + "\n")

@@ -25,10 +25,12 @@ docs/reference/solver.md has the design, the guarantees and the figures.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import casadi as ca
@@ -37,7 +39,12 @@ import numpy as np
 
 from companion.core.dynamics import euler_step, input_error
 from companion.core.params import CameraParams, RmpcParams
-from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError, compiled_functions
+from companion.core.rmpc_cache import (
+    CompiledNlp,
+    RmpcBuildError,
+    compiled_functions,
+    problem_key,
+)
 from companion.core.rmpc_problem import NP_STAGE, NU, NX, build_nlp, stage_motion
 from companion.core.terminal import TerminalDesign
 
@@ -71,7 +78,7 @@ class RtiOutcome:
 
 
 def _stage_functions(rmpc: RmpcParams, camera: CameraParams,
-                     terminal: TerminalDesign) -> tuple[ca.Function, ca.Function, np.ndarray]:
+                     terminal: TerminalDesign) -> tuple[ca.Function, ca.Function]:
     """``lin(U, eta0, p) -> (H, g, c, J_c')`` (the Gauss-Newton Hessian ``2 J_r' J_r``, the
     gradient ``2 J_r' r``, the rows and their Jacobian, transposed: row-major) and
     ``val(U, eta0, p) -> (c, f)``, with ``c`` the shooting states of stages 1..N (7 N)
@@ -117,8 +124,7 @@ def _stage_functions(rmpc: RmpcParams, camera: CameraParams,
                       [ca.densify(2.0 * ca.mtimes(jr_m.T, jr_m)), 2.0 * ca.mtimes(jr_m.T, r_m),
                        c_m, ca.densify(jc_m.T)])
     val = ca.Function("rti_val", [u_all, eta0, par], [c, f])
-    upper = np.array([row.upper for row in lay.rows], dtype=float)
-    return lin, val, upper
+    return lin, val
 
 
 class _Buffered:
@@ -153,15 +159,23 @@ class RtiSolver:
                  clock: Callable[[], float] | None = None) -> None:
         self.cfg = rmpc
         self._clock = clock
-        lin, val, upper = _stage_functions(rmpc, camera, terminal)
+        nlp, lay = build_nlp(rmpc, camera, terminal, soft=False)
+        upper = np.array([row.upper for row in lay.rows], dtype=float)
         self.compiled: CompiledNlp | None = None
         if rmpc.jit:
-            self.compiled = compiled_functions([lin, val], rmpc.cache_dir, "rti")
+            # the functions are derived from the hard NLP by this module's code: a library
+            # built before is found by those two alone, without deriving them again
+            code = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+            self.compiled = compiled_functions(
+                lambda: list(_stage_functions(rmpc, camera, terminal)), rmpc.cache_dir, "rti",
+                alias_key=problem_key(nlp, "rti", code))
             try:
                 lin = ca.external("rti_lin", str(self.compiled.library))
                 val = ca.external("rti_val", str(self.compiled.library))
             except RuntimeError as exc:
                 raise RmpcBuildError(f"loading {self.compiled.library}: {exc}") from exc
+        else:
+            lin, val = _stage_functions(rmpc, camera, terminal)
         self._lin = _Buffered(lin)
         self._val = _Buffered(val)
         self.horizon = rmpc.horizon
