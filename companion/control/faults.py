@@ -52,3 +52,5 @@ def apply_faults(faults: Sequence[FaultWindow], pipeline: Any, elapsed_s: float)
     hang = [f.t0_s <= elapsed_s < f.t1_s for f in faults if f.kind == "solver-hang"]
     if hang:
         pipeline.rmpc.backend.hang_next_solve(any(hang))
+        # rmpc.solver = "rti": the step must reach the NLP's child for the hook to bite
+        pipeline.rmpc.force_nlp = any(hang)

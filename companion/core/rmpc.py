@@ -123,6 +123,9 @@ class Rmpc:
         self.rti_accepted = 0  # steps the RTI's plan flew
         self.rti_rejected = 0  # steps it handed to the full NLP (check or QP failed)
         self.rti_qps = 0  # QPs solved
+        # set by the shell for steps that must go to the full NLP whatever rmpc.solver says
+        # (the runtime's solver-hang fault injection exercises the NLP's child process)
+        self.force_nlp = False
         self._soft = (
             NlpSolver(rmpc, camera, terminal, soft=True, solver=RECOVERY_SOLVER, clock=clock)
             if self.groups
@@ -178,7 +181,7 @@ class Rmpc:
         eta_g, u_g = self._guess(e0, target)
         certificate = self._infeasibility_certificate(e0, target)
         note, rti_iters, rti_time = "", 0, 0.0
-        if self._rti is not None and certificate is None:
+        if self._rti is not None and certificate is None and not self.force_nlp:
             out = self._rti_step(e0, par, u_g, target)
             if isinstance(out, RmpcResult):
                 return out

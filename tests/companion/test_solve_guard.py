@@ -39,7 +39,7 @@ READY_S = 120.0  # generous: a cold child on a loaded machine
 @pytest.fixture(scope="module")
 def mpc(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
     """Without the stand-by process: a restart loads a fresh child."""
-    p = dataclasses.replace(cfg.rmpc, solve_isolation="process", solver_spare=False)
+    p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process", solver_spare=False)
     m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
     yield m
     m.close()
@@ -133,7 +133,7 @@ def test_a_child_that_died_is_replaced(mpc: Rmpc, cfg: Config) -> None:
 def mpc_spare(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
     """config/paper.toml's default: a loaded stand-by process beside the solving one."""
     assert cfg.rmpc.solver_spare
-    p = dataclasses.replace(cfg.rmpc, solve_isolation="process")
+    p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process")
     m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
     yield m
     m.close()
@@ -184,7 +184,7 @@ def test_a_stuck_solve_promotes_the_loaded_spare_and_the_next_step_solves(
 
 
 def test_closing_stops_the_spare_too(cfg: Config, design: TerminalDesign) -> None:
-    p = dataclasses.replace(cfg.rmpc, solve_isolation="process")
+    p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process")
     m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
     backend = _backend(m)
     assert m.solve(ETA0, _motion(cfg)).mode == "optimal"
@@ -197,7 +197,8 @@ def test_closing_stops_the_spare_too(cfg: Config, design: TerminalDesign) -> Non
 @pytest.fixture(scope="module")
 def mpc_cpu(cfg: Config, design: TerminalDesign) -> Iterator[Rmpc]:
     """The lockstep flavour: the bound counts the solver process's CPU time (0.25 s)."""
-    p = dataclasses.replace(cfg.rmpc, solve_isolation="process", solve_time_clock="cpu")
+    p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process",
+                            solve_time_clock="cpu")
     m = Rmpc(p, cfg.camera, design, backend=process_backend(p, cfg.camera, design))
     yield m
     m.close()
@@ -278,7 +279,8 @@ SCRIPT = textwrap.dedent("""
 
     async def main():
         cfg = load_config()
-        p = dataclasses.replace(cfg.rmpc, solve_isolation="process", max_solve_time_s=3.0)
+        p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process",
+                                max_solve_time_s=3.0)
         d = design_terminal(p, cfg.camera)
         m = Rmpc(p, cfg.camera, d, backend=process_backend(p, cfg.camera, d))
         stop = asyncio.Event()

@@ -47,7 +47,7 @@ HARD = ("dynamics", "input", "state")
 # The paper's problem (spec 6): centroid rows, the yaw error in the tube, the nominal target
 # motion. The whole-target variants are tested in tests/core/test_visibility_corners.py.
 PAPER_RMPC = ('rmpc.visibility="centroid"', 'rmpc.heading="tube"',
-              'rmpc.target_motion="nominal"')
+              'rmpc.target_motion="nominal"', 'rmpc.solver="nlp"')
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,8 @@ from companion.core.terminal import TerminalDesign
 
 @pytest.fixture(scope="module")
 def mpc(cfg: Config, design: TerminalDesign) -> Rmpc:
-    return Rmpc(cfg.rmpc, cfg.camera, design)
+    # the full NLP's hard-then-soft path (the RTI in front of it: tests/core/test_rmpc_rti.py)
+    return Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp"), cfg.camera, design)
 
 
 def _box(cfg: Config) -> tuple[np.ndarray, np.ndarray]:
