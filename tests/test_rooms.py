@@ -26,8 +26,6 @@ HOT_PATH = ("companion/control", "companion/link", "companion/perception", "comp
 
 #: too big today, being split under issue 25 (path or path::function -> who / why)
 SPLITTING: dict[str, str] = {
-    "companion/core/rmpc.py": "the RMPC's NLP construction, solve and soft copy (rti split)",
-    "companion/core/rmpc_problem.py::build_nlp": "the RMPC's NLP construction (rti split)",
 }
 
 _EXCEPTION_LINE = re.compile(r"^- `(?P<path>[^`]+)` \(max (?P<max>\d+) lines\): (?P<why>\S.*)$")

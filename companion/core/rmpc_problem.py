@@ -231,12 +231,8 @@ def build_nlp(
 ) -> tuple[dict[str, ca.SX], Layout]:
     """The NLP ``{x, p, f, g}`` (SX) and its layout. See the module docstring."""
     big_n = rmpc.horizon
-    q = np.diag(rmpc.q_diag)
-    r = np.diag(rmpc.r_diag)
+    q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)
     p_mat = np.asarray(terminal.p, dtype=float)
-    p_tube = tube_matrix(rmpc, p_mat)
-    corners = rmpc.visibility == "corners"
-    k_c = corner_gain(rmpc, camera) if corners else 1.0
     xs = [ca.SX.sym(f"x{n}", NX) for n in range(big_n + 1)]
     us = [ca.SX.sym(f"u{n}", NU) for n in range(big_n)]
     par = ca.SX.sym("p", NP_STAGE * big_n + 1 + (NP_SOFT_EXTRA if soft else 0))
@@ -244,14 +240,12 @@ def build_nlp(
 
     w: list[ca.SX] = []
     g: list[ca.SX] = []
-    equality: list[bool] = []
-    rows: list[Row] = []
-    x_index = np.zeros((big_n + 1, NX), dtype=int)
-    u_index = np.zeros((big_n, NU), dtype=int)
+    equality: list[bool] = []  # per g row: an equality (dynamics gap) or not
+    rows: list[Row] = []  # the path rows (the soft-able ones: tube, visibility, terminal)
+    x_index, u_index = np.zeros((big_n + 1, NX), dtype=int), np.zeros((big_n, NU), dtype=int)
     gap_index = np.zeros((big_n, NX), dtype=int)
     slack_index: list[int] = []
-    n_w = 0
-    n_g = 0
+    n_w, n_g = 0, 0
     cost: ca.SX = ca.SX(0.0)
 
     def add_w(v: ca.SX) -> np.ndarray:
@@ -267,36 +261,8 @@ def build_nlp(
                   d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
-        items: list[tuple[str, str, ca.SX, float, int]] = []
-        if n < big_n:
-            if rmpc.enable_tube:
-                items.append(("tube", "tube", ca.bilin(p_tube, x, x),
-                              tube_bound(rmpc, n) ** 2, -1))
-            if rmpc.enable_visibility and n in vis_stage:
-                assert u is not None and x_next is not None
-                img = vis_stage[n]
-                x_img = x if img == n else x_next
-                mu, mn = centre(u, rmpc, camera, d)
-                if corners:
-                    rad2 = visibility_radius(rmpc, terminal, img, k_c) ** 2
-                    for i, (pu, pn) in enumerate(corner_points(x_img, rmpc)):
-                        val = (pu - mu) ** 2 + (pn - mn) ** 2
-                        items.append(("visibility", "corner", val, rad2, i))
-                else:
-                    pu, pn = image_point(x_img)
-                    val = (pu - mu) ** 2 + (pn - mn) ** 2
-                    items.append(("visibility", "visibility", val,
-                                  visibility_radius(rmpc, terminal, img) ** 2, -1))
-        else:
-            if rmpc.enable_tube or rmpc.enable_terminal:  # X(N) = eps: the tube ends in Omega
-                group = "terminal" if rmpc.enable_terminal else "tube"
-                items.append((group, "terminal_set", ca.bilin(p_tube, x, x), rmpc.eps**2, -1))
-            if rmpc.enable_terminal:
-                pu, pn = image_point(x)
-                items.append(
-                    ("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2, -1)
-                )
-        for group, kind, val, upper, corner in items:
+        for group, kind, val, upper, corner in _path_items(rmpc, camera, terminal, n, x, u,
+                                                           x_next, d, vis_stage):
             s_idx: int | None = None
             if soft:
                 s = ca.SX.sym(f"sl_{kind}_{n}")
@@ -329,29 +295,64 @@ def build_nlp(
         equality.extend([True] * NX)
         n_g += NX
         path_rows(n, x, u, x_next, d_n)
-    if soft:  # the input-rate term (module docstring): u(0) against u_prev, then stage to stage
-        u_prev = par[NP_STAGE * big_n + 1 : NP_STAGE * big_n + 1 + NU]
-        w_du = par[NP_STAGE * big_n + 1 + NU]
-        inv_u2 = np.diag(1.0 / np.asarray(rmpc.u_max, dtype=float) ** 2)
-        rate = ca.bilin(inv_u2, us[0] - u_prev, us[0] - u_prev)
-        for n in range(big_n - 1):
-            rate = rate + ca.bilin(inv_u2, us[n + 1] - us[n], us[n + 1] - us[n])
-        cost = cost + w_du * rate
+    if soft:
+        cost = cost + _input_rate(rmpc, us, par)
     x_index[big_n] = add_w(xs[big_n])
     cost = cost + ca.bilin(p_mat, xs[big_n], xs[big_n])
     path_rows(big_n, xs[big_n], None)
 
     nlp = {"x": ca.vertcat(*w), "p": par, "f": cost, "g": ca.vertcat(*g)}
-    layout = Layout(
-        horizon=big_n,
-        soft=soft,
-        n_w=n_w,
-        n_g=n_g,
-        x_index=x_index,
-        u_index=u_index,
-        gap_index=gap_index,
-        rows=tuple(rows),
-        equality=tuple(equality),
-        slack_index=np.array(slack_index, dtype=int),
-    )
+    layout = Layout(horizon=big_n, soft=soft, n_w=n_w, n_g=n_g, x_index=x_index,
+                    u_index=u_index, gap_index=gap_index, rows=tuple(rows),
+                    equality=tuple(equality), slack_index=np.array(slack_index, dtype=int))
     return nlp, layout
+
+
+def _input_rate(rmpc: RmpcParams, us: list[ca.SX], par: ca.SX) -> ca.SX:
+    """The soft copy's input-rate term (module docstring): ``w_du`` times u(0) against
+    ``u_prev``, then stage to stage, each normalised by ``u_max``."""
+    big_n = rmpc.horizon
+    u_prev = par[NP_STAGE * big_n + 1 : NP_STAGE * big_n + 1 + NU]
+    w_du = par[NP_STAGE * big_n + 1 + NU]
+    inv_u2 = np.diag(1.0 / np.asarray(rmpc.u_max, dtype=float) ** 2)
+    rate = ca.bilin(inv_u2, us[0] - u_prev, us[0] - u_prev)
+    for n in range(big_n - 1):
+        rate = rate + ca.bilin(inv_u2, us[n + 1] - us[n], us[n + 1] - us[n])
+    return w_du * rate
+
+
+def _path_items(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, n: int,
+                x: ca.SX, u: ca.SX | None, x_next: ca.SX | None, d: ca.SX | None,
+                vis_stage: dict[int, int]) -> list[tuple[str, str, ca.SX, float, int]]:
+    """Stage ``n``'s path rows before any slack: (group, kind, value, bound on the value,
+    corner) in the order :func:`build_nlp` lays them out (tube, visibility; at n = N the
+    terminal set and terminal visibility)."""
+    big_n = rmpc.horizon
+    p_tube = tube_matrix(rmpc, np.asarray(terminal.p, dtype=float))
+    items: list[tuple[str, str, ca.SX, float, int]] = []
+    if n < big_n:
+        if rmpc.enable_tube:
+            items.append(("tube", "tube", ca.bilin(p_tube, x, x), tube_bound(rmpc, n) ** 2, -1))
+        if rmpc.enable_visibility and n in vis_stage:
+            assert u is not None and x_next is not None
+            img = vis_stage[n]
+            x_img = x if img == n else x_next
+            mu, mn = centre(u, rmpc, camera, d)
+            if rmpc.visibility == "corners":
+                rad2 = visibility_radius(rmpc, terminal, img, corner_gain(rmpc, camera)) ** 2
+                for i, (pu, pn) in enumerate(corner_points(x_img, rmpc)):
+                    val = (pu - mu) ** 2 + (pn - mn) ** 2
+                    items.append(("visibility", "corner", val, rad2, i))
+            else:
+                pu, pn = image_point(x_img)
+                val = (pu - mu) ** 2 + (pn - mn) ** 2
+                items.append(("visibility", "visibility", val,
+                              visibility_radius(rmpc, terminal, img) ** 2, -1))
+        return items
+    if rmpc.enable_tube or rmpc.enable_terminal:  # X(N) = eps: the tube ends in Omega
+        group = "terminal" if rmpc.enable_terminal else "tube"
+        items.append((group, "terminal_set", ca.bilin(p_tube, x, x), rmpc.eps**2, -1))
+    if rmpc.enable_terminal:
+        pu, pn = image_point(x)
+        items.append(("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2, -1))
+    return items
