@@ -68,7 +68,8 @@ def test_isolated_solve_equals_the_in_process_one(mpc: Rmpc, cfg: Config,
                                                   design: TerminalDesign) -> None:
     """Same compiled solver, same arrays: the child's answer is bit-identical."""
     _backend(mpc)
-    local = Rmpc(dataclasses.replace(cfg.rmpc, solve_isolation="none"), cfg.camera, design)
+    local = Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="none"), cfg.camera,
+                 design)
     assert local.backend is None
     mpc.reset()
     a, b = mpc.solve(ETA0, _motion(cfg)), local.solve(ETA0, _motion(cfg))
