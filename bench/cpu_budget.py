@@ -61,6 +61,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.cgroup_quota import CgroupUnavailable, CpuQuota, create_quota  # noqa: E402
+from companion.flight import free_ports  # noqa: E402
 
 PAPER = ROOT / "config" / "paper.toml"
 EXIT_FLIGHT_FAILED = 1
@@ -80,18 +81,6 @@ class BenchError(RuntimeError):
     def __init__(self, message: str, status: int = EXIT_FLIGHT_FAILED) -> None:
         super().__init__(message)
         self.status = status
-
-
-def _free_ports(n: int, kind: int) -> list[int]:
-    """``n`` distinct free loopback ports (all held until chosen, so none repeats)."""
-    socks = [socket.socket(socket.AF_INET, kind) for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [int(s.getsockname()[1]) for s in socks]
-    finally:
-        for s in socks:
-            s.close()
 
 
 def _toml_value(text: str) -> str:
@@ -162,8 +151,8 @@ class Ports:
 
     @classmethod
     def pick(cls) -> Ports:
-        udp = _free_ports(6, socket.SOCK_DGRAM)
-        return cls(*udp, _free_ports(1, socket.SOCK_STREAM)[0])
+        udp = free_ports(6, socket.SOCK_DGRAM)
+        return cls(*udp, free_ports(1, socket.SOCK_STREAM)[0])
 
 
 def companion_cmd(variant: Path, ports: Ports, out: Path, duration_s: float) -> list[str]:

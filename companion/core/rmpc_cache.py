@@ -110,12 +110,7 @@ def compiled_nlp(solver: ca.Function | Callable[[], ca.Function], cache_dir: str
     symbolic = solver if isinstance(solver, ca.Function) else solver()
     found = _generate_and_compile(symbolic, directory, tag)
     if alias is not None:
-        tmp = alias.with_name(f"{alias.name}.tmp{os.getpid()}")
-        try:
-            tmp.write_text(found.library.name + "\n")
-            os.replace(tmp, alias)
-        except OSError as exc:  # a read-only cache still works, without the shortcut
-            log.debug("RMPC %s: alias not written: %s", tag, exc)
+        _write_alias(alias, found, tag)
     return found
 
 
@@ -187,13 +182,19 @@ def compiled_functions(build: Callable[[], list[ca.Function]], cache_dir: str, t
         return CompiledNlp(library=directory / name, key=name[len(prefix):-3],
                            compiled_now=False)
     found = _compile_source(directory, tag, build())
+    _write_alias(alias, found, tag)
+    return found
+
+
+def _write_alias(alias: Path, found: CompiledNlp, tag: str) -> None:
+    """Remember which library ``alias`` names (atomic; a read-only cache still works, without
+    the shortcut)."""
     tmp = alias.with_name(f"{alias.name}.tmp{os.getpid()}")
     try:
         tmp.write_text(found.library.name + "\n")
         os.replace(tmp, alias)
-    except OSError as exc:  # a read-only cache still works, without the shortcut
+    except OSError as exc:
         log.debug("RMPC %s: alias not written: %s", tag, exc)
-    return found
 
 
 def _compile_source(directory: Path, tag: str, functions: list[ca.Function]) -> CompiledNlp:
