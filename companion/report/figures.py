@@ -332,10 +332,11 @@ def _solver(steps: list[Mapping[str, Any]]) -> dict[str, Any]:
         # rmpc.solver = "rti" (docs/reference/solver.md): steps that flew the real-time
         # iteration's plan, and steps whose RTI plan the check rejected (the full NLP then
         # solved them: their mode above is that solve's); both 0 with the full NLP
-        "rti_flown": sum(1 for r in recs if str(r["status"]).startswith("rti: ")
-                         and "; nlp: " not in str(r["status"])),
-        "rti_to_nlp": sum(1 for r in recs if str(r["status"]).startswith("rti: ")
-                          and "; nlp: " in str(r["status"])),
+        # (a record without a status, from an older log, counts in neither)
+        "rti_flown": sum(1 for r in recs if str(r.get("status", "")).startswith("rti: ")
+                         and "; nlp: " not in str(r.get("status", ""))),
+        "rti_to_nlp": sum(1 for r in recs if str(r.get("status", "")).startswith("rti: ")
+                          and "; nlp: " in str(r.get("status", ""))),
         "median_ms": float(np.median(ms)) if ms.size else None,
         "p95_ms": float(np.percentile(ms, 95)) if ms.size else None,
         "max_ms": float(np.max(ms)) if ms.size else None,
