@@ -145,8 +145,10 @@ class OffboardManager:
         escaping = (streamed is not None and escape_s is not None and self._escaping
                     and streamed >= escape_s)
         due = t_s - self._last_request_s >= self._cfg.mode_retry_s
+        # With offboard.arm = false the pilot arms: OFFBOARD is asked for only once the
+        # HEARTBEAT says armed (asked on the ground, PX4 would take our setpoints at the arming)
         if (self.phase is OffboardPhase.PREFLIGHT and (streamed_long_enough or escaping)
-                and st is not None):
+                and st is not None and (self._cfg.arm or st.armed)):
             done = ("pre-flight stream done" if streamed_long_enough else
                     f"pre-flight stream cut to {escape_s:g} s: the controller's hard problem"
                     " is infeasible (target escaping)")

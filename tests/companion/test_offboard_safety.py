@@ -222,3 +222,14 @@ def test_the_escape_stream_is_read_from_the_config_file() -> None:
     assert load_config().offboard.preflight_escape_stream_s == 0.25
     assert load_config(overrides=["offboard.preflight_escape_stream_s=0.5"]
                        ).offboard.preflight_escape_stream_s == 0.5
+
+
+def test_without_arming_offboard_waits_for_the_pilot_to_arm() -> None:
+    """offboard.arm = false (a real vehicle): a disarmed vehicle is never asked for OFFBOARD,
+    however long the stream; once the HEARTBEAT says armed, the request follows."""
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_heartbeat(_hb(0.0, False, 3))
+    assert _stream(m, 0.0, 3.0, escaping=False) == []
+    assert m.phase is OffboardPhase.PREFLIGHT
+    m.on_heartbeat(_hb(3.0, True, 3))
+    assert _stream(m, 3.0, 3.1, escaping=False) == [(3.0, "set_mode")]
