@@ -132,6 +132,9 @@ class OffboardConfig:
     # Ask for OFFBOARD again after PX4 left it on its own (failsafe). Off on a real vehicle:
     # the companion must not fight the pilot.
     reengage: bool = False
+    # Ask for OFFBOARD (and arm) only while the autopilot's EXTENDED_SYS_STATE says IN_AIR: the
+    # companion follows from the air; on the ground PX4 would take its setpoints as a take-off.
+    require_in_air: bool = True
     # The pre-flight stream while the controller reports its hard problem infeasible (the
     # target escaping the view; a 'recovery' solve): OFFBOARD is requested once this much has
     # been streamed instead of preflight_stream_s. None: always the full stream.

@@ -32,6 +32,9 @@ MAV_RESULT_IN_PROGRESS = 5
 #: default, commander's offboard check): a pause shorter than half of it (a stale frame, a slow
 #: step on a small computer) keeps the pre-flight stream running; a longer one restarts it.
 STREAM_GAP_S = 0.5
+#: MAV_LANDED_STATE: the values EXTENDED_SYS_STATE.landed_state takes
+LANDED_STATE_NAMES = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}
+MAV_LANDED_STATE_IN_AIR = 2
 
 
 class OffboardPhase(enum.Enum):
@@ -79,6 +82,11 @@ class OffboardManager:
         self.transitions: list[tuple[float, OffboardPhase, str]] = []
         #: the controller's last word (on_controller): it needs authority now
         self._escaping = False
+        #: the autopilot's EXTENDED_SYS_STATE.landed_state (None: not heard yet)
+        self.landed_state: int | None = None
+        #: why a due OFFBOARD request (or arming) is held back now, None when it is not; the
+        #: runtime logs each new reason once (:meth:`Vehicle.log_offboard`)
+        self.held: str | None = None
 
     @property
     def in_offboard(self) -> bool:
@@ -94,6 +102,23 @@ class OffboardManager:
                      f"autopilot left OFFBOARD (main mode {status.main_mode})")
         elif self.phase is OffboardPhase.EXITING and not self.in_offboard:
             self._go(status.t_s, OffboardPhase.DONE, "autopilot out of OFFBOARD")
+
+    def on_landed_state(self, landed_state: int) -> None:
+        """The autopilot's EXTENDED_SYS_STATE.landed_state. With ``offboard.require_in_air``
+        OFFBOARD is asked for (and the vehicle armed) only while it is ``IN_AIR``: the
+        companion follows a target from the air; on the ground, PX4 would take our attitude
+        and thrust setpoints as a take-off."""
+        self.landed_state = int(landed_state)
+
+    def _airborne_gate(self) -> str | None:
+        """None when a request may go out now, else the reason it may not."""
+        if not self._cfg.require_in_air or self.landed_state == MAV_LANDED_STATE_IN_AIR:
+            return None
+        state = ("not reported yet (no EXTENDED_SYS_STATE from the autopilot)"
+                 if self.landed_state is None else
+                 LANDED_STATE_NAMES.get(self.landed_state, str(self.landed_state)))
+        return (f"OFFBOARD held back: the vehicle is not in the air (landed state {state}); "
+                "take off first (e.g. in Position mode), or set offboard.require_in_air = false")
 
     def on_command_ack(self, command: int, result: int, t_s: float) -> None:
         """A COMMAND_ACK from the autopilot: a refused OFFBOARD request (PX4 answers
@@ -147,8 +172,12 @@ class OffboardManager:
         due = t_s - self._last_request_s >= self._cfg.mode_retry_s
         # With offboard.arm = false the pilot arms: OFFBOARD is asked for only once the
         # HEARTBEAT says armed (asked on the ground, PX4 would take our setpoints at the arming)
-        if (self.phase is OffboardPhase.PREFLIGHT and (streamed_long_enough or escaping)
-                and st is not None and (self._cfg.arm or st.armed)):
+        ready = (self.phase is OffboardPhase.PREFLIGHT and (streamed_long_enough or escaping)
+                 and st is not None and (self._cfg.arm or st.armed))
+        reengaging = (self.phase is OffboardPhase.LOST and self._reengage
+                      and streamed_long_enough)
+        self.held = self._airborne_gate() if ready or reengaging else None
+        if ready and self.held is None and st is not None:
             done = ("pre-flight stream done" if streamed_long_enough else
                     f"pre-flight stream cut to {escape_s:g} s: the controller's hard problem"
                     " is infeasible (target escaping)")
@@ -163,7 +192,7 @@ class OffboardManager:
                 due = True
             elif due:
                 acts.append(Action("arm", reason="arming for the scenario"))
-        if self.phase is OffboardPhase.LOST and self._reengage and streamed_long_enough:
+        if reengaging and self.held is None:
             self._go(t_s, OffboardPhase.REQUESTING, "re-engaging")
             due = True
         if self.phase is OffboardPhase.REQUESTING and due and not self.in_offboard:

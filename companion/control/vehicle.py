@@ -58,6 +58,8 @@ class Vehicle:
         self.records: RuntimeLog | None = None
         #: where PARAM_VALUEs go (companion/control/vehicle_limits.py), attached by the runtime
         self.params: Any = None
+        #: the offboard manager's held-back reason last logged (log_offboard)
+        self._held_logged: str | None = None
 
     # -- receive ----------------------------------------------------------------------------
 
@@ -78,6 +80,9 @@ class Vehicle:
                 self.offboard.on_heartbeat(VehicleStatus(m.armed, m.main_mode, m.sub_mode, t_s))
                 self.log_offboard(before)
             self._on_autopilot_state(fields.get("system_status"))
+        elif rx.name == "EXTENDED_SYS_STATE" and from_autopilot:
+            if "landed_state" in fields:
+                self.offboard.on_landed_state(int(fields["landed_state"]))
         elif rx.name == "TIMESYNC" and from_autopilot:
             self._on_timesync(fields, rx.t_rx_ns)
         elif rx.name == "PARAM_VALUE" and self.params is not None:
@@ -172,7 +177,15 @@ class Vehicle:
         log.info("offboard: %s (%s) at t=%.2f s", act.kind, act.reason, t_s)
 
     def log_offboard(self, before: OffboardPhase) -> None:
-        """Log the offboard phase's change since ``before``, if any."""
+        """Log the offboard phase's change since ``before``, if any, and a newly held-back
+        request (its reason once, as a WARNING)."""
+        held = self.offboard.held
+        if held != self._held_logged:
+            self._held_logged = held
+            if held is not None:
+                log.warning("%s", held)
+                if self.records is not None:
+                    self.records.text(TOPIC_OFFBOARD, held, level="WARNING", name="offboard")
         if self.offboard.phase is not before and self.records is not None:
             _, phase, reason = self.offboard.transitions[-1]
             log.info("offboard %s -> %s: %s", before.value, phase.value, reason)

@@ -8,7 +8,14 @@ import pytest
 
 from companion import ConfigError
 from companion.config import OffboardConfig, SafetyConfig, load_config
-from companion.control.offboard import OffboardManager, OffboardPhase, VehicleStatus
+from companion.control.offboard import (
+    MAV_LANDED_STATE_IN_AIR as IN_AIR,
+)
+from companion.control.offboard import (
+    OffboardManager,
+    OffboardPhase,
+    VehicleStatus,
+)
 from companion.control.safety import Health, SafetyLevel, SafetySupervisor
 
 OFF = OffboardConfig(preflight_stream_s=1.0, mode_retry_s=1.0, arm=True, exit_mode="hold")
@@ -25,6 +32,7 @@ def _hb(t: float, armed: bool, main: int, sub: int = 0) -> VehicleStatus:
 
 def test_offboard_waits_for_preflight_stream_then_arms_then_requests_and_confirms() -> None:
     m = OffboardManager(OFF)
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, False, 3))
     acts_before = []
     t = 0.0
@@ -65,32 +73,38 @@ def test_an_escaping_target_cuts_the_preflight_stream_to_the_escape_time() -> No
                          preflight_escape_stream_s=0.25)
     # the controller's hard problem infeasible throughout: requested at 0.25 s, not at 1 s
     m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     assert _stream(m, 0.0, 1.2, escaping=True) == [(0.25, "set_mode")]
     assert m.phase is OffboardPhase.REQUESTING
     assert "target escaping" in m.transitions[-1][2]
     # feasible throughout: the full stream
     m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     assert _stream(m, 0.0, 1.2, escaping=False) == [(1.0, "set_mode")]
     assert m.transitions[-1][2] == "pre-flight stream done"
     # infeasible only once the stream is 0.6 s old: requested then (the stream is long enough)
     m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     acts = _stream(m, 0.0, 0.6, escaping=False) + _stream(m, 0.6, 1.2, escaping=True)
     assert acts == [(0.6, "set_mode")]
     # infeasible, then feasible again before 0.25 s: no early request
     m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     acts = _stream(m, 0.0, 0.2, escaping=True) + _stream(m, 0.2, 1.2, escaping=False)
     assert acts == [(1.0, "set_mode")]
     # without the key (None), an escaping target waits for the full stream
     m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     assert _stream(m, 0.0, 1.2, escaping=True) == [(1.0, "set_mode")]
     # a pause in the stream longer than STREAM_GAP_S (safety silence) restarts the clock for
     # the cut stream as well
     m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     assert _stream(m, 0.0, 0.2, escaping=True) == []
     m.on_stream_gap()
@@ -102,6 +116,7 @@ def test_a_short_pause_in_the_stream_keeps_the_preflight_stream() -> None:
     """A stale frame (one missing setpoint) is no loss of PX4's offboard signal
     (COM_OF_LOSS_T 1 s): the 1 s stream is not restarted; a pause beyond STREAM_GAP_S is."""
     m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     acts = []
     for k in range(0, 24):
@@ -113,6 +128,7 @@ def test_a_short_pause_in_the_stream_keeps_the_preflight_stream() -> None:
         acts += [(round(t, 2), a.kind) for a in m.step(t)]
     assert acts[:1] == [(1.0, "set_mode")]
     m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     m.on_streamed(0.0)
     assert m.step(0.0) == []
@@ -128,6 +144,7 @@ def test_an_escape_stream_longer_than_the_stream_is_refused() -> None:
 def test_offboard_lost_does_not_fight_pilot_unless_reengage() -> None:
     for reengage in (False, True):
         m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"), reengage=reengage)
+        m.on_landed_state(IN_AIR)
         m.on_heartbeat(_hb(0.0, True, 3))
         m.on_streamed(0.0)
         m.step(1.0)
@@ -141,6 +158,7 @@ def test_offboard_lost_does_not_fight_pilot_unless_reengage() -> None:
 
 def test_offboard_exit_requests_hold_then_stops_streaming() -> None:
     m = OffboardManager(OffboardConfig(0.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 6))
     m.on_streamed(0.0)
     m.step(0.0)
@@ -188,6 +206,7 @@ def test_safety_reacquires_with_fresh_follow_target() -> None:
 
 def test_a_refused_offboard_request_does_not_count_as_control_until_the_next_one() -> None:
     m = OffboardManager(OffboardConfig(0.25, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, True, 3))
     m.on_streamed(0.0)
     assert m.step(0.2) == [] and not m.awaiting_switch
@@ -228,8 +247,63 @@ def test_without_arming_offboard_waits_for_the_pilot_to_arm() -> None:
     """offboard.arm = false (a real vehicle): a disarmed vehicle is never asked for OFFBOARD,
     however long the stream; once the HEARTBEAT says armed, the request follows."""
     m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
     m.on_heartbeat(_hb(0.0, False, 3))
     assert _stream(m, 0.0, 3.0, escaping=False) == []
     assert m.phase is OffboardPhase.PREFLIGHT
     m.on_heartbeat(_hb(3.0, True, 3))
     assert _stream(m, 3.0, 3.1, escaping=False) == [(3.0, "set_mode")]
+
+
+@pytest.mark.parametrize("landed", [None, 1, 3, 4])
+@pytest.mark.parametrize("arm", [True, False])
+def test_offboard_is_not_requested_nor_armed_until_the_vehicle_is_in_the_air(
+        landed: int | None, arm: bool) -> None:
+    """offboard.require_in_air (default): on the ground, taking off, landing or with no
+    EXTENDED_SYS_STATE heard, neither arming nor OFFBOARD is asked for, however long the
+    stream; the held-back reason names the state and the key; IN_AIR releases the request."""
+    m = OffboardManager(OffboardConfig(1.0, 1.0, arm, "hold"))
+    if landed is not None:
+        m.on_landed_state(landed)
+    m.on_heartbeat(_hb(0.0, not arm, 3))
+    acts = []
+    for i in range(100):
+        t = 0.05 * i
+        m.on_streamed(t)
+        acts += m.step(t)
+    assert acts == [] and m.phase is OffboardPhase.PREFLIGHT
+    assert m.held is not None and "offboard.require_in_air" in m.held
+    assert ("not reported yet" if landed is None else
+            {1: "ON_GROUND", 3: "TAKEOFF", 4: "LANDING"}[landed]) in m.held
+    m.on_landed_state(IN_AIR)
+    m.on_streamed(5.0)
+    assert [a.kind for a in m.step(5.0)] == (["arm"] if arm else ["set_mode"])
+    assert m.held is None
+
+
+def test_require_in_air_false_asks_on_the_ground() -> None:
+    cfg = OffboardConfig(1.0, 1.0, False, "hold", require_in_air=False)
+    m = OffboardManager(cfg)
+    m.on_landed_state(1)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    for i in range(21):
+        m.on_streamed(0.05 * i)
+    assert [a.kind for a in m.step(1.0)] == ["set_mode"] and m.held is None
+
+
+def test_reengage_waits_for_the_air_too() -> None:
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"), reengage=True)
+    m.on_landed_state(IN_AIR)
+    m.on_heartbeat(_hb(0.0, True, 3))
+    for i in range(21):
+        m.on_streamed(0.05 * i)
+    assert [a.kind for a in m.step(1.0)] == ["set_mode"]
+    m.on_heartbeat(_hb(1.1, True, 6))
+    assert m.phase is OffboardPhase.ACTIVE
+    m.on_heartbeat(_hb(2.0, True, 3))  # the pilot (or a failsafe) took over
+    assert m.phase is OffboardPhase.LOST
+    m.on_landed_state(1)  # and landed
+    for i in range(60):
+        m.on_streamed(2.0 + 0.05 * i)
+        assert m.step(2.0 + 0.05 * i) == []
+    assert m.held is not None and "ON_GROUND" in m.held
