@@ -1,5 +1,6 @@
-"""A wall-time bound on the RMPC's solves: they run in a child process that is killed when a
-step's solves exceed ``rmpc.max_solve_time_s`` (``rmpc.solve_isolation = "process"``).
+"""A time bound on the RMPC's solves: they run in a child process, a step whose solves overrun
+``rmpc.max_solve_time_s`` flies the terminal law, and a child that is *stuck* is killed and
+replaced (``rmpc.solve_isolation = "process"``).
 
 Why a process: a compiled CasADi solver is one C call. A solver that never returns (seen:
 fatrop's restoration phase looping at 100 % CPU, ``max_iter`` not bounding it) cannot be
@@ -10,35 +11,41 @@ process can be killed (SIGKILL) and replaced. fatrop has no time option at all
 (``max_wall_time``/``max_cpu_time`` are refused as unsupported options); ipopt has them but
 they are checked only between iterations. docs/reference/reliability.md has the measurements.
 
-Protocol (a ``multiprocessing`` pipe, 'spawn' start: nothing of the parent's event loop,
-threads or sockets is inherited): the child builds the controller's compiled solvers from the
-on-disk cache (:mod:`companion.core.rmpc_cache`: the parent compiled them, the child only loads
-the libraries), sends ``("ready", pid)``, then answers each ``("solve", kind, w0, p, lbx, ubx,
-hang)`` with ``("ok", evaluation, cpu_s)`` or ``("error", message, cpu_s)`` (CasADi raised;
-``cpu_s``: the child's CPU time so far, so the companion's CPU figures include it). On a timeout the
-parent kills the child, starts a fresh one in the background and the step flies the terminal
-law (:class:`~companion.core.rmpc.SolveAborted` -> ``mode='fallback'``, status ``timeout:
-...``); steps while the new child starts fly the fallback too (status ``solver restarting``).
-The parent never blocks longer than the step's bound, so SIGTERM/SIGINT are served by the
-event loop at the next step boundary.
+The child (:mod:`companion.control.solver_child`, forked from a server process that has
+CasADi loaded) loads the compiled libraries the parent built and answers each solve over a
+pipe; its answers are bit-identical to an in-process solve.
 
-``rmpc.solver_spare`` (a vehicle's default): a second child is started once the first is ready
-and waits, loaded, beside it (~60 MB, ~0.7 s of CPU once). A timeout or a lost child then
-promotes the spare, so the next step solves instead of flying the fallback for the ~0.6-1 s a
-fresh child takes to load; a new spare is started once the promoted one answers.
+**A stuck solver is not a starved one.** With ``rmpc.solve_time_clock = "wall"`` (a vehicle)
+the parent waits for a step's solves until ``max_solve_time_s`` of wall time after the step
+began; then the step flies the terminal law (:class:`~companion.core.rmpc.SolveAborted` ->
+``mode='fallback'``, status ``timeout: ...``). Whether the child is killed depends on the CPU
+it used for the solve (``/proc/<pid>/stat``): at least half the bound (``HUNG_CPU_SHARE``)
+means it was running and did not finish: stuck, killed and replaced. Less means it was waiting
+for a CPU (a companion computer short of CPU, a busy machine): it is kept, its late answer is
+discarded when it comes, and the next step's solve queues behind it, so a small CPU budget no
+longer turns into a spiral of restarts (each of which cost ~0.9 s of CPU before the fork
+server). Every solve also runs under the child's own CPU-time bound (``ITIMER_PROF`` =
+``max_solve_time_s``: SIGPROF ends the process, also inside the C call), so a stuck solve that
+is waited for by nobody still ends, and an answer outstanding longer than a wall backstop
+(:func:`cpu_clock_wall_backstop_s`: a child that gets no CPU at all, or is stopped) ends it too.
 
-``rmpc.solve_time_clock = "cpu"`` (what lockstep simulations use): the bound counts the solver
-process's own CPU time instead, per solve. The child arms ``ITIMER_PROF`` with the bound before
-each solve (SIGPROF's default action terminates the process, also inside the C call) and
-disarms it after; the parent waits only up to a wall-time backstop
-(:func:`cpu_clock_wall_backstop_s`) and reports a child killed by SIGPROF as a timeout. A
-machine so busy that a 2 ms solve takes a second of wall time then no longer cuts it.
+``rmpc.solve_time_clock = "cpu"`` (what lockstep simulations use): the parent waits up to the
+backstop only; the CPU-time bound alone decides (a machine so busy that a 2 ms solve takes a
+second of wall time then no longer cuts it); the step flies the terminal law only when the child
+was ended.
+
+``rmpc.solver_spare`` (a vehicle's default): a second child is started beside the first and
+waits, loaded; a killed or lost child is replaced by it, so the next step solves instead of
+flying the fallback while a fresh child loads; a new spare is started once the promoted one is
+ready.
+
+The parent never blocks longer than the step's bound (wall) or the backstop (cpu), so
+SIGTERM/SIGINT are served by the event loop at the next step boundary.
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -46,140 +53,132 @@ import os
 import signal
 import time
 import weakref
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from multiprocessing.process import BaseProcess
 from typing import Any
 
 import numpy as np
 
+from companion.control.solver_child import NlpRecipe, child_main
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc import Evaluation, Rmpc, RmpcBuildError, SolveAborted
 from companion.core.terminal import TerminalDesign
 
-__all__ = ["ProcessSolveBackend", "process_backend"]
+__all__ = ["HUNG_CPU_SHARE", "ProcessSolveBackend", "nlp_recipes", "process_backend"]
 
 log = logging.getLogger(__name__)
 
 START_TIMEOUT_S = 120.0
-"""How long the first child may take to load the solvers (a cold, loaded machine: import
-CasADi, build the expression graphs, load two libraries; ~1-2 s measured idle)."""
+"""How long the first child may take to load the solvers (a cold, loaded machine: the fork
+server's CasADi import, two libraries; ~0.5-1 s measured idle)."""
 
-_PR_SET_PDEATHSIG = 1
+HUNG_CPU_SHARE = 0.5
+"""A solve still running at its wall deadline is stuck (killed) when it used at least this
+share of ``max_solve_time_s`` as CPU; below, it waited for a CPU and is kept."""
+
+_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
-def _die_with_parent() -> None:
-    """Linux: the kernel sends the child SIGKILL when the parent dies (even by SIGKILL), so a
-    child stuck in a solve never outlives the companion. Best effort elsewhere."""
+def _proc_cpu_s(pid: int | None) -> float | None:
+    """The CPU time (user + system, s) process ``pid`` used so far, from /proc (10 ms
+    resolution); None when it cannot be read (not Linux, the process is gone)."""
+    if pid is None:
+        return None
     try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        pass
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+    except (OSError, IndexError, ValueError):
+        return None
 
 
-def _child_main(conn: multiprocessing.connection.Connection, rmpc: RmpcParams,
-                camera: CameraParams, terminal: TerminalDesign,
-                kinds: dict[str, tuple[bool, str]], parent_pid: int) -> None:
-    """The solver process: load the compiled solvers, then evaluate until told to stop."""
-    _die_with_parent()
-    if os.getppid() != parent_pid:  # the parent died before prctl took effect
-        return
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    signal.signal(signal.SIGPROF, signal.SIG_DFL)  # the CPU-time bound ends the process
-    from companion.core.rmpc_nlp import NlpSolver  # the core's solver wrapper, same cache
-
-    try:
-        solvers = {kind: NlpSolver(rmpc, camera, terminal, soft=soft, solver=name)
-                   for kind, (soft, name) in kinds.items()}
-    except Exception as exc:  # reported to the parent, which raises RmpcBuildError
-        conn.send(("failed", f"{type(exc).__name__}: {exc}"))
-        return
-    conn.send(("ready", os.getpid()))
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):  # the parent closed the pipe or died
-            return
-        if msg[0] != "solve":
-            return
-        _, kind, w0, par, lbx, ubx, hang, cpu_limit_s, stall_s = msg
-        reply: tuple[str, Any, float]
-        if cpu_limit_s > 0.0:  # SIGPROF (default action: terminate) after that much CPU
-            signal.setitimer(signal.ITIMER_PROF, cpu_limit_s)
-        try:
-            out: Any = solvers[kind].evaluate(w0, par, lbx, ubx)
-            reply = ("ok", out, time.process_time())
-        except RuntimeError as exc:
-            reply = ("error", str(exc), time.process_time())
-        if hang:  # test hook: a solver that never returns and ignores SIGTERM
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
-            while True:
-                pass
-        if stall_s > 0.0:  # test hook: a solve descheduled on a busy machine (no CPU used)
-            time.sleep(stall_s)
-        if cpu_limit_s > 0.0:
-            signal.setitimer(signal.ITIMER_PROF, 0.0)
-        conn.send(reply)
+def _context() -> Any:
+    """'forkserver' (children forked from a clean server with CasADi imported: cheap starts,
+    nothing of the companion's loop, threads or sockets inherited), else 'spawn'."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["companion.control.solver_child"])
+        return ctx
+    return multiprocessing.get_context("spawn")  # pragma: no cover - not POSIX
 
 
 def cpu_clock_wall_backstop_s(max_solve_time_s: float) -> float:
-    """With ``solve_time_clock = "cpu"``: how long (wall) the parent waits for a step's solves
-    before it kills the child anyway (a child that gets no CPU at all, or is stopped)."""
+    """How long (wall) an answer may be outstanding before the child is killed anyway (a
+    child that gets no CPU at all, or is stopped); with ``solve_time_clock = "cpu"`` also how
+    long the parent waits for a step's solves."""
     return max(10.0, 20.0 * max_solve_time_s)
+
+
+@dataclass(frozen=True)
+class _Request:
+    seq: int
+    sent_s: float  # clock
+    cpu0_s: float | None  # the child's CPU time when it was sent (/proc)
+
+
+_Child = tuple[BaseProcess, multiprocessing.connection.Connection]
 
 
 class ProcessSolveBackend:
     """Runs a :class:`~companion.core.rmpc.Rmpc`'s solves in a child process, each step's
-    solves bounded by ``max_solve_time_s`` of wall time (module docstring).
+    solves bounded by ``max_solve_time_s`` (module docstring).
 
-    ``clock``: monotonic seconds (the step's deadline). The constructor blocks until the first
-    child is ready (``start_timeout_s``), so the first step solves; it raises
-    :class:`~companion.core.rmpc.RmpcBuildError` if the child cannot load the solvers. With
-    ``defer_ready`` (what the companion uses) it returns at once and the first solve waits
-    for the first child instead (raising the same error), so the child's ~1 s of loading
-    overlaps the companion's connecting and waiting for its first frame.
+    ``recipes``: per NLP kind, what a child loads (:func:`nlp_recipes`; a kind without one is
+    built in the child). ``clock``: monotonic seconds (the step's deadline). The constructor
+    blocks until the first child is ready (``start_timeout_s``), so the first step solves; it
+    raises :class:`~companion.core.rmpc.RmpcBuildError` if the child cannot load the solvers.
+    With ``defer_ready`` (what the companion uses) it returns at once and the first solve
+    waits for the first child instead (raising the same error).
     """
 
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
                  kinds: dict[str, tuple[bool, str]], max_solve_time_s: float,
                  clock: Callable[[], float] = time.monotonic,
                  start_timeout_s: float = START_TIMEOUT_S, defer_ready: bool = False,
-                 time_clock: str = "wall", spare: bool = False) -> None:
+                 time_clock: str = "wall", spare: bool = False,
+                 recipes: dict[str, NlpRecipe | None] | None = None) -> None:
         if not (np.isfinite(max_solve_time_s) and max_solve_time_s > 0):
             raise ValueError(f"max_solve_time_s: must be finite and > 0 (got {max_solve_time_s})")
         if time_clock not in ("wall", "cpu"):
             raise ValueError(f"time_clock: {time_clock!r} is not 'wall' or 'cpu'")
-        self._args = (rmpc, camera, terminal, dict(kinds))
+        self._args = (dict(recipes or {}), (rmpc, camera, terminal), dict(kinds))
         self.max_solve_time_s = float(max_solve_time_s)
         self.time_clock = time_clock
-        # the parent's wait per step: the bound itself (wall), or only a backstop (cpu)
-        self._wait_s = (self.max_solve_time_s if time_clock == "wall"
-                        else cpu_clock_wall_backstop_s(self.max_solve_time_s))
+        self.backstop_s = cpu_clock_wall_backstop_s(self.max_solve_time_s)
+        # the parent's wait per step: the bound itself (wall), or only the backstop (cpu)
+        self._wait_s = self.max_solve_time_s if time_clock == "wall" else self.backstop_s
         self._stall_next_s = 0.0
         self._clock = clock
-        self._ctx = multiprocessing.get_context("spawn")
+        self._ctx = _context()
         self._proc: BaseProcess | None = None
         self._conn: multiprocessing.connection.Connection | None = None
         self._ready = False
         self._use_spare = bool(spare)
-        # the loaded stand-by child (started once the current one is ready) and its finalizer
-        self._spare: tuple[BaseProcess, multiprocessing.connection.Connection] | None = None
+        self._spare: _Child | None = None  # the loaded stand-by child and its finalizer
         self._spare_finalizer: weakref.finalize[Any, Any] | None = None
+        self._inflight: deque[_Request] = deque()  # sent, not answered yet (oldest first)
+        self._seq = 0
         self.promotions = 0
         """Restarts served by the warm spare (a subset of :attr:`restarts`)."""
         self._deadline = 0.0
         self._hang_next = False
         self.restarts = 0
-        """Children killed (timeout) or lost (died) and replaced since construction."""
+        """Children killed (stuck) or lost (died) and replaced since construction."""
         self.timeouts = 0
-        self._cpu_dead_s = 0.0  # CPU last reported by the children already replaced
+        """Solves abandoned at the deadline (stuck or starved)."""
+        self.starved = 0
+        """Of :attr:`timeouts`: solves that waited for a CPU; their child was kept."""
+        self.late_answers = 0
+        """Answers that came after their step had flown the fallback (discarded)."""
+        self._cpu_dead_s = 0.0  # CPU of the children already replaced
         self._cpu_live_s = 0.0  # CPU last reported by the current child
         self._start()
         self._finalizer = weakref.finalize(self, ProcessSolveBackend._stop_child, self._proc,
                                            self._conn)
+        self._start_spare()  # forked beside the first: it loads before the flight
         self._start_timeout_s = float(start_timeout_s)
-        # defer_ready: the first child loads while the companion connects and waits for its
-        # first frame (~1 s of imports and library loading); the first solve waits for it
         self._first_pending = bool(defer_ready)
         if not defer_ready:
             self._wait_first()
@@ -190,10 +189,10 @@ class ProcessSolveBackend:
             raise RmpcBuildError(f"solver process not ready within {self._start_timeout_s:g} s")
 
     # --- child lifecycle -------------------------------------------------------------------
-    def _spawn(self, name: str) -> tuple[BaseProcess, multiprocessing.connection.Connection]:
+    def _spawn(self, name: str) -> _Child:
         parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(target=_child_main, args=(child, *self._args, os.getpid()),
-                                 name=name, daemon=True)
+        proc = self._ctx.Process(target=child_main, args=(child, *self._args), name=name,
+                                 daemon=True)
         proc.start()
         child.close()
         return proc, parent
@@ -209,6 +208,7 @@ class ProcessSolveBackend:
         else:
             proc, parent = self._spawn("rmpc-solver")
         self._proc, self._conn, self._ready = proc, parent, False
+        self._inflight.clear()
         if hasattr(self, "_finalizer"):
             self._finalizer.detach()
             self._finalizer = weakref.finalize(self, ProcessSolveBackend._stop_child, proc,
@@ -236,9 +236,10 @@ class ProcessSolveBackend:
                   self._proc.pid if self._proc is not None else None,
                   f"promoting the spare (pid {self._spare[0].pid})" if self._spare is not None
                   else "starting a fresh one")
+        last = _proc_cpu_s(self.pid)  # its CPU since its last answer counts too
         self._stop_child(self._proc, self._conn)
         self.restarts += 1
-        self._cpu_dead_s += self._cpu_live_s
+        self._cpu_dead_s += max(self._cpu_live_s, last or 0.0)
         self._cpu_live_s = 0.0
         self._start(promote=True)  # the spare if there is one, else a fresh child
 
@@ -249,9 +250,14 @@ class ProcessSolveBackend:
 
     @property
     def child_cpu_s(self) -> float:
-        """CPU time (user + system, s) the solver children reported with their last results
-        (a killed child's CPU after its last result is not included)."""
+        """CPU time (user + system, s) of the solver children: as they reported with their
+        last answers, and for a killed child up to its kill."""
         return self._cpu_dead_s + self._cpu_live_s
+
+    @property
+    def busy(self) -> bool:
+        """An abandoned solve is still running in the child (its answer will be discarded)."""
+        return bool(self._inflight)
 
     @property
     def ready(self) -> bool:
@@ -286,6 +292,23 @@ class ProcessSolveBackend:
             if self._clock() >= end:
                 return False
 
+    def settle(self, timeout_s: float) -> bool:
+        """Block until no abandoned solve is outstanding (its late answer taken, or the child
+        ended by its CPU-time bound and replaced): True, or False after ``timeout_s``."""
+        end = self._clock() + timeout_s
+        while self._inflight:
+            assert self._conn is not None
+            try:
+                if self._conn.poll(max(0.0, min(0.5, end - self._clock()))):
+                    self._take(self._conn.recv())
+                    self.late_answers += 1
+            except (EOFError, OSError):
+                self._lost("settle")
+                return True
+            if self._inflight and self._clock() >= end:
+                return False
+        return True
+
     def close(self) -> None:
         for conn in (self._conn, self._spare[1] if self._spare is not None else None):
             if conn is not None:
@@ -309,12 +332,39 @@ class ProcessSolveBackend:
 
     def stall_next_solve(self, seconds: float) -> None:
         """Test hook: the child's next solve sleeps ``seconds`` (no CPU) before answering, as
-        a solve descheduled on a busy machine."""
+        a solve waiting for a CPU on a machine short of it."""
         self._stall_next_s = float(seconds)
 
     def evaluate(self, kind: str, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
                  ubx: np.ndarray) -> Evaluation:
-        if self._first_pending:  # the first child: wait for it (a failure is a start failure)
+        self._check_ready()
+        assert self._conn is not None
+        try:
+            self._collect()
+            self._check_stuck(kind)
+            remaining = self._deadline - self._clock()
+            if remaining <= 0.0:
+                self.timeouts += 1
+                raise SolveAborted(f"timeout: no time left for the {kind} solve within "
+                                   f"rmpc.max_solve_time_s = {self.max_solve_time_s:g} s")
+            seq = self._send(kind, w0, par, lbx, ubx)
+            msg = self._await(seq)
+        except (EOFError, OSError) as exc:
+            raise self._lost(kind) from exc
+        if msg is None:
+            raise self._overrun(kind)
+        status, _, payload, _ = msg
+        if status == "error":
+            raise RuntimeError(payload)
+        flag, stats, x, f, g = payload
+        return int(flag), dict(stats), np.asarray(x, dtype=float), float(f), \
+            np.asarray(g, dtype=float)
+
+    # --- the parts of a solve -------------------------------------------------------------
+    def _check_ready(self) -> None:
+        """The first child (a failure is a start failure), or a restarted one (its steps fly
+        the fallback until it is ready)."""
+        if self._first_pending:
             self._first_pending = False
             self._wait_first()
             self._deadline = self._clock() + self._wait_s
@@ -325,43 +375,118 @@ class ProcessSolveBackend:
             raise SolveAborted(f"solver restarting: {exc}") from exc
         if not ready:
             raise SolveAborted("solver restarting (after a timeout): terminal law meanwhile")
-        remaining = self._deadline - self._clock()
-        if remaining <= 0.0:
+
+    def _take(self, msg: tuple[Any, ...]) -> tuple[Any, ...]:
+        """Book an answer: the oldest request is done; its child's CPU so far."""
+        while self._inflight and self._inflight[0].seq != msg[1]:
+            self._inflight.popleft()  # (answers come in order: nothing is skipped)
+        if self._inflight:
+            self._inflight.popleft()
+        self._cpu_live_s = float(msg[3])
+        return msg
+
+    def _collect(self) -> None:
+        """Take the late answers that have arrived for abandoned solves (no wait)."""
+        assert self._conn is not None
+        while self._inflight and self._conn.poll(0.0):
+            self._take(self._conn.recv())
+            self.late_answers += 1
+
+    def _check_stuck(self, kind: str) -> None:
+        """An abandoned solve still running past the CPU-time bound or the wall backstop: the
+        child is stuck (or stopped): replace it; this step flies the fallback."""
+        if not self._inflight:
+            return
+        req = self._inflight[0]
+        cpu = _proc_cpu_s(self.pid)
+        used = None if cpu is None or req.cpu0_s is None else cpu - req.cpu0_s
+        waited = self._clock() - req.sent_s
+        if waited >= self.backstop_s or (used is not None and used >= self.max_solve_time_s):
             self.timeouts += 1
-            raise SolveAborted(f"timeout: no time left for the {kind} solve within "
-                               f"rmpc.max_solve_time_s = {self.max_solve_time_s:g} s")
+            why = (f"an abandoned solve still running after {waited:.1f} s ("
+                   f"{'?' if used is None else f'{used:.2f}'} s of CPU)")
+            self._restart(why)
+            raise SolveAborted(f"timeout: {why} (solver process restarted; {kind} solve not "
+                               "sent)")
+
+    def _send(self, kind: str, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
+              ubx: np.ndarray) -> int:
         assert self._conn is not None
         hang, self._hang_next = self._hang_next, False
         stall, self._stall_next_s = self._stall_next_s, 0.0
-        cpu_limit = self.max_solve_time_s if self.time_clock == "cpu" else 0.0
-        try:
-            self._conn.send(("solve", kind, w0, par, lbx, ubx, hang, cpu_limit, stall))
-            if not self._conn.poll(remaining):
-                self.timeouts += 1
-                what = ("s" if self.time_clock == "wall" else
-                        f"s of CPU: no answer within the {self._wait_s:g} s wall backstop")
-                self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} {what}")
-                raise SolveAborted(f"timeout: {kind} solve exceeded rmpc.max_solve_time_s = "
-                                   f"{self.max_solve_time_s:g} {what} (solver process restarted)")
-            status, payload, self._cpu_live_s = self._conn.recv()
-        except (EOFError, OSError) as exc:
-            assert self._proc is not None
-            self._proc.join(1.0)  # the exit code says whether the CPU-time bound ended it
-            code = self._proc.exitcode
-            if self.time_clock == "cpu" and code == -signal.SIGPROF:
-                self.timeouts += 1
-                self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} s of CPU")
-                raise SolveAborted(f"timeout: {kind} solve exceeded rmpc.max_solve_time_s = "
-                                   f"{self.max_solve_time_s:g} s of CPU (solver process "
-                                   "restarted)") from exc
-            self._restart(f"lost (exit code {code})")
-            raise SolveAborted(f"solver process lost during the {kind} solve (exit code "
-                               f"{code}; restarted)") from exc
-        if status == "error":
-            raise RuntimeError(payload)
-        flag, stats, x, f, g = payload
-        return int(flag), dict(stats), np.asarray(x, dtype=float), float(f), \
-            np.asarray(g, dtype=float)
+        self._seq += 1
+        self._inflight.append(_Request(self._seq, self._clock(), _proc_cpu_s(self.pid)))
+        self._conn.send(("solve", self._seq, kind, w0, par, lbx, ubx, hang,
+                         self.max_solve_time_s, stall))
+        return self._seq
+
+    def _await(self, seq: int) -> tuple[Any, ...] | None:
+        """The answer to request ``seq`` by the step's deadline (earlier requests' late
+        answers are taken and discarded on the way), else None."""
+        assert self._conn is not None
+        while True:
+            remaining = self._deadline - self._clock()
+            if remaining <= 0.0 or not self._conn.poll(remaining):
+                return None
+            msg = self._take(self._conn.recv())
+            if msg[1] == seq:
+                return msg
+            self.late_answers += 1
+
+    def _overrun(self, kind: str) -> SolveAborted:
+        """No answer by the deadline: stuck (killed, replaced) or starved (kept)."""
+        self.timeouts += 1
+        bound = f"rmpc.max_solve_time_s = {self.max_solve_time_s:g} s"
+        if self.time_clock == "cpu":  # the backstop passed: no CPU at all, or stopped
+            self._restart(f"{kind} solve: no answer within the {self._wait_s:g} s wall backstop")
+            return SolveAborted(f"timeout: {kind} solve exceeded {bound} of CPU: no answer "
+                                f"within the {self._wait_s:g} s wall backstop (solver process "
+                                "restarted)")
+        req = self._inflight[0]
+        cpu = _proc_cpu_s(self.pid)
+        used = None if cpu is None or req.cpu0_s is None else cpu - req.cpu0_s
+        if used is None or used >= HUNG_CPU_SHARE * self.max_solve_time_s:
+            self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} s")
+            return SolveAborted(f"timeout: {kind} solve exceeded {bound} (solver process "
+                                "restarted)")
+        self.starved += 1
+        log.warning("RMPC %s solve not answered within %s, %.3f s of CPU used: waiting for a "
+                    "CPU, solver process kept (its answer will be discarded)", kind, bound, used)
+        return SolveAborted(f"timeout: {kind} solve exceeded {bound} with {used:.3f} s of CPU "
+                            "(starved: solver process kept)")
+
+    def _lost(self, kind: str) -> SolveAborted:
+        """The child's pipe ended: ended by its CPU-time bound (stuck) or died otherwise."""
+        assert self._proc is not None
+        self._proc.join(1.0)  # the exit code says whether the CPU-time bound ended it
+        code = self._proc.exitcode
+        if code == -signal.SIGPROF:
+            self.timeouts += 1
+            self._restart(f"{kind} solve exceeded {self.max_solve_time_s:g} s of CPU")
+            return SolveAborted(f"timeout: {kind} solve exceeded rmpc.max_solve_time_s = "
+                                f"{self.max_solve_time_s:g} s of CPU (solver process "
+                                "restarted)")
+        self._restart(f"lost (exit code {code})")
+        return SolveAborted(f"solver process lost during the {kind} solve (exit code {code}; "
+                            "restarted)")
+
+
+def nlp_recipes(mpc: Rmpc) -> dict[str, NlpRecipe | None]:
+    """Per NLP kind of ``mpc``, what a solver process loads: the compiled library the parent
+    built and its options (None: not compiled, ``rmpc.jit = false``; the child builds it)."""
+    out: dict[str, NlpRecipe | None] = {}
+    # the controller's compiled NLPs (hard, and the soft copy when there is one)
+    for nlp in (mpc._hard, mpc._soft):
+        if nlp is None:
+            continue
+        opts = getattr(nlp, "options", None)
+        if nlp.compiled is None or opts is None:
+            out[nlp.kind] = None
+            continue
+        out[nlp.kind] = NlpRecipe(nlp.kind, f"rmpc_{nlp.kind}", nlp.solver_name,
+                                  str(nlp.compiled.library), dict(opts), nlp.lbg.copy(),
+                                  nlp.ubg.copy(), int(nlp.solver.nnz_in(1)))
+    return out
 
 
 def process_backend(rmpc: RmpcParams, camera: CameraParams,
@@ -373,6 +498,6 @@ def process_backend(rmpc: RmpcParams, camera: CameraParams,
         return ProcessSolveBackend(rmpc, camera, terminal, mpc.solver_kinds(),
                                    rmpc.max_solve_time_s, defer_ready=True,
                                    time_clock=rmpc.solve_time_clock,
-                                   spare=rmpc.solver_spare)
+                                   spare=rmpc.solver_spare, recipes=nlp_recipes(mpc))
 
     return make

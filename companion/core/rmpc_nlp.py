@@ -70,6 +70,7 @@ class NlpSolver:
         else:
             opts |= {"ipopt": IPOPT_OPTIONS | {"max_iter": rmpc.max_iter}}
         name = f"rmpc_{self.kind}"
+        self.options = opts  # a solver process loads the same library with these (solve_guard)
         self.compiled: CompiledNlp | None = None
         if rmpc.jit:
             # the symbolic solver is built only if the source must be generated (cache miss)
