@@ -4,8 +4,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import fcntl
 import logging
 import struct
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,6 +29,9 @@ FRAME_MAGIC = b"IBVF"
 FRAME_VERSION = 1
 ENCODINGS = {0: "mono8", 1: "bgr8", 2: "jpeg", 3: "png"}
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024
+DRAIN_ROUNDS = 256
+"""Event-loop turns the consumer lets the socket be read before it takes a frame (each turn
+reads a record's header or a part of its payload)."""
 
 # ----------------------------------------------------------------------------------------------
 # The emulator's frame socket (docs/reference/wire.md)
@@ -184,6 +190,11 @@ class _RecordProtocol(asyncio.BufferedProtocol):
         self._pos = 0
         self._on_record(header, payload)
 
+    def needed_bytes(self) -> int:
+        """Bytes still to read before the part being read (a header, or the payload the
+        last header announced) is complete."""
+        return len(self._buf) - self._pos
+
     def eof_received(self) -> bool:
         return False  # close: connection_lost follows
 
@@ -227,6 +238,8 @@ class FrameSocketSource(CameraSource):
         self._max_payload = max_payload_bytes
         self._buffer: _Newest[_Record] | None = None
         self._task: asyncio.Task[None] | None = None
+        # the connection being read (None between connections): how much it holds unread
+        self._reading: tuple[_RecordProtocol, int] | None = None
         self._last_seq: int | None = None
         self.connected = asyncio.Event()
 
@@ -251,6 +264,7 @@ class FrameSocketSource(CameraSource):
             if rec is None:
                 self._raise_if_failed()
                 return None
+            rec = await self._newest(rec)
             try:
                 if rec.header.encoding in (2, 3):
                     image, enc = await asyncio.to_thread(decode_payload, rec.header, rec.payload)
@@ -268,6 +282,32 @@ class FrameSocketSource(CameraSource):
                 enc,
                 ENCODINGS[rec.header.encoding],
             )
+
+    async def _newest(self, rec: _Record) -> _Record:
+        """The newest complete record, ``rec`` or one behind it that is already in the
+        socket's receive buffer.
+
+        A consumer that was busy (a step that overran, a companion short of CPU) finds the
+        first record that completes after it waits, while newer ones sit unread in the kernel:
+        taking that one would control from an old frame and leave the newer ones to age.
+        So before a record is handed out (and decoded), the records the kernel already holds
+        in full are read first; each replaces the one before it in the newest-frame buffer
+        (counted as dropped), and only the newest is decoded."""
+        assert self._buffer is not None
+        rounds = 0
+        while self._reading is not None and rounds < DRAIN_ROUNDS:
+            proto, fd = self._reading
+            pending = _unread_bytes(fd)
+            if pending <= 0 or pending < proto.needed_bytes():
+                break  # nothing more, or only part of a record that is still arriving
+            if rounds == 0:
+                self._buffer.put(rec)  # back in the buffer: a newer record replaces it
+            await asyncio.sleep(0)  # one loop turn: the protocol reads what is there
+            rounds += 1
+        if rounds == 0:
+            return rec
+        newest = await self._buffer.get()
+        return rec if newest is None else newest
 
     async def _run(self) -> None:
         delay = self._backoff[0]
@@ -287,6 +327,8 @@ class FrameSocketSource(CameraSource):
                 delay = min(2 * delay, self._backoff[1])
                 continue
             self._count("connects")
+            sock = transport.get_extra_info("socket")
+            self._reading = (proto, sock.fileno()) if sock is not None else None
             self.connected.set()
             _log.info("frame socket connected to %s:%d", self.host, self.port)
             resync = False
@@ -296,6 +338,7 @@ class FrameSocketSource(CameraSource):
                 self._count("disconnects")
                 _log.warning("frame socket %s:%d lost: %s", self.host, self.port, exc)
             finally:
+                self._reading = None
                 self.connected.clear()
                 transport.close()
             if resync:
@@ -322,3 +365,10 @@ class FrameSocketSource(CameraSource):
         self._last_seq = header.seq
         if self._buffer.put(_Record(header, payload, t_rx_ns)):
             self._count("frames_dropped")
+
+
+def _unread_bytes(fd: int) -> int:
+    """Bytes received on socket ``fd`` and not read yet (FIONREAD; 0 when unknown)."""
+    with contextlib.suppress(OSError):
+        return int(struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0])
+    return 0

@@ -187,6 +187,53 @@ def test_slow_consumer_gets_the_newest_frame_and_drops_are_counted() -> None:
     assert stats.frames_delivered == 1
 
 
+def test_a_busy_consumer_takes_the_newest_frame_the_kernel_holds_not_the_first() -> None:
+    """The loop was blocked (a step that overran) while frames arrived: they sit unread in the
+    socket's receive buffer. The next frame handed out is the newest of them, and only it is
+    decoded: not the first record to complete once the loop reads again."""
+    import socket
+    import threading
+    import time
+
+    n = 12
+    records = [pack_frame(seq, seq * 50_000, _image(seq)) for seq in range(n)]
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    go, sent = threading.Event(), threading.Event()
+    conns: list[socket.socket] = []
+
+    def serve() -> None:
+        conn, _ = listener.accept()
+        conns.append(conn)
+        go.wait(20.0)
+        conn.sendall(b"".join(records))  # ~37 kB: fits the kernel's buffers at once
+        sent.set()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+
+    async def main() -> tuple[CameraFrame, Any]:
+        async with FrameSocketSource("127.0.0.1", port, queue_size=1) as cam:
+            await asyncio.wait_for(cam.connected.wait(), 10.0)
+            go.set()
+            assert sent.wait(10.0)  # blocks the event loop: nothing is read meanwhile
+            time.sleep(0.1)  # (loopback delivery)
+            frame = await anext(cam)
+            return frame, cam.stats
+
+    try:
+        frame, stats = run(main())
+    finally:
+        for c in conns:
+            c.close()
+        listener.close()
+        thread.join(5.0)
+    assert frame.seq == n - 1
+    np.testing.assert_array_equal(frame.image, _image(n - 1))
+    assert stats.frames_received == n and stats.frames_dropped == n - 1
+    assert stats.frames_delivered == 1
+
+
 def test_seq_gaps_upstream_are_counted() -> None:
     async def script(i: int, w: asyncio.StreamWriter) -> None:
         for seq in (10, 11, 15, 16):
