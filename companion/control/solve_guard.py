@@ -4,12 +4,9 @@ replaced (``rmpc.solve_isolation = "process"``).
 
 Why a process: a compiled CasADi solver is one C call. A solver that never returns (seen:
 fatrop's restoration phase looping at 100 % CPU, ``max_iter`` not bounding it) cannot be
-interrupted from Python in the same process: signal handlers do not run inside the call, and a
-worker thread (CasADi releases the GIL, so a thread would keep the loop alive) can be abandoned
-but never stopped, so it would burn one of the companion computer's cores for good. A child
-process can be killed (SIGKILL) and replaced. fatrop has no time option at all
-(``max_wall_time``/``max_cpu_time`` are refused as unsupported options); ipopt has them but
-they are checked only between iterations. docs/reference/reliability.md has the measurements.
+interrupted from Python in the same process (no signal handler runs inside the call; a worker
+thread can be abandoned, never stopped); a child process can be killed and replaced. fatrop has
+no time option; ipopt's are checked only between iterations (docs/reference/reliability.md).
 
 The child (:mod:`companion.control.solver_child`, forked from a server process that has
 CasADi loaded) loads the compiled libraries the parent built and answers each solve over a
@@ -39,8 +36,7 @@ waits, loaded; a killed or lost child is replaced by it, so the next step solves
 flying the fallback while a fresh child loads; a new spare is started once the promoted one is
 ready.
 
-The parent never blocks longer than the step's bound (wall) or the backstop (cpu), so
-SIGTERM/SIGINT are served by the event loop at the next step boundary.
+The parent never blocks longer than the step's bound (wall) or the backstop (cpu).
 """
 
 from __future__ import annotations
