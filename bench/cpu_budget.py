@@ -207,8 +207,8 @@ def _wait_idle(quota: CpuQuota, comp: subprocess.Popen[bytes], budget_s: float,
     loading its libraries, ~3 s of CPU, then ~0.002 core measured while it waits for the
     vehicle; the ready file only says its sockets are open). The flight then starts from a
     loaded companion, as on a vehicle, where it starts before the pilot hands it the vehicle.
-    The stand-by solver process (``rmpc.solver_spare``) is started after the first solve: it
-    loads during the flight, as on a vehicle. Returns the idle use (cores), None when
+    The stand-by solver process (``rmpc.solver_spare``) is forked beside the first one, so it
+    has loaded by then too, as on a vehicle. Returns the idle use (cores), None when
     ``budget_s`` passed first or usage cannot be read."""
     assert quota.fraction is not None
     t_end = time.monotonic() + budget_s
