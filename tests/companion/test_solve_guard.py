@@ -7,6 +7,7 @@ again; SIGTERM stops a companion whose solver is stuck. Real CasADi in a real ch
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import signal
@@ -398,3 +399,57 @@ def test_sigterm_stops_a_companion_whose_solve_is_stuck() -> None:
     assert lines[-1] == ["stopped"]
     assert _gone(stuck)
     assert all(_gone(int(s[-1])) for s in steps)
+
+
+KILL_SCRIPT = textwrap.dedent("""
+    import dataclasses, os, time
+    import numpy as np
+    from companion.config import load_config
+    from companion.control.solve_guard import process_backend
+    from companion.core.design import design_terminal
+    from companion.core.rmpc import Rmpc, TargetMotion
+
+    cfg = load_config()
+    # a CPU-time bound the stuck solve will not reach: only the companion's death can end it
+    p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process", solver_spare=True,
+                            max_solve_time_s=600.0)
+    d = design_terminal(p, cfg.camera)
+    m = Rmpc(p, cfg.camera, d, backend=process_backend(p, cfg.camera, d))
+    b = m.backend
+    assert b.wait_ready(120.0) and b._spare[1].poll(120.0)
+    eta0 = np.array([0.0159, -0.2230, 0.6, 0.3927, -0.1307, -0.0541, 0.0])
+    tm = TargetMotion.constant([0.1, 0.0], [0.0, 0.0], 0.0, p.horizon)
+    lbx, ubx = m._hard.bounds(eta0, tm)
+    b.hang_next_solve()  # sent, not waited for: the child solves, then spins
+    b._send("hard", np.zeros(len(lbx)), np.append(tm.packed(), eta0[3]), lbx, ubx)
+    kids = [int(x) for x in os.popen(f"pgrep -P {os.getpid()}").read().split()]
+    print("pids", b.pid, b._spare[0].pid, *kids, flush=True)
+    time.sleep(600)
+""")
+
+
+def test_no_solver_process_outlives_a_killed_companion() -> None:
+    """The children are forked from a fork server: when the companion is SIGKILLed the server
+    sees its end of the keep-alive pipe close and exits, and the children's parent-death
+    signal ends them, a child stuck in a solve (reading no pipe) too (a child holding the
+    server's pipe would keep both alive)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", KILL_SCRIPT], cwd=ROOT, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None
+    line = proc.stdout.readline().split()
+    assert line and line[0] == "pids", proc.stderr.read() if proc.stderr else ""
+    pids = [int(x) for x in line[1:]]
+    assert len(set(pids)) >= 3  # the solver, the spare, the fork server (and its tracker)
+    proc.kill()
+    proc.communicate(timeout=60)  # (and closes the pipes)
+    import time
+
+    end = time.monotonic() + READY_S
+    while time.monotonic() < end and not all(_gone(p) for p in pids):
+        time.sleep(0.1)
+    left = [p for p in pids if not _gone(p)]
+    for p in left:  # a failure leaves nothing spinning behind
+        with contextlib.suppress(OSError):
+            os.kill(p, signal.SIGKILL)
+    assert left == []
