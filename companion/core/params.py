@@ -190,12 +190,13 @@ class RmpcParams:
     # key: companion.config fills it from [target] (used by visibility = "corners").
     target_corners_m: tuple[tuple[float, float], ...] = ()
     # Where the NLP solves run (docs/reference/reliability.md): "process" (a child process the shell
-    # kills and restarts when a solve exceeds max_solve_time_s: a solver that never returns
-    # cannot freeze the control loop) or "none" (in the calling thread, unbounded: tests,
-    # offline tools). The core itself only runs "none"; the shell builds the child.
+    # kills and replaces when a solve is stuck, i.e. runs past max_solve_time_s on the CPU: a
+    # solver that never returns cannot freeze the control loop) or "none" (in the calling thread,
+    # unbounded: tests, offline tools). The core itself only runs "none"; the shell builds it.
     solve_isolation: str = "none"
     # Wall-time bound of one RMPC step's solves (hard problem plus soft copy), seconds. A step
-    # that exceeds it is abandoned and flies the terminal law ('fallback', status 'timeout').
+    # that exceeds it is abandoned and flies the terminal law ('fallback', status 'timeout'); a
+    # solve that waited for the CPU keeps its solver process ('starved'), a stuck one does not.
     max_solve_time_s: float = field(default=0.25, metadata=checked(positive))
     # What max_solve_time_s counts: "wall" (real time: on a vehicle a late command is a missed
     # deadline) or "cpu" (the solver process's own CPU time, per solve: a lockstep simulation
