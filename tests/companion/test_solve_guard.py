@@ -453,3 +453,44 @@ def test_no_solver_process_outlives_a_killed_companion() -> None:
         with contextlib.suppress(OSError):
             os.kill(p, signal.SIGKILL)
     assert left == []
+
+
+def test_a_child_that_gets_no_cpu_at_all_is_replaced_after_the_backstop(
+        cfg: Config, design: TerminalDesign) -> None:
+    """A stopped child (SIGSTOP: no CPU at all, as a solver that is never scheduled) looks
+    starved at the deadline and is kept; once its answer has been outstanding for the wall
+    backstop it is killed and replaced. The backstop is reached on the backend's own clock
+    (advanced here), not waited for."""
+    from companion.control.solve_guard import nlp_recipes
+
+    now = [1000.0]
+    p = dataclasses.replace(cfg.rmpc, solver="nlp", solve_isolation="process",
+                            solver_spare=False)
+
+    def make(m: Rmpc) -> ProcessSolveBackend:
+        return ProcessSolveBackend(p, cfg.camera, design, m.solver_kinds(),
+                                   p.max_solve_time_s, clock=lambda: now[0],
+                                   recipes=nlp_recipes(m))
+
+    m = Rmpc(p, cfg.camera, design, backend=make)
+    try:
+        backend = _backend(m)
+        assert m.solve(ETA0, _motion(cfg)).mode == "optimal"
+        stopped = backend._proc
+        assert stopped is not None and stopped.pid is not None
+        os.kill(stopped.pid, signal.SIGSTOP)
+        res = m.solve(ETA0, _motion(cfg))  # the frozen clock: the poll waits the bound once
+        _finite_fallback(res, cfg)
+        assert "starved: solver process kept" in res.status
+        assert backend.pid == stopped.pid and backend.restarts == 0
+        now[0] += backend.backstop_s
+        res = m.solve(ETA0, _motion(cfg))
+        _finite_fallback(res, cfg)
+        assert res.status.startswith("timeout: an abandoned solve still running after")
+        stopped.join(READY_S)
+        assert stopped.exitcode == -signal.SIGKILL
+        assert backend.restarts == 1 and backend.pid != stopped.pid
+        assert backend.wait_ready(READY_S)
+        assert m.solve(ETA0, _motion(cfg)).mode == "optimal"
+    finally:
+        m.close()
