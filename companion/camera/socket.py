@@ -292,10 +292,11 @@ class FrameSocketSource(CameraSource):
         taking that one would control from an old frame and leave the newer ones to age.
         So before a record is handed out (and decoded), the records the kernel already holds
         in full are read first; each replaces the one before it in the newest-frame buffer
-        (counted as dropped), and only the newest is decoded."""
+        (counted as dropped), and only the newest is decoded. With ``queue_size`` > 1 the
+        consumer asked for a queue of frames in order: ``rec`` as it is."""
         assert self._buffer is not None
         rounds = 0
-        while self._reading is not None and rounds < DRAIN_ROUNDS:
+        while self._reading is not None and rounds < DRAIN_ROUNDS and self._queue_size == 1:
             proto, fd = self._reading
             pending = _unread_bytes(fd)
             if pending <= 0 or pending < proto.needed_bytes():
