@@ -121,30 +121,46 @@ class ValueLimits:
     )
 
 
-def _floats(v: Any) -> list[float]:
-    if isinstance(v, float):
-        return [v]
-    if isinstance(v, list | tuple):
-        return [x for x in v if isinstance(x, float)]
-    return []
+def _all_finite(fields: Mapping[str, Any], skip: frozenset[str] | set[str]) -> bool:
+    # one sum per field: NaN and inf survive a sum, so a finite sum clears every float in it
+    # (the rare non-finite sum of finite huge values is then checked value by value)
+    for fname, v in fields.items():
+        if fname in skip:
+            continue
+        if isinstance(v, float):
+            if not math.isfinite(v):
+                return False
+        elif isinstance(v, list):
+            xs = [x for x in v if isinstance(x, float)]
+            if xs and not math.isfinite(sum(xs)) and not all(math.isfinite(x) for x in xs):
+                return False
+    return True
 
 
 def check_values(msg: Any, limits: ValueLimits) -> str | None:
-    """Reason a decoded message is implausible (``non_finite``, ``quaternion_norm``, ``speed``,
+    """:func:`check_fields` of a pymavlink message."""
+    from companion.link.messages import message_fields
+
+    return check_fields(msg.get_type(), message_fields(msg), limits)
+
+
+def check_fields(name: str, fields: Mapping[str, Any], limits: ValueLimits) -> str | None:
+    """Reason a decoded message (``fields`` as :func:`~companion.link.messages.message_fields`
+    gives them) is implausible (``non_finite``, ``quaternion_norm``, ``speed``,
     ``angular_rate``), or None when it is fine."""
-    name = msg.get_type()
-    allowed = set(limits.nan_allowed.get(name, frozenset()))
+    allowed = limits.nan_allowed.get(name, frozenset())
     if name == "FOLLOW_TARGET":
-        caps = int(msg.est_capabilities)
+        caps = int(fields["est_capabilities"])
+        allowed = set(allowed)
         for bit, names in _FT_CAP_FIELDS.items():
             if not caps & (1 << bit):
                 allowed.update(names)
-    for fname in msg.get_fieldnames():
-        if fname in allowed:
-            continue
-        if not all(math.isfinite(x) for x in _floats(getattr(msg, fname))):
-            return "non_finite"
+    if not _all_finite(fields, allowed):
+        return "non_finite"
+    return _plausible(name, fields, limits)
 
+
+def _plausible(name: str, f: Mapping[str, Any], limits: ValueLimits) -> str | None:
     def qbad(q: Sequence[float]) -> bool:
         return abs(math.sqrt(sum(x * x for x in q)) - 1.0) > limits.quat_norm_tol
 
@@ -152,26 +168,25 @@ def check_values(msg: Any, limits: ValueLimits) -> str | None:
         return math.sqrt(sum(x * x for x in v)) > lim
 
     if name == "ATTITUDE_QUATERNION":
-        if qbad((msg.q1, msg.q2, msg.q3, msg.q4)):
+        if qbad((f["q1"], f["q2"], f["q3"], f["q4"])):
             return "quaternion_norm"
-        if too_fast((msg.rollspeed, msg.pitchspeed, msg.yawspeed), limits.max_rate_rad_s):
+        if too_fast((f["rollspeed"], f["pitchspeed"], f["yawspeed"]), limits.max_rate_rad_s):
             return "angular_rate"
     elif name == "ATTITUDE":
-        if too_fast((msg.rollspeed, msg.pitchspeed, msg.yawspeed), limits.max_rate_rad_s):
+        if too_fast((f["rollspeed"], f["pitchspeed"], f["yawspeed"]), limits.max_rate_rad_s):
             return "angular_rate"
-    elif name == "ATTITUDE_TARGET" and qbad(msg.q):
+    elif name == "ATTITUDE_TARGET" and qbad(f["q"]):
         return "quaternion_norm"
     elif name == "LOCAL_POSITION_NED":
-        if too_fast((msg.vx, msg.vy, msg.vz), limits.max_speed_m_s):
+        if too_fast((f["vx"], f["vy"], f["vz"]), limits.max_speed_m_s):
             return "speed"
     elif name == "FOLLOW_TARGET":
-        caps = int(msg.est_capabilities)
-        if caps & 2 and too_fast(msg.vel, limits.max_speed_m_s):
+        caps = int(f["est_capabilities"])
+        if caps & 2 and too_fast(f["vel"], limits.max_speed_m_s):
             return "speed"
         if caps & 8:
-            if qbad(msg.attitude_q):
+            if qbad(f["attitude_q"]):
                 return "quaternion_norm"
-            if too_fast(msg.rates, limits.max_rate_rad_s):
+            if too_fast(f["rates"], limits.max_rate_rad_s):
                 return "angular_rate"
     return None
-

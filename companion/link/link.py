@@ -368,6 +368,11 @@ class MavlinkLink(LinkCommands):
         if why is not None:
             self._rx.reject(why, data, t)
             return
+        rx = self._rx.accept_datagram(data, t, addr)  # one frame: no parser (wire.py)
+        if rx is not False:
+            if rx is not None:
+                self._accepted(rx, t, addr)
+            return
         # reset per datagram: one bad datagram cannot poison others
         parser = reset_parser(self._dgram_parser)
         for m in self._parse(parser, data):
@@ -414,8 +419,10 @@ class MavlinkLink(LinkCommands):
 
     def _handle(self, m: Any, t_ns: int, addr: Any) -> None:
         rx = self._rx.accept(m, t_ns, addr)
-        if rx is None:
-            return
+        if rx is not None:
+            self._accepted(rx, t_ns, addr)
+
+    def _accepted(self, rx: Received, t_ns: int, addr: Any) -> None:
         sysid, compid = rx.src_sysid, rx.src_compid
         is_autopilot = sysid == self.target_system and (
             self.target_component == 0 or compid == self.target_component)

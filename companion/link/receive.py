@@ -18,13 +18,14 @@ stream's timestamp (as the C library does).
 from __future__ import annotations
 
 import logging
-from collections import Counter, deque
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.link.filters import AllowRule, ValueLimits, check_values
+from companion.link import wire
+from companion.link.filters import AllowRule, ValueLimits, check_fields
 from companion.link.guard import GuardParams, SourceGuard
 from companion.link.messages import Received, message_fields
 from companion.link.px4 import MAVLINK2_MAGIC
@@ -73,7 +74,7 @@ class ReceivePath:
         self.on_reject = on_reject
         self._reject_tokens = 5.0 * params.reject_log_per_s  # 5 s burst
         self._t_reject_ns = 0
-        self._recent: dict[tuple[int, int], deque[bytes]] = {}
+        self._recent: dict[tuple[int, int], OrderedDict[bytes, None]] = {}
 
     def reject(self, reason: str, raw: bytes, t_ns: int) -> None:
         self.counters[reason] += 1
@@ -130,13 +131,49 @@ class ReceivePath:
             return None
         sysid, compid, msgid = m.get_srcSystem(), m.get_srcComponent(), m.get_msgId()
         if not self.allowed(sysid, compid, msgid):
+            self._not_allowed(sysid, compid, raw, t_ns)
+            return None
+        signed = bool(raw[2] & mavlink2.MAVLINK_IFLAG_SIGNED)
+        return self._checked(m, raw, name, sysid, compid, msgid, m.get_seq(), signed,
+                             message_fields(m), t_ns, addr)
+
+    def accept_datagram(self, data: bytes, t_ns: int,
+                        addr: tuple[str, int] | None) -> Received | None | bool:
+        """The fast path (:mod:`companion.link.wire`) for a datagram holding one MAVLink 2
+        frame: a :class:`Received`, ``None`` when it is rejected or unused (counted), or
+        ``False`` when the robust parser must read it (not one frame, an unknown msgid, a bad
+        CRC, a source no rule knows: the parser's path gives the reason it always gave). A
+        message nothing uses is counted from its header alone, its CRC unchecked: it is never
+        decoded, delivered or acted on."""
+        h = wire.single_frame_header(data)
+        if h is None:
+            return False
+        sysid, compid, msgid = h.sysid, h.compid, h.msgid
+        if not self.allowed(sysid, compid, msgid):
             if self.from_known_system(sysid, compid):
-                # PX4's own streams we do not use (an onboard link carries dozens: HIGHRES_IMU,
-                # ODOMETRY, VFR_HUD, ...): counted, never delivered, not logged as an attack
                 self.counters["unused"] += 1
                 return None
-            self.reject("not_whitelisted", raw, t_ns)
-            return None
+            return False
+        s = wire.spec(msgid)
+        if s is None or not wire.crc_ok(data, h, s):
+            return False
+        fields = wire.decode_fields(data, h, s)
+        return self._checked(wire.LazyMessage(data), data, s.name, sysid, compid, msgid, h.seq,
+                             h.signed, fields, t_ns, addr)
+
+    def _not_allowed(self, sysid: int, compid: int, raw: bytes, t_ns: int) -> None:
+        if self.from_known_system(sysid, compid):
+            # PX4's own streams we do not use (an onboard link carries dozens: HIGHRES_IMU,
+            # ODOMETRY, VFR_HUD, ...): counted, never delivered, not logged as an attack
+            self.counters["unused"] += 1
+            return
+        self.reject("not_whitelisted", raw, t_ns)
+
+    def _checked(self, msg: Any, raw: bytes, name: str, sysid: int, compid: int, msgid: int,
+                 seq: int, signed: bool, fields: dict[str, Any], t_ns: int,
+                 addr: tuple[str, int] | None) -> Received | None:
+        """The checks after decoding (source address, signature, duplicate, values), in
+        order, for both paths."""
         if not self.guard.frame_source_ok(sysid, compid, addr, t_ns):
             self.reject("spoofed_source", raw, t_ns)
             return None
@@ -144,18 +181,20 @@ class ReceivePath:
         if why is not None:
             self.reject(why, raw, t_ns)
             return None
-        recent = self._recent.setdefault((sysid, compid), deque(maxlen=_DEDUP_WINDOW))
+        recent = self._recent.get((sysid, compid))
+        if recent is None:
+            recent = self._recent[(sysid, compid)] = OrderedDict()
         if raw in recent:
             self.reject("duplicate", raw, t_ns)
             return None
-        why = check_values(m, self.limits)
+        why = check_fields(name, fields, self.limits)
         if why is not None:
             self.reject(why, raw, t_ns)
             return None
-        recent.append(raw)
+        recent[raw] = None
+        if len(recent) > _DEDUP_WINDOW:
+            recent.popitem(last=False)
         return Received(
-            msg=m, raw=raw, t_rx_ns=t_ns, src_sysid=sysid, src_compid=compid, msgid=msgid,
-            name=name, seq=m.get_seq(),
-            signed=self.verifier is not None and bool(raw[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
-            fields=message_fields(m),
+            msg=msg, raw=raw, t_rx_ns=t_ns, src_sysid=sysid, src_compid=compid, msgid=msgid,
+            name=name, seq=seq, signed=self.verifier is not None and signed, fields=fields,
         )

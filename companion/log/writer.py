@@ -20,8 +20,8 @@ are NOT copied: do not mutate them after handing them over.
 from __future__ import annotations
 
 import logging
+import collections
 import math
-import queue
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -127,7 +127,11 @@ class McapLogger(WriterThread):
         self.fsync_time_s = 0.0  # wall time spent in them (writer thread, never the loop)
         self._jpeg_quality = jpeg_quality
         self._extra = {k: dict(v) for k, v in (extra_schemas or {}).items()}
-        self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        # a plain deque, not queue.Queue: an append wakes no one (the writer thread polls it
+        # every POLL_S and drains it in one go), so a record costs its caller ~1 us, not a
+        # lock, a notify and a thread switch (see WriterThread)
+        self._q: collections.deque[Any] = collections.deque()
+        self._wake = threading.Event()  # close, or a queue half full: drain now
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)  # image backlog below the byte budget
         self._topics: dict[str, str] = {}
@@ -191,12 +195,8 @@ class McapLogger(WriterThread):
             self._closed = True
             self._space.notify_all()
         assert self._thread is not None
-        while self._thread.is_alive():
-            try:
-                self._q.put(STOP, timeout=0.1)
-                break
-            except queue.Full:
-                continue
+        self._q.append(STOP)
+        self._wake.set()
         self._thread.join()
         if self._failure is not None and raise_on_failure:
             raise McapLogError(f"MCAP writer failed: {self._failure!r}") from self._failure
@@ -427,9 +427,8 @@ class McapLogger(WriterThread):
             with self._lock:
                 self._dropped += 1
             return False
-        try:
-            self._q.put_nowait(item)
-        except queue.Full:
+        q = self._q
+        if len(q) >= self.queue_size:
             now = time.monotonic()
             with self._lock:
                 self._dropped += 1
@@ -442,6 +441,9 @@ class McapLogger(WriterThread):
                     "MCAP log queue full (%d): %d items dropped so far", self.queue_size, dropped
                 )
             return False
+        q.append(item)
+        if len(q) * 2 >= self.queue_size:
+            self._wake.set()
         with self._lock:
             self._enqueued += 1
         return True
