@@ -75,6 +75,7 @@ class ReceivePath:
         self._reject_tokens = 5.0 * params.reject_log_per_s  # 5 s burst
         self._t_reject_ns = 0
         self._recent: dict[tuple[int, int], OrderedDict[bytes, None]] = {}
+        self._allowed: dict[tuple[int, int, int], bool] = {}  # the rules' answers, memoised
 
     def reject(self, reason: str, raw: bytes, t_ns: int) -> None:
         self.counters[reason] += 1
@@ -96,10 +97,14 @@ class ReceivePath:
         return any(s == sysid and (c is None or c == compid) for s, c, _ in self.rules)
 
     def allowed(self, sysid: int, compid: int, msgid: int) -> bool:
-        for s, c, ids in self.rules:
-            if s == sysid and (c is None or c == compid) and (ids is None or msgid in ids):
-                return True
-        return False
+        key = (sysid, compid, msgid)
+        ok = self._allowed.get(key)
+        if ok is None:
+            ok = any(s == sysid and (c is None or c == compid) and (ids is None or msgid in ids)
+                     for s, c, ids in self.rules)
+            if len(self._allowed) < 65536:  # bounded: a flood of made-up ids cannot grow it
+                self._allowed[key] = ok
+        return ok
 
     def _framing(self, name: str, raw: bytes) -> str | None:
         if name == "BAD_DATA":

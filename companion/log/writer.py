@@ -135,6 +135,7 @@ class McapLogger(WriterThread):
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)  # image backlog below the byte budget
         self._topics: dict[str, str] = {}
+        self._mav_topics: dict[tuple[str, str], str] = {}  # (direction, name) -> registered topic
         self._enqueued = self._written = self._flushed = self._dropped = self._errors = 0
         self._last_warn = -math.inf
         self._last_err_warn = -math.inf
@@ -377,8 +378,11 @@ class McapLogger(WriterThread):
         if direction not in ("in", "out"):
             raise McapLogError(f"direction {direction!r} is not 'in' or 'out'")
         t_link = item.t_rx_ns if direction == "in" else item.t_tx_ns
-        topic = f"/mavlink/{direction}/{item.name}"
-        self._ensure_topic(topic, sch.MAVLINK_PREFIX + item.name)
+        topic = self._mav_topics.get((direction, item.name))
+        if topic is None:
+            topic = f"/mavlink/{direction}/{item.name}"
+            self._ensure_topic(topic, sch.MAVLINK_PREFIX + item.name)
+            self._mav_topics[(direction, item.name)] = topic
         t = int(t_link if log_time_ns is None else log_time_ns)
         return self._put(("mavlink", topic, t, None, (direction, item)))
 
