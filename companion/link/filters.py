@@ -148,7 +148,7 @@ def check_fields(name: str, fields: Mapping[str, Any], limits: ValueLimits) -> s
     """Reason a decoded message (``fields`` as :func:`~companion.link.messages.message_fields`
     gives them) is implausible (``non_finite``, ``quaternion_norm``, ``speed``,
     ``angular_rate``), or None when it is fine."""
-    allowed = limits.nan_allowed.get(name, frozenset())
+    allowed: frozenset[str] | set[str] = limits.nan_allowed.get(name, frozenset())
     if name == "FOLLOW_TARGET":
         caps = int(fields["est_capabilities"])
         allowed = set(allowed)

@@ -369,9 +369,10 @@ class MavlinkLink(LinkCommands):
             self._rx.reject(why, data, t)
             return
         rx = self._rx.accept_datagram(data, t, addr)  # one frame: no parser (wire.py)
-        if rx is not False:
-            if rx is not None:
-                self._accepted(rx, t, addr)
+        if isinstance(rx, Received):
+            self._accepted(rx, t, addr)
+            return
+        if rx is None:
             return
         # reset per datagram: one bad datagram cannot poison others
         parser = reset_parser(self._dgram_parser)

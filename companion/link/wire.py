@@ -22,7 +22,6 @@ from typing import Any, NamedTuple
 import fastcrc
 from pymavlink.dialects.v20 import common as mavlink2
 
-
 MAGIC_V2 = 0xFD
 HEADER_LEN = 10  # magic, len, incompat, compat, seq, sysid, compid, msgid (3 bytes)
 CRC_LEN = 2

@@ -19,8 +19,8 @@ are NOT copied: do not mutate them after handing them over.
 
 from __future__ import annotations
 
-import logging
 import collections
+import logging
 import math
 import threading
 import time

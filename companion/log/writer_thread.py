@@ -10,9 +10,9 @@ and set up by ``McapLogger.__init__``.
 
 from __future__ import annotations
 
+import collections
 import errno
 import logging
-import collections
 import os
 import threading
 import time

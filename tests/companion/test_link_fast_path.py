@@ -1,0 +1,178 @@
+"""The receive fast path (companion/link/wire.py): one frame per datagram read at its header
+offsets and unpacked with precompiled structs, against pymavlink's own decoding, over real UDP."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+from typing import Any
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.link import MavlinkLink, Received, default_allow_rules, message_fields, wire
+from companion.link.receive import new_parser, reset_parser
+
+AP_SYS, AP_COMP, AGV_SYS, AGV_COMP = 1, 1, 42, 1
+NAN = math.nan
+
+
+def _frames(sysid: int = AP_SYS, compid: int = AP_COMP) -> list[bytes]:
+    """One frame of each kind the companion reads, with NaN, strings, arrays, signed and
+    unsigned ints at their extremes and trailing zero bytes (MAVLink 2 truncates them)."""
+    mav = mavlink2.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+    msgs = [
+        mav.heartbeat_encode(2, 12, 157, 0x060000, 4, 3),
+        mav.attitude_quaternion_encode(123, 0.5, 0.5, 0.5, 0.5, 0.1, -0.2, 0.3, [0, 0, 0, 0]),
+        mav.attitude_quaternion_encode(124, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                                       [NAN, NAN, NAN, NAN]),
+        mav.attitude_encode(4_000_000_000, 0.1, -0.2, 3.1, 0.0, 0.0, 0.0),
+        mav.local_position_ned_encode(77, 1.5, -2.5, -3.0, 0.1, 0.2, -0.3),
+        mav.attitude_target_encode(88, 7, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0.5),
+        mav.global_position_int_encode(99, 473_977_418, -85_455_939, 500_000, -1000, 1, -2,
+                                       3, 65535),
+        mav.extended_sys_state_encode(0, 2),
+        mav.sys_status_encode(1, 2, 3, 500, 12000, -1, 50, 0, 0, 0, 0, 0, 0),
+        mav.statustext_encode(4, b"Takeoff detected", 0, 0),
+        mav.statustext_encode(6, b"x" * 50, 7, 1),  # a full char[50]: no terminator
+        mav.timesync_encode(0, 123_456_789_012),
+        mav.command_ack_encode(176, 0, 0, 0, 0, 0),
+        mav.param_value_encode(b"MPC_XY_VEL_MAX", 12.0, 9, 900, 17),
+        mav.system_time_encode(1_700_000_000_000_000, 1234),
+        mav.home_position_encode(1, 2, 3, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], NAN, NAN, NAN,
+                                 0),
+        mav.altitude_encode(10, NAN, 1.0, NAN, 2.0, NAN, NAN),
+    ]
+    out = []
+    for m in msgs:
+        out.append(bytes(m.pack(mav)))
+        mav.seq = (mav.seq + 1) % 256
+    return out
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return type(a) is type(b) and a == b
+
+
+def _pymavlink_fields(frame: bytes) -> tuple[str, dict[str, Any]]:
+    p = reset_parser(new_parser())
+    (m,) = p.parse_buffer(frame)
+    return m.get_type(), message_fields(m)
+
+
+def test_fields_equal_pymavlink_decoding() -> None:
+    """Same values, same types, same order as message_fields of pymavlink's decode: a replay
+    re-decoding the logged bytes with pymavlink sees exactly what the flight saw."""
+    for frame in _frames():
+        h = wire.single_frame_header(frame)
+        assert h is not None
+        s = wire.spec(h.msgid)
+        assert s is not None and wire.crc_ok(frame, h, s)
+        name, want = _pymavlink_fields(frame)
+        got = wire.decode_fields(frame, h, s)
+        assert s.name == name
+        assert list(got) == list(want), name
+        assert all(_same(got[k], want[k]) for k in want), (name, got, want)
+
+
+def test_header_refuses_what_is_not_one_frame() -> None:
+    f = _frames()[1]
+    h = wire.single_frame_header(f)
+    assert h is not None and (h.sysid, h.compid, h.msgid) == (AP_SYS, AP_COMP, 31)
+    assert wire.single_frame_header(f + f) is None  # two frames
+    assert wire.single_frame_header(f[:-1]) is None  # truncated
+    assert wire.single_frame_header(b"\xfd") is None
+    assert wire.single_frame_header(bytes([0xFE]) + f[1:]) is None  # MAVLink 1 magic
+    assert wire.single_frame_header(f[:2] + b"\x02" + f[3:]) is None  # unknown incompat flag
+    bad = bytearray(f)
+    bad[12] ^= 0x40  # a payload bit: the header still adds up, the CRC does not
+    hb = wire.single_frame_header(bytes(bad))
+    s = wire.spec(31)
+    assert hb is not None and s is not None and not wire.crc_ok(bytes(bad), hb, s)
+
+
+async def _fly(datagrams: list[bytes]) -> tuple[list[Received], dict[str, int]]:
+    got: list[Received] = []
+    rules = default_allow_rules(AP_SYS, AP_COMP, AGV_SYS, AGV_COMP)
+    link = MavlinkLink("udpin:127.0.0.1:0", source_system=255, source_component=190,
+                       target_system=AP_SYS, target_component=AP_COMP, allow=rules,
+                       on_rx=got.append)
+    async with link:
+        addr = link.local_address
+        assert addr is not None
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            tx.bind(("127.0.0.1", 0))
+            for d in datagrams:
+                tx.sendto(d, addr)
+            for _ in range(400):
+                if link.counters["rx_datagrams"] >= len(datagrams):
+                    break
+                await asyncio.sleep(0.005)
+        finally:
+            tx.close()
+        return got, dict(link.counters)
+
+
+def test_link_over_udp_accepts_and_rejects_like_the_parser() -> None:
+    frames = _frames()
+    mav = mavlink2.MAVLink(None, srcSystem=AP_SYS, srcComponent=AP_COMP)
+    mav.seq = 200
+    imu = bytes(mav.highres_imu_encode(1, *([0.0] * 12), 0x1FFF, 0).pack(mav))
+    bad_crc = bytearray(frames[4])
+    bad_crc[-1] ^= 0xFF
+    pair = [bytes(m.pack(mav)) for m in (mav.attitude_encode(5, 0, 0, 0, 0, 0, 0),
+                                         mav.local_position_ned_encode(6, 0, 0, 0, 0, 0, 0))]
+    two = pair[0] + pair[1]  # two frames in one datagram: the parser reads both
+    got, counters = asyncio.run(_fly(
+        [*frames, imu, bytes(bad_crc), frames[4][:-3], two, frames[3]]))
+    names = [rx.name for rx in got]
+    # every good frame once (NaN where the message may carry it: repr_offset_q), the pair
+    # too, never the corrupted, the truncated or the repeated one; HIGHRES_IMU is unused
+    assert names.count("ATTITUDE_QUATERNION") == 2
+    assert names.count("ATTITUDE") == 2 and names.count("EXTENDED_SYS_STATE") == 1
+    assert names.count("LOCAL_POSITION_NED") == 2
+    assert "HIGHRES_IMU" not in names
+    assert counters["unused"] == 1
+    assert counters["bad_data"] >= 1  # the bad CRC: the parser's reason, as before
+    assert counters["duplicate"] == 1  # the last datagram
+    assert counters.get("non_finite", 0) == 0
+    for rx in got:
+        name, want = _pymavlink_fields(rx.raw)
+        assert rx.name == name and rx.fields is not None
+        assert all(_same(rx.fields[k], want[k]) for k in want)
+        assert rx.msg.get_type() == name  # the pymavlink message, decoded on demand
+    att = next(rx for rx in got if rx.name == "ATTITUDE")
+    assert att.msg.time_boot_ms == 4_000_000_000 and att.seq == 3
+
+
+def test_bad_values_refused_on_the_fast_path() -> None:
+    mav = mavlink2.MAVLink(None, srcSystem=AP_SYS, srcComponent=AP_COMP)
+    frames = []
+    for m in (mav.local_position_ned_encode(1, NAN, 0, 0, 0, 0, 0),
+              mav.local_position_ned_encode(2, 0, 0, 0, 300.0, 0, 0),
+              mav.attitude_quaternion_encode(3, 0.9, 0, 0, 0, 0, 0, 0, [0, 0, 0, 0]),
+              mav.attitude_encode(4, 0, 0, 0, 0, 0, math.inf),
+              mav.attitude_target_encode(5, 7, [3e38, 3e38, 0, 0], 0, 0, 0, 0.5),
+              mav.local_position_ned_encode(6, 1e38, 1e38, 0, 0, 0, 0)):
+        frames.append(bytes(m.pack(mav)))
+        mav.seq += 1
+    got, counters = asyncio.run(_fly(frames))
+    assert [rx.fields["time_boot_ms"] for rx in got if rx.fields] == [6]  # huge but finite
+    assert counters["non_finite"] == 2
+    assert counters["speed"] == 1
+    assert counters["quaternion_norm"] == 2
+    assert counters.get("angular_rate", 0) == 0
+
+
+@pytest.mark.parametrize("cut", [1, 5, 11, 20])
+def test_truncated_datagram_is_rejected_not_delivered(cut: int) -> None:
+    f = _frames()[4]
+    got, counters = asyncio.run(_fly([f[:cut]]))
+    assert got == []
+    assert counters["rejected"] >= 1
