@@ -143,7 +143,7 @@ class ReceivePath:
                              message_fields(m), t_ns, addr)
 
     def accept_datagram(self, data: bytes, t_ns: int,
-                        addr: tuple[str, int] | None) -> Received | None | Literal[False]:
+                        addr: tuple[str, int] | None) -> Received | Literal[False] | None:
         """The fast path (:mod:`companion.link.wire`) for a datagram holding one MAVLink 2
         frame: a :class:`Received`, ``None`` when it is rejected or unused (counted), or
         ``False`` when the robust parser must read it (not one frame, an unknown msgid, a bad
