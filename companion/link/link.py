@@ -72,6 +72,10 @@ class MavlinkLink(LinkCommands):
         ``guard.reject_log_per_s`` per second; every rejection is counted).
     guard: UDP receive guard (source pinning, allowed sources, work bounds; see
         :mod:`companion.link.guard`); default :class:`GuardParams` ().
+    queue_frames: also put accepted frames on the receive queue (``async for``, ``recv``).
+        False: they reach ``on_rx`` only, and an ``async for`` just waits for the close (a
+        flight's callback does all the work: queueing each frame cost a task wake-up a
+        frame for nothing). :meth:`from_config` sets it False when ``on_rx`` is given.
     """
 
     def __init__(
@@ -93,6 +97,7 @@ class MavlinkLink(LinkCommands):
         on_tx: Callable[[Sent], None] | None = None,
         on_reject: Callable[[str, bytes, int], None] | None = None,
         guard: GuardParams | None = None,
+        queue_frames: bool = True,
     ) -> None:
         self.endpoint = parse_connection_string(url)
         for nm, v, lo in (
@@ -126,6 +131,7 @@ class MavlinkLink(LinkCommands):
         self._clock_ns = clock_ns
         self._on_rx, self._on_tx = on_rx, on_tx
         self._queue_size = queue_size
+        self._queue_frames = queue_frames
         self.counters: Counter[str] = Counter()
         self._verifier = (
             SignatureVerifier(signing_key, allow_unsigned_msgids) if signing_key else None
@@ -166,6 +172,7 @@ class MavlinkLink(LinkCommands):
                 target_cfg.mavlink_compid,
             ),
         )
+        kwargs.setdefault("queue_frames", kwargs.get("on_rx") is None)
         kwargs.setdefault("guard", GuardParams(
             pin_source=bool(getattr(mavlink_cfg, "pin_source", True)),
             allowed_sources=tuple(getattr(mavlink_cfg, "allowed_sources", ())),
@@ -360,8 +367,9 @@ class MavlinkLink(LinkCommands):
     def _on_datagram(self, data: bytes, addr: Any) -> None:
         if self._closed:
             return
-        self._count("rx_datagrams")
-        self._count("rx_bytes", len(data))
+        c = self.counters
+        c["rx_datagrams"] += 1
+        c["rx_bytes"] += len(data)
         t = self._clock_ns()
         addr = (addr[0], addr[1])
         why = self.guard.admit(data, addr, t)
@@ -436,10 +444,11 @@ class MavlinkLink(LinkCommands):
                 self._peer = self.guard.pinned(sysid)
             elif self._peer is None:
                 self._peer = (addr[0], addr[1])  # telemetry before the first HEARTBEAT
-        self._count("rx_accepted")
+        self.counters["rx_accepted"] += 1
         if self._on_rx is not None:
             self._on_rx(rx)
-        self._push(rx)
+        if self._queue_frames:
+            self._push(rx)
 
     # -- send -----------------------------------------------------------------------------------
 

@@ -26,6 +26,7 @@ from companion import __version__
 from companion.log import McapLogError
 from companion.log import schemas as sch
 from companion.log.encode import encode_image, encode_json, mavlink_payload
+from companion.log.mcap_lean import LeanWriter
 
 log = logging.getLogger("companion.log.writer")
 
@@ -122,7 +123,7 @@ class WriterThread:
         writer: Writer | None = None
         next_flush = time.monotonic() + self.flush_interval_s
         try:
-            writer = Writer(sink, chunk_size=self.chunk_size, compression=self._compression)  # type: ignore[arg-type]
+            writer = LeanWriter(sink, chunk_size=self.chunk_size, compression=self._compression)
             writer.start(profile="", library=f"companion-{__version__}")
             self._flush(writer, sink)
             while self._drain(writer, channels, schema_ids):
