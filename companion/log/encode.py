@@ -181,10 +181,12 @@ def xyzw(q_wxyz: Sequence[float]) -> dict[str, float]:
 
 def _fields(item: Any) -> dict[str, Any]:
     """The message's fields: decoded once by the link on receipt (``Received.fields``)."""
+    fields = getattr(item, "fields", None)
+    if fields is not None:
+        return fields  # type: ignore[no-any-return]
     from companion.link import message_fields
 
-    fields = getattr(item, "fields", None)
-    return fields if fields is not None else message_fields(item.msg)
+    return message_fields(item.msg)
 
 
 def mavlink_payload(direction: str, item: Any) -> dict[str, Any]:

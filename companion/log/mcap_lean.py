@@ -5,7 +5,8 @@ mcap 1.6's ``add_message`` builds a ``Message`` dataclass and writes its record 
 message here, most of the writer thread's cost for a MAVLink record. :class:`LeanWriter` writes
 the record's 31-byte head in one ``struct.pack`` and does the same bookkeeping (file
 statistics, the chunk's time range and message index), so the file is byte for byte what
-``Writer`` writes (tests/companion/test_mcap_lean.py). It reaches into the pinned mcap
+``Writer`` writes (tests/companion/test_mcap_lean.py); a chunk's message index is packed in
+one call too. It reaches into the pinned mcap
 version's private state; when that is not there (another mcap) it is plain ``Writer``.
 """
 
@@ -21,11 +22,25 @@ from mcap.writer import Writer
 # opcode, record length, channel id, sequence, log time, publish time
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = 2 + 4 + 8 + 8
+_INDEX_HEAD = struct.Struct("<HI")  # channel id, bytes of (log time, offset) pairs
+
+
+class _LeanIndex(MessageIndex):
+    """A chunk's message index written in one ``struct.pack`` (mcap writes 2 per message)."""
+
+    def write(self, stream: Any) -> None:
+        stream.start_record(Opcode.MESSAGE_INDEX)
+        n = len(self.records)
+        stream.write(_INDEX_HEAD.pack(self.channel_id, n * 16))
+        if n:
+            flat = [v for rec in self.records for v in rec]
+            stream.write(struct.pack(f"<{2 * n}Q", *flat))
+        stream.finish_record()
 
 
 class LeanWriter(Writer):
     """:class:`mcap.writer.Writer` with :meth:`add_message` writing a chunked message in one
-    go (see the module docstring)."""
+    go and its chunk's message index in one ``struct.pack`` (see the module docstring)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -59,8 +74,8 @@ class LeanWriter(Writer):
             cb.message_end_time = log_time
         idx = cb.message_indices.get(channel_id)
         if idx is None:
-            idx = cb.message_indices[channel_id] = MessageIndex(channel_id=channel_id,
-                                                                records=[])
+            idx = cb.message_indices[channel_id] = _LeanIndex(channel_id=channel_id,
+                                                              records=[])
         buf = cb.record_writer._buffer
         idx.records.append((log_time, buf.tell()))
         cb.num_messages += 1
