@@ -9,7 +9,6 @@ import enum
 import json
 import math
 import struct
-import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -140,7 +139,9 @@ IMAGE_ENCODINGS = ("jpeg", "png", "raw")
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    # ISA-L's CRC-32 (the same CRC as zlib's, several times faster on a crop's ~30 kB IDAT)
+    crc = isal_zlib.crc32(data, isal_zlib.crc32(kind))
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
 
 
 def png_bytes(image: np.ndarray) -> bytes:
