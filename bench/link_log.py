@@ -267,7 +267,8 @@ def main() -> None:
     print(f"load {os.getloadavg()[0]:.2f}; frames from {log}")
     print(f"receive: {rx['datagrams']} datagrams over UDP ({c.get('rx_accepted', 0)} accepted, "
           f"{c.get('unused', 0)} unused, {c.get('rejected', 0)} rejected)")
-    print(f"  event-loop thread CPU per datagram   {rx['rx_loop_us_per_datagram']:7.1f} us, of which")
+    print(f"  event-loop thread CPU per datagram   {rx['rx_loop_us_per_datagram']:7.1f} us, "
+          "of which")
     print(f"    the link (read, checks, decode)    {rx['rx_link_us_per_datagram']:7.1f} us")
     print(f"    its log record (enqueue), accepted {rx['rx_record_us_per_accepted']:7.1f} us")
     print(f"    Vehicle.on_rx (store, offboard)    {rx['rx_vehicle_us_per_accepted']:7.1f} us "
