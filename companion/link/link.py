@@ -1,10 +1,10 @@
 """A robust MAVLink 2 link for the companion: asyncio transport, hostile-input receive path.
 
 Why not ``mavutil``: its UDP connections feed every datagram into ONE shared parser, so a single
-truncated datagram poisons the following good frames (docs/reference/pitfalls.md, pymavlink). Here
-each UDP
-datagram is parsed by a fresh robust parser; streams (TCP, serial) keep one robust parser.
-pymavlink is used only as the codec (``pymavlink.dialects.v20.common``).
+truncated datagram poisons the following good frames (docs/reference/pitfalls.md, pymavlink).
+Here a datagram that is one MAVLink 2 frame is read at its header offsets
+(:mod:`companion.link.wire`), any other by a robust parser reset for it; streams (TCP, serial)
+keep one robust parser. pymavlink is the codec (``pymavlink.dialects.v20.common``).
 
 The receive path (:mod:`companion.link.receive`) decides, frame by frame and in order, what is
 accepted; each rejection increments ``counters[reason]``. Accepted frames become
@@ -73,9 +73,8 @@ class MavlinkLink(LinkCommands):
     guard: UDP receive guard (source pinning, allowed sources, work bounds; see
         :mod:`companion.link.guard`); default :class:`GuardParams` ().
     queue_frames: also put accepted frames on the receive queue (``async for``, ``recv``).
-        False: they reach ``on_rx`` only, and an ``async for`` just waits for the close (a
-        flight's callback does all the work: queueing each frame cost a task wake-up a
-        frame for nothing). :meth:`from_config` sets it False when ``on_rx`` is given.
+        False: they reach ``on_rx`` only, and an ``async for`` just waits for the close.
+        :meth:`from_config` sets it False when ``on_rx`` is given.
     """
 
     def __init__(
@@ -367,9 +366,8 @@ class MavlinkLink(LinkCommands):
     def _on_datagram(self, data: bytes, addr: Any) -> None:
         if self._closed:
             return
-        c = self.counters
-        c["rx_datagrams"] += 1
-        c["rx_bytes"] += len(data)
+        self.counters["rx_datagrams"] += 1
+        self.counters["rx_bytes"] += len(data)
         t = self._clock_ns()
         addr = (addr[0], addr[1])
         why = self.guard.admit(data, addr, t)
@@ -377,10 +375,9 @@ class MavlinkLink(LinkCommands):
             self._rx.reject(why, data, t)
             return
         rx = self._rx.accept_datagram(data, t, addr)  # one frame: no parser (wire.py)
-        if isinstance(rx, Received):
-            self._accepted(rx, t, addr)
-            return
-        if rx is None:
+        if rx is not False:  # accepted, or rejected / unused (counted)
+            if rx is not None:
+                self._accepted(rx, t, addr)
             return
         # reset per datagram: one bad datagram cannot poison others
         parser = reset_parser(self._dgram_parser)
@@ -447,7 +444,7 @@ class MavlinkLink(LinkCommands):
         self.counters["rx_accepted"] += 1
         if self._on_rx is not None:
             self._on_rx(rx)
-        if self._queue_frames:
+        if self._queue_frames:  # False: on_rx does the work (a task wake-up a frame saved)
             self._push(rx)
 
     # -- send -----------------------------------------------------------------------------------
