@@ -4,6 +4,7 @@ Foxglove images (protobuf CompressedImage / RawImage) and MAVLink message payloa
 from __future__ import annotations
 
 import base64
+import binascii
 import dataclasses
 import enum
 import json
@@ -191,15 +192,11 @@ def _fields(item: Any) -> dict[str, Any]:
 
 
 def mavlink_payload(direction: str, item: Any) -> dict[str, Any]:
-    out: dict[str, Any] = {
-        "raw_b64": base64.b64encode(item.raw).decode("ascii"),
-        "fields": _fields(item),
-    }
+    raw_b64 = binascii.b2a_base64(item.raw, newline=False).decode("ascii")
     if direction == "in":
-        out.update(
-            t_rx_ns=item.t_rx_ns, sysid=item.src_sysid, compid=item.src_compid, seq=item.seq,
-            signed=item.signed,
-        )  # fmt: skip
-    else:
-        out.update(t_tx_ns=item.t_tx_ns)
-    return out
+        return {
+            "raw_b64": raw_b64, "fields": _fields(item), "t_rx_ns": item.t_rx_ns,
+            "sysid": item.src_sysid, "compid": item.src_compid, "seq": item.seq,
+            "signed": item.signed,
+        }  # fmt: skip
+    return {"raw_b64": raw_b64, "fields": _fields(item), "t_tx_ns": item.t_tx_ns}
