@@ -12,6 +12,8 @@ short lockstep paper flight is flown first to get them (about a minute).
   store, state machine, log record; the queue drained by a task). Figures: CPU of the event
   loop's thread per datagram (``time.thread_time``) and CPU of the MCAP writer thread per
   datagram (its own CPU clock), and how many were accepted, unused, rejected.
+* **direct**: the link's own code alone (``_on_datagram`` called on the same datagrams, no
+  socket, no event loop, no callback), per datagram.
 * **send**: ``send_attitude_target`` (pack, sendto, the ``/mavlink/out`` record), per send.
 * **crops**: the flight's ``/perception/input`` crops logged as PNG and as raw pixels (the
   MCAP chunk LZ4-compressed): writer-thread CPU per crop (encode, chunk compression, write,
@@ -206,6 +208,23 @@ def receive(cfg: Any, frames: list[bytes], tmp: Path) -> dict[str, Any]:
     return res
 
 
+def direct(cfg: Any, frames: list[bytes]) -> float:
+    """CPU per datagram of the link's own code called directly (no socket, no event loop, no
+    callback): the read, checks and decode alone. A fresh link per pass (its duplicate window
+    would refuse a second pass); best of three."""
+    best = math.inf
+    for _ in range(3):
+        link = MavlinkLink.from_config(
+            dataclasses.replace(cfg.mavlink, url="udpin:127.0.0.1:0"), cfg.target,
+            allow=allow_rules(cfg))
+        src = ("127.0.0.1", 40000)
+        c0 = time.thread_time()
+        for d in frames:
+            link._on_datagram(d, src)
+        best = min(best, time.thread_time() - c0)
+    return 1e6 * best / max(len(frames), 1)
+
+
 def crops(cfg: Any, images: list[Any], tmp: Path, encoding: str) -> dict[str, Any]:
     """Writer-thread CPU and file bytes per crop logged with ``encoding``."""
     cpu: dict[str, float] = {}
@@ -258,6 +277,7 @@ def main() -> None:
         frames, images = flight_frames(log)
         mix = with_unused(frames, cfg.mavlink.target_system, cfg.mavlink.target_component or 1)
         rx = receive(cfg, mix * args.repeat, tmp)
+        rx["direct_link_us_per_datagram"] = direct(cfg, mix)
         cr = [crops(cfg, images, tmp, e) for e in ("png", "raw")]
     out = {"load": os.getloadavg(), "log": str(log), "receive": rx, "crops": cr}
     if args.json:
@@ -273,6 +293,8 @@ def main() -> None:
     print(f"    its log record (enqueue), accepted {rx['rx_record_us_per_accepted']:7.1f} us")
     print(f"    Vehicle.on_rx (store, offboard)    {rx['rx_vehicle_us_per_accepted']:7.1f} us "
           "per accepted frame")
+    print(f"  the link's code alone, called directly {rx['direct_link_us_per_datagram']:5.1f} us "
+          "per datagram (no socket, no loop)")
     print(f"  writer thread CPU per record         {rx['writer_us_per_record']:7.1f} us "
           f"(in and out records)")
     print(f"send: SET_ATTITUDE_TARGET + its record {rx['tx_us_per_send']:7.1f} us (loop thread)")
