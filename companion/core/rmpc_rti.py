@@ -114,6 +114,7 @@ class RtiSolver:
         self._clock = clock
         nlp, lay = build_nlp(rmpc, camera, terminal, soft=False)
         upper = np.array([row.upper for row in lay.rows], dtype=float)
+        self._rows = lay.rows
         self.compiled: tuple[CompiledNlp, CompiledNlp] | None = None
         if rmpc.jit:
             # the functions are derived from the hard NLP by rmpc_rti_gen's code: a library
@@ -214,12 +215,32 @@ class RtiSolver:
                 return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
                                   self._states(eta0), u.reshape(self.horizon, NU),
                                   float(self._f[0]), iters, qps, viol)
-            status = (f"rti: rejected after {qps} QP (a hard row exceeded by {viol:.3g} > "
+            worst = self._worst_row(u, eta0, par, state_lo, state_hi)
+            status = (f"rti: rejected after {qps} QP ({worst} exceeded by {viol:.3g} > "
                       f"rmpc.rti_tol = {self.cfg.rti_tol:g})")
             if qps >= 2 and not viol < previous:
                 break
         return RtiOutcome(False, status, self._states(eta0), u.reshape(self.horizon, NU),
                           float(self._f[0]), iters, qps, viol)
+
+    def _worst_row(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
+                   state_lo: np.ndarray, state_hi: np.ndarray) -> str:
+        """Which hard row of the plan ``u`` is exceeded most (for the rejection's status: a
+        rejected step's cost, not the accepted ones')."""
+        eta, path, _ = self.rows(u, eta0, par)
+        states = eta[1:].ravel()
+        parts = [np.sqrt(np.maximum(path, 0.0)) - self.path_root, states - state_hi,
+                 state_lo - states, np.abs(u) - self.u_max]
+        which = int(np.argmax([np.max(p) for p in parts]))
+        i = int(np.argmax(parts[which]))
+        if which == 0:
+            row = self._rows[i]
+            corner = f", corner {row.corner}" if row.corner >= 0 else ""
+            return f"the {row.kind} row of stage {row.stage}{corner}"
+        if which in (1, 2):
+            side = "upper" if which == 1 else "lower"
+            return f"the state box's {side} bound on eta[{i % NX}] at stage {i // NX + 1}"
+        return f"the input box on u[{i % NU}] at stage {i // NU}"
 
     def _qp(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray, state_lo: np.ndarray,
             state_hi: np.ndarray) -> tuple[np.ndarray, int, int]:

@@ -17,11 +17,12 @@ the functions: editing the RTI's Python step does not recompile them (minutes of
 Two libraries (``rmpc_rti_lin_*``, ``rmpc_rti_val_*``): each is found by its generated
 source's hash, so a change to one does not recompile the other.
 
-The Gauss-Newton product is part of the expression graph (scalar code, one triangle computed
-and mirrored), not CasADi's sparse matrix product at run time: measured, the product's index
-loops cost as much as the rollout's Jacobians (~70-90 us of CPU a call); as straight-line code
-over the Jacobian's structural nonzeros, with common subexpressions eliminated, the whole
-linearisation is ~45 % cheaper (docs/reference/solver.md, "Measured").
+The scalar code is generated with common subexpressions eliminated; the Gauss-Newton product
+is CasADi's sparse matrix product (index loops), not scalar code: measured, a product written
+out as scalar code (one triangle, mirrored) is ~40 % faster with warm caches, but it is ~70 k
+more instructions (~1 MB more machine code) and in flight, where each step finds its code
+evicted from the caches, it was no faster (docs/reference/solver.md, "Measured"): the code's
+size is what a step costs there.
 """
 
 from __future__ import annotations
@@ -80,14 +81,15 @@ def _functions(rmpc: RmpcParams, camera: CameraParams,
     path = ca.vertcat(*[g[row.g_index] for row in lay.rows])
     c = ca.vertcat(*xs[1:], path)
     r = ca.vertcat(*res)
-    j_r = ca.jacobian(r, u_all)
-    j_rt = j_r.T
-    # one triangle of the symmetric product, mirrored: each entry is one scalar expression
-    # written to both places
-    hess = ca.densify(ca.tril2symm(ca.tril(2.0 * ca.mtimes(j_rt, j_r))))
-    lin = ca.Function("rti_lin", [u_all, eta0, par],
-                      [hess, 2.0 * ca.mtimes(j_rt, r), c, ca.densify(ca.jacobian(c, u_all).T)],
-                      {"cse": True})
+    # the scalar part (common subexpressions eliminated: ~23 % fewer instructions); the
+    # Gauss-Newton product as CasADi's sparse product loops (small code, see the docstring)
+    core = ca.Function("rti_core", [u_all, eta0, par],
+                       [r, ca.jacobian(r, u_all), c, ca.jacobian(c, u_all)], {"cse": True})
+    um, em, pm = ca.MX.sym("U", u_all.shape[0]), ca.MX.sym("eta0", NX), ca.MX.sym("p", par.shape[0])
+    r_m, jr_m, c_m, jc_m = core(um, em, pm)
+    lin = ca.Function("rti_lin", [um, em, pm],
+                      [ca.densify(2.0 * ca.mtimes(jr_m.T, jr_m)), 2.0 * ca.mtimes(jr_m.T, r_m),
+                       c_m, ca.densify(jc_m.T)])
     return lin, _val(rmpc, lay, u_all, eta0, par, c, f)
 
 
