@@ -236,3 +236,24 @@ def test_a_diverging_step_stops_early(cfg, design) -> None:  # type: ignore[no-u
     _, res = _u0(mpc, PAPER_POSE, 1)
     assert "nlp: " in res[0].status and mpc.rti_qps < 8, (res[0].status, mpc.rti_qps)
     assert res[0].mode == "optimal" and check_solution(res[0], p, cfg.camera, design) == []
+
+
+def test_the_condensed_linearisation_is_the_rollouts(rti) -> None:  # type: ignore[no-untyped-def]
+    """rti_lin (condensed from stage Jacobians) gives the rows rti_val computes with the NLP's
+    own g on the rollout, and their Jacobian is the rollout's (central differences); the
+    Gauss-Newton Hessian is 2 J_r' J_r (symmetric, positive definite)."""
+    solver, eta0, par, u, lo, hi = _paper_step(rti)
+    hess, _, c, jct = (a.copy() for a in solver._lin(u, eta0, par))
+    c_val = solver._val(u, eta0, par, lo, hi)[0].copy()
+    np.testing.assert_allclose(c, c_val, rtol=0, atol=1e-12)
+    j_c = jct.reshape(c.size, solver.n_u)
+    step = 1e-6
+    for k in range(0, solver.n_u, 5):
+        du = np.zeros(solver.n_u)
+        du[k] = step
+        plus = solver._val(u + du, eta0, par, lo, hi)[0].copy()  # (the output buffer)
+        fd = (plus - solver._val(u - du, eta0, par, lo, hi)[0]) / (2 * step)
+        np.testing.assert_allclose(j_c[:, k], fd, rtol=0, atol=1e-6)
+    h = hess.reshape(solver.n_u, solver.n_u)
+    np.testing.assert_allclose(h, h.T, rtol=0, atol=1e-15)
+    assert np.min(np.linalg.eigvalsh(h)) > 0
