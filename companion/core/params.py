@@ -208,8 +208,8 @@ class RmpcParams:
     # soft copy is always solved with ipopt (companion.core.rmpc_nlp.RECOVERY_SOLVER).
     nlp_solver: str = "fatrop"
     # solver = "rti": QPs per step at most (the second and later re-linearised at the previous
-    # QP's solution) before a plan still violating the nonlinear hard rows by more than
-    # rti_tol goes to the full NLP.
+    # QP's solution; a third or later only while the plan's excess keeps shrinking) before a
+    # plan still violating the nonlinear hard rows by more than rti_tol goes to the full NLP.
     rti_max_qp: int = field(default=2, metadata=checked(positive))
     # solver = "rti": how far a hard row of the nonlinear problem (tube, visibility, terminal:
     # natural units, not squared; state box: state units) may be exceeded by the RTI plan

@@ -34,7 +34,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion.core.dynamics import euler_step, input_error
+from companion.core.dynamics import S_REF, euler_step, input_error
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError
 from companion.core.rmpc_check import check_solution, visibility_margin
@@ -123,6 +123,11 @@ class Rmpc:
         self.rti_accepted = 0  # steps the RTI's plan flew
         self.rti_rejected = 0  # steps it handed to the full NLP (check or QP failed)
         self.rti_qps = 0  # QPs solved
+        # the state box of stages 1..N (_state_box): absolute bounds minus [S_REF, v_a, 0]
+        self._box_offset = np.zeros((self.horizon, NX))
+        self._box_offset[:, :4] = S_REF
+        self._box_lo = np.tile(state_lower(rmpc), (self.horizon, 1))
+        self._box_hi = np.tile(np.asarray(rmpc.eta_max, dtype=float), (self.horizon, 1))
         # set by the shell for steps that must go to the full NLP whatever rmpc.solver says
         # (the runtime's solver-hang fault injection exercises the NLP's child process)
         self.force_nlp = False
@@ -215,11 +220,9 @@ class Rmpc:
         check passed, else what the full NLP's status is prefixed with, the QP iterations and
         the time spent (the step then solves the full NLP)."""
         assert self._rti is not None
-        lay = self._hard.layout
-        lbx, ubx = self._hard.bounds(e0, target)
+        lo, hi = self._state_box(target)
         t0 = self._clock() if self._clock is not None else math.nan
-        out = self._rti.step(e0, par, u_g, lbx[lay.x_index[1:]].ravel(),
-                             ubx[lay.x_index[1:]].ravel())
+        out = self._rti.step(e0, par, u_g, lo, hi)
         t_wall = self._clock() - t0 if self._clock is not None else math.nan
         self.rti_qps += out.qps
         if out.ok:
@@ -231,6 +234,15 @@ class Rmpc:
         self.rti_rejected += 1
         log.info("RMPC %s: solving the full NLP", out.status)
         return f"{out.status}; nlp: ", out.qp_iterations, t_wall
+
+    def _state_box(self, target: TargetMotion) -> tuple[np.ndarray, np.ndarray]:
+        """The hard NLP's bounds on the states of stages 1..N (N*7 each, error coordinates):
+        ``NlpSolver.bounds``' numbers (the same subtractions), without building the whole
+        bound vectors (~30 us of CPU a step)."""
+        off = self._box_offset
+        off[:-1, 4:6] = target.v_a_m_s[1:]
+        off[-1, 4:6] = target.v_a_m_s[-1]  # stage N holds N-1's motion
+        return (self._box_lo - off).ravel(), (self._box_hi - off).ravel()
 
     def _recover(self, e0: np.ndarray, target: TargetMotion, par: np.ndarray,
                  eta_g: np.ndarray, u_g: np.ndarray,

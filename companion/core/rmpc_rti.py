@@ -6,21 +6,23 @@ terminal rows, the same state box), linearised at the previous plan shifted by o
 
 - single shooting: the decision is the N x 4 inputs ``U``; the states are the nonlinear
   rollout of the NLP's own dynamics from ``eta0`` (so the plan's dynamics are exact);
-- the cost is quadratic in ``(eta, u_e)``, ``f = |r(U)|^2`` with ``r = [sqrt(Q) eta(n),
-  sqrt(R) u_e(n), L' eta(N)]`` (``P = L L'``), so the Gauss-Newton Hessian ``2 J_r' J_r`` is
-  positive definite without any second derivative;
-- the path rows are the NLP's rows evaluated on the rollout (the NLP's own ``g`` function
-  called on the shooting states: they cannot drift from the full solve's), linearised;
-- one compiled CasADi function (cached like the NLPs, :func:`compiled_functions`) returns
-  ``r``, ``J_r``, the rows and their Jacobian; a second one only the rows and the cost (the
-  check). DAQP (a dual active-set solver for small dense QPs) solves the QP in-process with a
-  bounded number of iterations.
+- the Gauss-Newton Hessian of the quadratic cost, the NLP's rows on the rollout (built by the
+  code that builds the NLP's) and their Jacobian come from one compiled CasADi function,
+  condensed from stage Jacobians (:mod:`companion.core.rmpc_rti_gen`, cached like the NLPs);
+  a second one gives the rows by the NLP's own ``g``, the cost and their largest excess (the
+  check);
+- DAQP (a dual active-set solver for small dense QPs) solves the QP in-process with a bounded
+  number of iterations. The state box's rows (7 N, far from binding in flight) are left out
+  of the first attempt and the QP is solved again with them only when its solution breaks one
+  of them (linearised): the QP is strictly convex, so a solution of the smaller QP that keeps
+  the left-out rows is the solution of the whole one (:meth:`RtiSolver._qp`).
 
 Every plan is then rolled out through the nonlinear model and every hard row evaluated
 (:meth:`RtiSolver.step`): a row exceeded by more than ``rmpc.rti_tol`` (natural units),
-or a QP that failed, re-linearises at the QP's solution (up to ``rmpc.rti_max_qp`` QPs) and
-then gives up: :class:`companion.core.rmpc.Rmpc` solves the full NLP for that step.
-docs/reference/solver.md has the design, the guarantees and the figures.
+or a QP that failed, re-linearises at the QP's solution (up to ``rmpc.rti_max_qp`` QPs, and
+only while the excess keeps shrinking) and then gives up: :class:`companion.core.rmpc.Rmpc`
+solves the full NLP for that step. docs/reference/solver.md has the design, the guarantees and
+the figures.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ import casadi as ca
 import daqp
 import numpy as np
 
-from companion.core.dynamics import euler_step, input_error
+from companion.core import rmpc_rti_gen
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import (
     CompiledNlp,
@@ -45,7 +47,7 @@ from companion.core.rmpc_cache import (
     compiled_functions,
     problem_key,
 )
-from companion.core.rmpc_problem import NP_STAGE, NU, NX, build_nlp, stage_motion
+from companion.core.rmpc_problem import NU, NX, build_nlp
 from companion.core.terminal import TerminalDesign
 
 log = logging.getLogger(__name__)
@@ -57,6 +59,8 @@ DAQP_INF = 1e30
 """DAQP's 'no bound'."""
 DAQP_OPTIMAL = (1, 2)
 """DAQP exit flags of a solved QP (1 optimal, 2 optimal with soft constraints)."""
+DAQP_INFEASIBLE = -1
+"""DAQP's exit flag of a QP whose rows cannot all hold."""
 
 
 @dataclass(frozen=True)
@@ -75,56 +79,6 @@ class RtiOutcome:
     qp_iterations: int
     qps: int
     violation: float
-
-
-def _stage_functions(rmpc: RmpcParams, camera: CameraParams,
-                     terminal: TerminalDesign) -> tuple[ca.Function, ca.Function]:
-    """``lin(U, eta0, p) -> (H, g, c, J_c')`` (the Gauss-Newton Hessian ``2 J_r' J_r``, the
-    gradient ``2 J_r' r``, the rows and their Jacobian, transposed: row-major) and
-    ``val(U, eta0, p) -> (c, f)``, with ``c`` the shooting states of stages 1..N (7 N)
-    followed by the NLP's path rows (hard layout order); and the path rows' upper bounds
-    (the NLP's, squared form)."""
-    big_n = rmpc.horizon
-    nlp, lay = build_nlp(rmpc, camera, terminal, soft=False)
-    oracle = ca.Function("nlp_fg", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
-    u_all = ca.SX.sym("U", NU * big_n)
-    eta0 = ca.SX.sym("eta0", NX)
-    par = ca.SX.sym("p", NP_STAGE * big_n + 1)
-    s4_ref = par[NP_STAGE * big_n]
-    sq_q = np.sqrt(np.asarray(rmpc.q_diag, dtype=float))
-    sq_r = np.sqrt(np.asarray(rmpc.r_diag, dtype=float))
-    chol_p = np.linalg.cholesky(np.asarray(terminal.p, dtype=float))  # P = L L'
-    xs: list[ca.SX] = [eta0]
-    res: list[ca.SX] = []
-    for n in range(big_n):
-        x, u = xs[n], u_all[NU * n: NU * (n + 1)]
-        pn_ = par[NP_STAGE * n: NP_STAGE * (n + 1)]
-        v_a, vdot_a, psidot_a = stage_motion(rmpc, x, u, pn_[0:2], pn_[2:4], pn_[4], s4_ref)
-        res += [sq_q * x, sq_r * input_error(u, v_a, vdot_a, psidot_a)]
-        xs.append(euler_step(x, u, v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s))
-    res.append(ca.mtimes(chol_p.T, xs[big_n]))
-    w: list[Any] = [None] * lay.n_w
-    for n in range(big_n + 1):
-        for i in range(NX):
-            w[int(lay.x_index[n, i])] = xs[n][i]
-    for n in range(big_n):
-        for i in range(NU):
-            w[int(lay.u_index[n, i])] = u_all[NU * n + i]
-    f, g = oracle(ca.vertcat(*w), par)
-    path = ca.vertcat(*[g[row.g_index] for row in lay.rows])
-    c = ca.vertcat(*xs[1:], path)
-    r = ca.vertcat(*res)
-    core = ca.Function("rti_core", [u_all, eta0, par],
-                       [r, ca.jacobian(r, u_all), c, ca.jacobian(c, u_all)])
-    # the Gauss-Newton products in the generated C (sparse loops), not in numpy: a BLAS call
-    # on a busy machine cost ~2 ms of CPU for this 183 x 64 product (thread hand-offs)
-    um, em, pm = ca.MX.sym("U", u_all.shape[0]), ca.MX.sym("eta0", NX), ca.MX.sym("p", par.shape[0])
-    r_m, jr_m, c_m, jc_m = core(um, em, pm)
-    lin = ca.Function("rti_lin", [um, em, pm],
-                      [ca.densify(2.0 * ca.mtimes(jr_m.T, jr_m)), 2.0 * ca.mtimes(jr_m.T, r_m),
-                       c_m, ca.densify(jc_m.T)])
-    val = ca.Function("rti_val", [u_all, eta0, par], [c, f])
-    return lin, val
 
 
 class _Buffered:
@@ -153,7 +107,8 @@ class _Buffered:
 
 class RtiSolver:
     """The compiled RTI of one hard problem (module docstring). Deterministic: the same
-    ``(eta0, parameters, guess, bounds)`` give the same plan bit for bit."""
+    ``(eta0, parameters, guess, bounds)`` give the same plan bit for bit. Not thread-safe
+    (it keeps its QP's arrays between calls)."""
 
     def __init__(self, rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
                  clock: Callable[[], float] | None = None) -> None:
@@ -161,45 +116,71 @@ class RtiSolver:
         self._clock = clock
         nlp, lay = build_nlp(rmpc, camera, terminal, soft=False)
         upper = np.array([row.upper for row in lay.rows], dtype=float)
-        self.compiled: CompiledNlp | None = None
+        self._rows = lay.rows
+        self.compiled: tuple[CompiledNlp, CompiledNlp] | None = None
         if rmpc.jit:
-            # the functions are derived from the hard NLP by this module's code: a library
+            # the functions are derived from the hard NLP by rmpc_rti_gen's code: a library
             # built before is found by those two alone, without deriving them again
-            code = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
-            self.compiled = compiled_functions(
-                lambda: list(_stage_functions(rmpc, camera, terminal)), rmpc.cache_dir, "rti",
-                alias_key=problem_key(nlp, "rti", code))
+            code = hashlib.sha256(Path(rmpc_rti_gen.__file__).read_bytes()).hexdigest()
+            key = problem_key(nlp, "rti", code)
+            self.compiled = (
+                compiled_functions(lambda: [rmpc_rti_gen.lin_function(rmpc, camera, terminal)],
+                                   rmpc.cache_dir, "rti_lin", alias_key=key),
+                compiled_functions(lambda: [rmpc_rti_gen.val_function(rmpc, camera, terminal)],
+                                   rmpc.cache_dir, "rti_val", alias_key=key))
             try:
-                lin = ca.external("rti_lin", str(self.compiled.library))
-                val = ca.external("rti_val", str(self.compiled.library))
+                lin = ca.external("rti_lin", str(self.compiled[0].library))
+                val = ca.external("rti_val", str(self.compiled[1].library))
             except RuntimeError as exc:
-                raise RmpcBuildError(f"loading {self.compiled.library}: {exc}") from exc
+                raise RmpcBuildError(f"loading the RTI's functions: {exc}") from exc
         else:
-            lin, val = _stage_functions(rmpc, camera, terminal)
+            lin = rmpc_rti_gen.lin_function(rmpc, camera, terminal)
+            val = rmpc_rti_gen.val_function(rmpc, camera, terminal)
         self._lin = _Buffered(lin)
         self._val = _Buffered(val)
         self.horizon = rmpc.horizon
-        self.n_u = NU * rmpc.horizon
-        self.n_state = NX * rmpc.horizon
-        self.n_c = self.n_state + upper.size
+        self.n_u = n_u = NU * rmpc.horizon
+        self.n_state = n_s = NX * rmpc.horizon
+        self.n_c = n_s + upper.size
         self.path_upper = upper
         self.path_root = np.sqrt(upper)
         self.u_max = np.tile(np.asarray(rmpc.u_max, dtype=float), rmpc.horizon)
+        # views of the compiled functions' outputs (filled by each call, never copied)
+        self._hess = self._lin.res[0].reshape(n_u, n_u)
+        self._grad = self._lin.res[1]
+        self._c_x, self._c_p = self._lin.res[2][:n_s], self._lin.res[2][n_s:]
+        self._j_c = self._lin.res[3].reshape(self.n_c, n_u)  # J_c' column-major: J_c rows
+        self._j_state, self._j_path = self._j_c[:n_s], self._j_c[n_s:]
+        self._rows_c, self._f, self._excess, self._total = self._val.res
+        # the QP's bounds, filled in place: [input box (DAQP's simple bounds), path rows]
+        n_p = upper.size
+        self._up, self._lo = np.zeros(n_u + n_p), np.full(n_u + n_p, -DAQP_INF)
+        self._sense = np.zeros(n_u + n_p, dtype=np.int32)
+        self._u = np.zeros(n_u)
+        self._no_box = np.zeros(n_s)
         self.calls = 0  # QPs solved (tests)
+        self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
 
     def rows(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray) -> tuple[np.ndarray,
                                                                                np.ndarray, float]:
         """The nonlinear rollout of ``u`` (N*4) from ``eta0``: states (N+1, 7), the NLP's path
         rows (squared form, hard layout order) and the NLP's cost."""
-        c, f = self._val(u, eta0, par)
-        eta = np.vstack([eta0, c[: self.n_state].reshape(self.horizon, NX)])
-        return eta, c[self.n_state:].copy(), float(f[0])
+        n_s = self.n_state
+        self._val(u, eta0, par, self._no_box, self._no_box)  # (its excess is not read here)
+        return self._states(eta0), self._rows_c[n_s:].copy(), float(self._f[0])
+
+    def _states(self, eta0: np.ndarray) -> np.ndarray:
+        eta = np.empty((self.horizon + 1, NX))
+        eta[0] = eta0
+        eta[1:] = self._rows_c[: self.n_state].reshape(self.horizon, NX)
+        return eta
 
     def violation(self, eta: np.ndarray, path: np.ndarray, u: np.ndarray,
                   state_lo: np.ndarray, state_hi: np.ndarray) -> float:
         """The largest excess of a hard row of the nonlinear problem over its bound (natural
         units: the path rows' square roots against their radii; the state box in state
-        units; the input box). 0 or less: every row holds."""
+        units; the input box), in numpy: 0 or less, every row holds; NaN if a row is NaN.
+        :meth:`step` reads the same number from the compiled check (``rti_val``)."""
         states = eta[1:].ravel()
         return max(
             float(np.max(np.sqrt(np.maximum(path, 0.0)) - self.path_root, initial=-np.inf)),
@@ -211,43 +192,95 @@ class RtiSolver:
              state_lo: np.ndarray, state_hi: np.ndarray) -> RtiOutcome:
         """Up to ``rmpc.rti_max_qp`` QPs from the guess ``u_guess`` (N, 4); ``state_lo``,
         ``state_hi`` (N*7): the box of the shooting states of stages 1..N (error coordinates,
-        as the NLP's variable bounds). See the module docstring."""
-        u = np.clip(u_guess.ravel(), -self.u_max, self.u_max)
+        as the NLP's variable bounds). A QP after the second is solved only if the previous
+        one brought the excess down (a full Gauss-Newton step far from the solution can
+        oscillate; the step then goes to the full NLP, whose result does not depend on how
+        many QPs were tried). See the module docstring."""
+        u_max = self.u_max
+        u = np.minimum(np.maximum(u_guess.ravel(), -u_max), u_max)
         iters, qps = 0, 0
         status, viol = "rti: no QP", math.inf
-        eta, cost = np.tile(eta0, (self.horizon + 1, 1)), math.nan
         for _ in range(self.cfg.rti_max_qp):
             du, flag, it = self._qp(u, eta0, par, state_lo, state_hi)
             qps += 1
             iters += it
             if flag not in DAQP_OPTIMAL:
+                eta = np.tile(eta0, (self.horizon + 1, 1))
                 return RtiOutcome(False, f"rti: QP {qps} failed (daqp exit flag {flag})",
-                                  eta, u.reshape(self.horizon, NU), cost, iters, qps, math.inf)
-            u = np.clip(u + du, -self.u_max, self.u_max)
-            eta, path, cost = self.rows(u, eta0, par)
-            viol = self.violation(eta, path, u, state_lo, state_hi)
-            finite = bool(np.all(np.isfinite(eta)) and math.isfinite(cost))
-            if finite and viol <= self.cfg.rti_tol:
-                status = f"rti: {qps} QP, {iters} QP iterations"
-                return RtiOutcome(True, status, eta, u.reshape(self.horizon, NU), cost,
-                                  iters, qps, viol)
-            status = (f"rti: rejected after {qps} QP (a hard row exceeded by {viol:.3g} > "
+                                  eta, u.reshape(self.horizon, NU), math.nan, iters, qps,
+                                  math.inf)
+            u += du
+            np.minimum(np.maximum(u, -u_max, out=u), u_max, out=u)
+            self._val(u, eta0, par, state_lo, state_hi)
+            previous, viol = viol, float(self._excess[0])
+            if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
+                return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
+                                  self._states(eta0), u.reshape(self.horizon, NU),
+                                  float(self._f[0]), iters, qps, viol)
+            worst = self._worst_row(u, eta0, par, state_lo, state_hi)
+            status = (f"rti: rejected after {qps} QP ({worst} exceeded by {viol:.3g} > "
                       f"rmpc.rti_tol = {self.cfg.rti_tol:g})")
-        return RtiOutcome(False, status, eta, u.reshape(self.horizon, NU), cost, iters, qps,
-                          viol)
+            if qps >= 2 and not viol < previous:
+                break
+        return RtiOutcome(False, status, self._states(eta0), u.reshape(self.horizon, NU),
+                          float(self._f[0]), iters, qps, viol)
+
+    def _worst_row(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
+                   state_lo: np.ndarray, state_hi: np.ndarray) -> str:
+        """Which hard row of the plan ``u`` is exceeded most (for the rejection's status: a
+        rejected step's cost, not the accepted ones')."""
+        eta, path, _ = self.rows(u, eta0, par)
+        states = eta[1:].ravel()
+        parts = [np.sqrt(np.maximum(path, 0.0)) - self.path_root, states - state_hi,
+                 state_lo - states, np.abs(u) - self.u_max]
+        which = int(np.argmax([np.max(p) for p in parts]))
+        i = int(np.argmax(parts[which]))
+        if which == 0:
+            row = self._rows[i]
+            corner = f", corner {row.corner}" if row.corner >= 0 else ""
+            return f"the {row.kind} row of stage {row.stage}{corner}"
+        if which in (1, 2):
+            side = "upper" if which == 1 else "lower"
+            return f"the state box's {side} bound on eta[{i % NX}] at stage {i // NX + 1}"
+        return f"the input box on u[{i % NU}] at stage {i // NU}"
 
     def _qp(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray, state_lo: np.ndarray,
             state_hi: np.ndarray) -> tuple[np.ndarray, int, int]:
-        """One Gauss-Newton QP in the input step ``du`` at ``u``: (du, exit flag, iterations)."""
+        """One Gauss-Newton QP in the input step ``du`` at ``u``: (du, exit flag, iterations).
+
+        First without the state box's rows (7 N, far from binding in flight); if its
+        solution breaks one of them (linearised: ``lo <= c_x + J_x du <= hi``, checked
+        exactly, no tolerance), again with them. Without that break the first solution is the
+        whole QP's: the QP is strictly convex, and a minimiser of its cost over a larger set
+        that lies in the smaller one is the smaller one's minimiser."""
         self.calls += 1
-        h, grad, c, jct = self._lin(u, eta0, par)
-        hess = h.reshape(self.n_u, self.n_u)  # symmetric: the storage order does not matter
-        j_c = jct.reshape(self.n_c, self.n_u)  # J_c' column-major is J_c row-major
-        upper = np.concatenate([self.u_max - u, state_hi - c[: self.n_state],
-                                self.path_upper - c[self.n_state:]])
-        lower = np.concatenate([-self.u_max - u, state_lo - c[: self.n_state],
-                                np.full(self.path_upper.size, -DAQP_INF)])
-        sense = np.zeros(upper.size, dtype=np.int32)
-        du, _, flag, info = daqp.solve(hess, grad, j_c, upper, lower, sense,
+        n_u = self.n_u
+        self._u[:] = u
+        self._lin(self._u, eta0, par)
+        up, lo = self._up, self._lo
+        np.subtract(self.u_max, u, out=up[:n_u])
+        np.subtract(-self.u_max, u, out=lo[:n_u])
+        np.subtract(self.path_upper, self._c_p, out=up[n_u:])
+        du, flag, iters = self._daqp(self._j_path, up, lo)
+        if flag == DAQP_INFEASIBLE:
+            return du, flag, iters  # more rows cannot make an infeasible QP feasible
+        if flag in DAQP_OPTIMAL:
+            x_lin = self._j_state @ du
+            x_lin += self._c_x
+            if bool(np.all(x_lin <= state_hi) and np.all(x_lin >= state_lo)):
+                return du, flag, iters
+        # a state row binds (or the smaller QP failed): the whole QP
+        self.full_qps += 1
+        rows = np.vstack([self._j_path, self._j_state])
+        du, flag, it = self._daqp(rows, np.concatenate([up, state_hi - self._c_x]),
+                                  np.concatenate([lo, state_lo - self._c_x]))
+        return du, flag, iters + it
+
+    def _daqp(self, rows: np.ndarray, up: np.ndarray,
+              lo: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """DAQP on this step's H and g with ``rows`` (the bounds' first ``n_u``: the input
+        box, DAQP's simple bounds), from a cold start. DAQP writes none of its arguments."""
+        sense = self._sense if up.size == self._sense.size else np.zeros(up.size, np.int32)
+        du, _, flag, info = daqp.solve(self._hess, self._grad, rows, up, lo, sense,
                                        iter_limit=QP_ITER_LIMIT)
         return np.asarray(du, dtype=float), int(flag), int(info.get("iterations", 0))

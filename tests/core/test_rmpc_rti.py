@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import daqp
 import numpy as np
 import pytest
 
@@ -140,3 +141,119 @@ def test_an_old_config_reads_as_the_full_nlp(old: str) -> None:
                                           else "fatrop"}})
     with pytest.raises(ConfigError, match=r"rmpc\.solver"):
         config_from_dict({**doc, "rmpc": {**rm, "solver": "qpoases"}})
+
+
+def _paper_step(rti: Rmpc, steps: int = 40):  # type: ignore[no-untyped-def]
+    """The RTI's inputs at the last step of a short paper loop, linearised half-way between
+    hover and the flown plan (a QP with a real step): (solver, eta0, par, u, lo, hi)."""
+    _, res = _u0(rti, PAPER_POSE, steps)
+    good = res[-1]
+    eta0 = good.eta_pred[0]
+    par = np.append(good.target.packed(), eta0[3])
+    lo, hi = rti._state_box(good.target)
+    assert rti._rti is not None
+    return rti._rti, eta0, par, 0.5 * good.u_pred.ravel(), lo, hi
+
+
+def test_the_state_box_is_the_nlp_bounds(rti) -> None:  # type: ignore[no-untyped-def]
+    """Rmpc._state_box gives the hard NLP's state bounds of stages 1..N bit for bit."""
+    _, res = _u0(rti, EDGE_POSE, 5)
+    for r in res:
+        lay = rti._hard.layout
+        lbx, ubx = rti._hard.bounds(r.eta_pred[0], r.target)
+        lo, hi = rti._state_box(r.target)
+        assert np.array_equal(lo, lbx[lay.x_index[1:]].ravel())
+        assert np.array_equal(hi, ubx[lay.x_index[1:]].ravel())
+
+
+def _whole_qp(solver, u, eta0, par, lo, hi):  # type: ignore[no-untyped-def]
+    """The QP with every row (input box, state box, path rows), as DAQP solves it."""
+    hess, grad, c, jct = (a.copy() for a in solver._lin(u, eta0, par))
+    n_u, n_s = solver.n_u, solver.n_state
+    up = np.concatenate([solver.u_max - u, hi - c[:n_s], solver.path_upper - c[n_s:]])
+    low = np.concatenate([-solver.u_max - u, lo - c[:n_s], np.full(c.size - n_s, -1e30)])
+    du, _, flag, _ = daqp.solve(hess.reshape(n_u, n_u), grad, jct.reshape(c.size, n_u), up, low,
+                                np.zeros(up.size, dtype=np.int32), iter_limit=500)
+    assert flag == 1
+    return np.asarray(du)
+
+
+def test_the_qp_without_the_state_box_is_the_whole_qp(rti) -> None:  # type: ignore[no-untyped-def]
+    """The QP is solved without the state box's rows first (they do not bind in flight): its
+    step is the whole QP's (strictly convex: a solution that keeps the rows left out is the
+    whole QP's minimiser). A state box the step would leave is caught and the whole QP
+    solved, its step kept inside."""
+    solver, eta0, par, u, lo, hi = _paper_step(rti)
+    full0 = solver.full_qps
+    for at in (2.0 * u, u):  # the flown plan (nothing binds), half-way (corner rows bind)
+        du, flag, _ = solver._qp(at, eta0, par, lo, hi)
+        assert flag == 1 and solver.full_qps == full0
+        np.testing.assert_allclose(du, _whole_qp(solver, at, eta0, par, lo, hi), rtol=0,
+                                   atol=1e-10)
+    # a box the step leaves: the state that moves most may only move half as far
+    solver._lin(u, eta0, par)
+    c_x = solver._c_x.copy()
+    x_lin = c_x + solver._j_state @ du
+    i = int(np.argmax(np.abs(x_lin - c_x)))
+    hi2, lo2 = hi.copy(), lo.copy()
+    if x_lin[i] > c_x[i]:
+        hi2[i] = 0.5 * (x_lin[i] + c_x[i])
+    else:
+        lo2[i] = 0.5 * (x_lin[i] + c_x[i])
+    du2, flag2, _ = solver._qp(u, eta0, par, lo2, hi2)
+    assert flag2 == 1 and solver.full_qps == full0 + 1
+    x2 = c_x + solver._j_state @ du2
+    assert np.all(x2 <= hi2 + 1e-9) and np.all(x2 >= lo2 - 1e-9)
+    np.testing.assert_allclose(du2, _whole_qp(solver, u, eta0, par, lo2, hi2), rtol=0,
+                               atol=1e-10)
+
+
+def test_the_compiled_check_is_the_numpy_check(rti) -> None:  # type: ignore[no-untyped-def]
+    """The step reads the largest excess from the compiled check (rti_val): the same number
+    as RtiSolver.violation's numpy, bit for bit, on a good plan, a violated one and one with
+    a single row broken; a NaN anywhere makes its 'total' non-finite (fmax would drop it)."""
+    solver, eta0, par, u, lo, hi = _paper_step(rti)
+    bad = np.tile(np.asarray(rti.cfg.u_max), rti.cfg.horizon)
+    for plan in (2.0 * u, u, bad):
+        eta, path, _ = solver.rows(plan, eta0, par)
+        hi2 = hi.copy()
+        hi2[5] = eta[1 + 5 // 7, 5 % 7] - 1e-3  # one state row exceeded by 1e-3
+        for box_hi in (hi, hi2):
+            _, _, excess, total = solver._val(plan, eta0, par, lo, box_hi)
+            assert float(excess[0]) == solver.violation(eta, path, plan, lo, box_hi)
+            assert np.isfinite(total[0])
+        assert solver.violation(eta, path, plan, lo, hi2) >= 0.999e-3
+    nan_plan = u.copy()
+    nan_plan[7] = np.nan
+    assert not np.isfinite(solver._val(nan_plan, eta0, par, lo, hi)[3][0])
+
+
+def test_a_diverging_step_stops_early(cfg, design) -> None:  # type: ignore[no-untyped-def]
+    """Far from the solution (the engagement's first step) the full Gauss-Newton steps do
+    not bring the excess down: the step goes to the full NLP before rti_max_qp QPs."""
+    p = dataclasses.replace(cfg.rmpc, solver="rti", rti_max_qp=8)
+    mpc = Rmpc(p, cfg.camera, design)
+    _, res = _u0(mpc, PAPER_POSE, 1)
+    assert "nlp: " in res[0].status and mpc.rti_qps < 8, (res[0].status, mpc.rti_qps)
+    assert res[0].mode == "optimal" and check_solution(res[0], p, cfg.camera, design) == []
+
+
+def test_the_condensed_linearisation_is_the_rollouts(rti) -> None:  # type: ignore[no-untyped-def]
+    """rti_lin (condensed from stage Jacobians) gives the rows rti_val computes with the NLP's
+    own g on the rollout, and their Jacobian is the rollout's (central differences); the
+    Gauss-Newton Hessian is 2 J_r' J_r (symmetric, positive definite)."""
+    solver, eta0, par, u, lo, hi = _paper_step(rti)
+    hess, _, c, jct = (a.copy() for a in solver._lin(u, eta0, par))
+    c_val = solver._val(u, eta0, par, lo, hi)[0].copy()
+    np.testing.assert_allclose(c, c_val, rtol=0, atol=1e-12)
+    j_c = jct.reshape(c.size, solver.n_u)
+    step = 1e-6
+    for k in range(0, solver.n_u, 5):
+        du = np.zeros(solver.n_u)
+        du[k] = step
+        plus = solver._val(u + du, eta0, par, lo, hi)[0].copy()  # (the output buffer)
+        fd = (plus - solver._val(u - du, eta0, par, lo, hi)[0]) / (2 * step)
+        np.testing.assert_allclose(j_c[:, k], fd, rtol=0, atol=1e-6)
+    h = hess.reshape(solver.n_u, solver.n_u)
+    np.testing.assert_allclose(h, h.T, rtol=0, atol=1e-15)
+    assert np.min(np.linalg.eigvalsh(h)) > 0
