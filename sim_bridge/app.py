@@ -13,6 +13,7 @@ this module owns the state they share and the world outputs (frames, ground trut
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import dataclasses
 import logging
@@ -25,7 +26,7 @@ import numpy as np
 
 from sim_bridge.camera import Camera, RenderedFrame, read_calibration
 from sim_bridge.camera.frames import FrameServer
-from sim_bridge.camera.sensor import CameraTiming, Sensor
+from sim_bridge.camera.sensor import CameraTiming, Capture, Sensor
 from sim_bridge.clocks import run_lockstep, run_realtime
 from sim_bridge.config import EmulatorConfig, parse_address
 from sim_bridge.delay import DelayLine
@@ -51,6 +52,19 @@ from sim_bridge.truth import TruthPublisher, truth_record
 from sim_bridge.vehicle_model import build_vehicle_model, vehicle_is_ideal
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PendingFrame:
+    """A frame being rendered (:meth:`SimBridge.begin_frame`): its capture time, sequence
+    number, the AGV it shows, the capture's timing and the render's result (the frame and the
+    sensor's image, ``None`` when the capture is dropped)."""
+
+    t_s: float
+    seq: int
+    agv: AgvState
+    capture: Capture
+    result: asyncio.Future[tuple[RenderedFrame, np.ndarray | None]]
 
 
 @dataclass(frozen=True)
@@ -151,6 +165,8 @@ class SimBridge:
         self._exposure_s = cm.exposure_ms * 1e-3
         self.frame_line: DelayLine[tuple[int, int, np.ndarray]] = DelayLine()
         self._frame_server: FrameServer | None = None
+        # one render thread: frames are rendered one at a time, in order (begin_frame)
+        self._render_pool = concurrent.futures.ThreadPoolExecutor(1, "sim-render")
         self._truth: TruthPublisher | None = None
         self._frame_seq = 0
         self._frames_dropped = 0
@@ -205,6 +221,7 @@ class SimBridge:
 
     async def _open(self) -> None:
         cfg, link = self.cfg, self.cfg.sim.link
+        self._stack.callback(self._render_pool.shutdown)
         self.setpoint_event = asyncio.Event()
         for name, port, remote in (("offboard", link.offboard_local_port, link.offboard_remote),
                                    ("gcs", link.gcs_local_port, link.gcs_remote)):
@@ -314,30 +331,53 @@ class SimBridge:
         for a in targets:
             agv_link.send(agv_link.mav.follow_target_encode(**fields), a)
 
-    async def publish_frame(self, t: float) -> None:
-        """Capture the camera frame exposed around ``t``: render it, publish the ground-truth
-        record at once, and queue the frame for delivery after the camera's latency (or drop
-        it), then deliver every frame due by ``t``."""
+    def begin_frame(self, t: float) -> PendingFrame:
+        """Start capturing the camera frame exposed around ``t`` on the render thread (the
+        ground's warp and resize run without the GIL): the caller does its MAVLink work
+        meanwhile and hands the result to :meth:`finish_frame`. Everything the frame depends
+        on is taken now (the vehicle's state, the AGV, the capture's timing draw), so the
+        frame is the one a render in line would give: the camera and the sensor are used
+        by the render thread only, one frame at a time."""
         agv = self.agv.state(t)
         s = self.state
         blur = self._exposure_s > 0
-        frame = self.camera.render(
-            s.pos_ned_m, s.q_wxyz, agv, occluded=self.cfg.sim.camera.occluded(t),
-            uav_vel_ned_m_s=s.vel_ned_m_s if blur else None,
-            uav_rates_frd_rad_s=s.rates_frd_rad_s if blur else None,
-            exposure_s=self._exposure_s)
         seq = self._frame_seq
         self._frame_seq += 1
         cap = self.cam_timing.capture(t)
-        if self._truth is not None:
-            self._truth.publish(self._truth_record(t, seq, agv, frame, cap.stamp_us,
-                                                   None if cap.dropped else cap.deliver_s))
-        if cap.dropped:
+        occluded = self.cfg.sim.camera.occluded(t)
+
+        def work() -> tuple[RenderedFrame, np.ndarray | None]:
+            frame = self.camera.render(
+                s.pos_ned_m, s.q_wxyz, agv, occluded=occluded,
+                uav_vel_ned_m_s=s.vel_ned_m_s if blur else None,
+                uav_rates_frd_rad_s=s.rates_frd_rad_s if blur else None,
+                exposure_s=self._exposure_s)
+            image = None if cap.dropped else self.sensor.apply(frame.image, self.boot_s(t))
+            return frame, image
+
+        return PendingFrame(t, seq, agv, cap, asyncio.wrap_future(self._render_pool.submit(work)))
+
+    async def finish_frame(self, pending: PendingFrame) -> None:
+        """Queue the frame for delivery after the camera's latency (or drop it), deliver every
+        frame due by its time, then publish its ground-truth record (after the frame has
+        left: the record is for loggers and scoring, the client's step waits on the frame)."""
+        frame, image = await pending.result
+        t, cap = pending.t_s, pending.capture
+        truth = None if self._truth is None else self._truth_record(
+            t, pending.seq, pending.agv, frame, cap.stamp_us,
+            None if cap.dropped else cap.deliver_s)
+        if image is None:
             self._frames_dropped += 1
         else:
-            image = self.sensor.apply(frame.image, self.boot_s(t))
-            self.frame_line.push(cap.deliver_s, (seq, cap.stamp_us, image))
+            self.frame_line.push(cap.deliver_s, (pending.seq, cap.stamp_us, image))
         await self.deliver_frames(t)
+        if self._truth is not None and truth is not None:
+            self._truth.publish(truth)
+
+    async def publish_frame(self, t: float) -> None:
+        """Capture the camera frame exposed around ``t`` (:meth:`begin_frame`, then
+        :meth:`finish_frame`)."""
+        await self.finish_frame(self.begin_frame(t))
 
     async def deliver_frames(self, now_s: float) -> None:
         for seq, stamp_us, image in self.frame_line.pop_due(now_s):
