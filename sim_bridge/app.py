@@ -13,7 +13,6 @@ this module owns the state they share and the world outputs (frames, ground trut
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import dataclasses
 import logging
@@ -26,7 +25,7 @@ import numpy as np
 
 from sim_bridge.camera import Camera, RenderedFrame, read_calibration
 from sim_bridge.camera.frames import FrameServer
-from sim_bridge.camera.sensor import CameraTiming, Capture, Sensor
+from sim_bridge.camera.sensor import CameraTiming, Sensor
 from sim_bridge.clocks import run_lockstep, run_realtime
 from sim_bridge.config import EmulatorConfig, parse_address
 from sim_bridge.delay import DelayLine
@@ -52,19 +51,6 @@ from sim_bridge.truth import TruthPublisher, truth_record
 from sim_bridge.vehicle_model import build_vehicle_model, vehicle_is_ideal
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class PendingFrame:
-    """A frame being rendered (:meth:`SimBridge.begin_frame`): its capture time, sequence
-    number, the AGV it shows, the capture's timing and the render's result (the frame and the
-    sensor's image, ``None`` when the capture is dropped)."""
-
-    t_s: float
-    seq: int
-    agv: AgvState
-    capture: Capture
-    result: asyncio.Future[tuple[RenderedFrame, np.ndarray | None]]
 
 
 @dataclass(frozen=True)
@@ -165,8 +151,6 @@ class SimBridge:
         self._exposure_s = cm.exposure_ms * 1e-3
         self.frame_line: DelayLine[tuple[int, int, np.ndarray]] = DelayLine()
         self._frame_server: FrameServer | None = None
-        # one render thread: frames are rendered one at a time, in order (begin_frame)
-        self._render_pool = concurrent.futures.ThreadPoolExecutor(1, "sim-render")
         self._truth: TruthPublisher | None = None
         self._frame_seq = 0
         self._frames_dropped = 0
@@ -221,7 +205,6 @@ class SimBridge:
 
     async def _open(self) -> None:
         cfg, link = self.cfg, self.cfg.sim.link
-        self._stack.callback(self._render_pool.shutdown)
         self.setpoint_event = asyncio.Event()
         for name, port, remote in (("offboard", link.offboard_local_port, link.offboard_remote),
                                    ("gcs", link.gcs_local_port, link.gcs_remote)):
@@ -331,53 +314,35 @@ class SimBridge:
         for a in targets:
             agv_link.send(agv_link.mav.follow_target_encode(**fields), a)
 
-    def begin_frame(self, t: float) -> PendingFrame:
-        """Start capturing the camera frame exposed around ``t`` on the render thread (the
-        ground's warp and resize run without the GIL): the caller does its MAVLink work
-        meanwhile and hands the result to :meth:`finish_frame`. Everything the frame depends
-        on is taken now (the vehicle's state, the AGV, the capture's timing draw), so the
-        frame is the one a render in line would give: the camera and the sensor are used
-        by the render thread only, one frame at a time."""
+    async def publish_frame(self, t: float) -> None:
+        """Capture the camera frame exposed around ``t``: render it, queue it for delivery after
+        the camera's latency (or drop it), deliver every frame due by ``t``, then publish the
+        ground-truth record (after the frame has left: the record is for loggers and scoring,
+        the client's step waits on the frame; its content is taken at the capture)."""
         agv = self.agv.state(t)
         s = self.state
         blur = self._exposure_s > 0
+        frame = self.camera.render(
+            s.pos_ned_m, s.q_wxyz, agv, occluded=self.cfg.sim.camera.occluded(t),
+            uav_vel_ned_m_s=s.vel_ned_m_s if blur else None,
+            uav_rates_frd_rad_s=s.rates_frd_rad_s if blur else None,
+            exposure_s=self._exposure_s)
         seq = self._frame_seq
         self._frame_seq += 1
         cap = self.cam_timing.capture(t)
-        occluded = self.cfg.sim.camera.occluded(t)
-
-        def work() -> tuple[RenderedFrame, np.ndarray | None]:
-            frame = self.camera.render(
-                s.pos_ned_m, s.q_wxyz, agv, occluded=occluded,
-                uav_vel_ned_m_s=s.vel_ned_m_s if blur else None,
-                uav_rates_frd_rad_s=s.rates_frd_rad_s if blur else None,
-                exposure_s=self._exposure_s)
-            image = None if cap.dropped else self.sensor.apply(frame.image, self.boot_s(t))
-            return frame, image
-
-        return PendingFrame(t, seq, agv, cap, asyncio.wrap_future(self._render_pool.submit(work)))
-
-    async def finish_frame(self, pending: PendingFrame) -> None:
-        """Queue the frame for delivery after the camera's latency (or drop it), deliver every
-        frame due by its time, then publish its ground-truth record (after the frame has
-        left: the record is for loggers and scoring, the client's step waits on the frame)."""
-        frame, image = await pending.result
-        t, cap = pending.t_s, pending.capture
-        truth = None if self._truth is None else self._truth_record(
-            t, pending.seq, pending.agv, frame, cap.stamp_us,
-            None if cap.dropped else cap.deliver_s)
-        if image is None:
+        # the autopilot's part of the record as of now (a message handled while the frame
+        # leaves could change it); the rest does not change before the next step's physics
+        autopilot = (self.px4.mode.label, self.px4.armed, self.px4.setpoint_age_s(t))
+        if cap.dropped:
             self._frames_dropped += 1
         else:
-            self.frame_line.push(cap.deliver_s, (pending.seq, cap.stamp_us, image))
+            image = self.sensor.apply(frame.image, self.boot_s(t))
+            self.frame_line.push(cap.deliver_s, (seq, cap.stamp_us, image))
         await self.deliver_frames(t)
-        if self._truth is not None and truth is not None:
-            self._truth.publish(truth)
-
-    async def publish_frame(self, t: float) -> None:
-        """Capture the camera frame exposed around ``t`` (:meth:`begin_frame`, then
-        :meth:`finish_frame`)."""
-        await self.finish_frame(self.begin_frame(t))
+        if self._truth is not None:
+            self._truth.publish(self._truth_record(t, seq, agv, frame, cap.stamp_us,
+                                                   None if cap.dropped else cap.deliver_s,
+                                                   autopilot))
 
     async def deliver_frames(self, now_s: float) -> None:
         for seq, stamp_us, image in self.frame_line.pop_due(now_s):
@@ -388,13 +353,16 @@ class SimBridge:
                 await self._frame_server.publish(seq, stamp_us, image)
 
     def _truth_record(self, t: float, seq: int, agv: AgvState, frame: RenderedFrame,
-                      stamp_us: int, deliver_s: float | None) -> dict[str, Any]:
+                      stamp_us: int, deliver_s: float | None,
+                      autopilot: tuple[str, bool, float]) -> dict[str, Any]:
+        """The ground truth of frame ``seq`` (``autopilot``: mode label, armed, setpoint age
+        at its capture)."""
         s = self.state
-        age = self.px4.setpoint_age_s(t)
+        mode, armed, age = autopilot
         rec = truth_record(
             self.us(t), seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv,
-            frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
-            armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
+            frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=mode,
+            armed=armed, setpoint_age_s=age if math.isfinite(age) else None)
         rec["sim_t_s"] = t  # t_us is on the autopilot's clock (boot offset); this is sim time
         if not self._vehicle_ideal:
             rec["hover_thrust_true"] = self.model.true_hover_thrust(t)

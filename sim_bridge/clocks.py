@@ -66,8 +66,6 @@ async def run_lockstep(sim: SimBridge, duration_s: float) -> None:
     while k * step < duration_s - 1e-9:
         t = k * step
         sim.t_s = t
-        # the frame renders on its own thread while the step's MAVLink work runs here
-        frame = sim.begin_frame(t)
         deliver_due(sim, t)
         sim.px4.update(t, sim.state)
         sim.note_changes(t)
@@ -78,7 +76,7 @@ async def run_lockstep(sim: SimBridge, duration_s: float) -> None:
             next_ft += ft_dt
         sim.delivered_this_step = 0
         sim.setpoint_event.clear()
-        await sim.finish_frame(frame)
+        await sim.publish_frame(t)
         # the step is released once every frame delivered in it has been answered (one
         # setpoint each; a step that delivers two frames, by latency jitter, waits for
         # two). A step that delivers no frame (latency, drop) does not wait: a client that

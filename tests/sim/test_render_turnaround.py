@@ -1,7 +1,7 @@
 """The emulator's cheaper step renders the same frames (docs/reference/emulator.md, "The step's
-cost"): the rotation is scipy's to the bit, and in lockstep the frame rendered on the render
-thread while the step's MAVLink work runs is, pixel for pixel, the frame of the pose the ground
-truth reports for it (real sockets, real rendering)."""
+cost"): the rotation is scipy's to the bit, and in lockstep every frame on the socket is, pixel
+for pixel, the frame of the pose its ground-truth record (now sent after the frame) reports
+(real sockets, real rendering)."""
 
 from __future__ import annotations
 
@@ -82,10 +82,10 @@ def _fly(client: MavClient, truth: socket.socket, n_steps: int
 
 @pytest.mark.timeout(120)
 def test_lockstep_frame_is_the_truth_pose_rendered(client: MavClient) -> None:
-    """Every frame on the socket equals a fresh render, on this thread, of the UAV pose and
-    the AGV of its ground-truth record (JSON floats round-trip exactly): the render thread
-    draws the state of the frame's own instant, not the previous step's (a stale pose would
-    shift the ground by the vehicle's motion in one step: thousands of pixels)."""
+    """Every frame on the socket equals a fresh render of the UAV pose and the AGV of its
+    ground-truth record (JSON floats round-trip exactly): frame and record describe the same
+    instant (a frame of the previous step's pose would shift the ground by the vehicle's
+    motion in one step: thousands of pixels)."""
     truth = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     truth.bind(("127.0.0.1", 0))
     try:
