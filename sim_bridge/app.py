@@ -315,10 +315,9 @@ class SimBridge:
             agv_link.send(agv_link.mav.follow_target_encode(**fields), a)
 
     async def publish_frame(self, t: float) -> None:
-        """Capture the camera frame exposed around ``t``: render it, queue it for delivery after
-        the camera's latency (or drop it), deliver every frame due by ``t``, then publish the
-        ground-truth record (after the frame has left: the record is for loggers and scoring,
-        the client's step waits on the frame; its content is taken at the capture)."""
+        """Capture the camera frame exposed around ``t``: render it, publish the ground-truth
+        record at once, and queue the frame for delivery after the camera's latency (or drop
+        it), then deliver every frame due by ``t``."""
         agv = self.agv.state(t)
         s = self.state
         blur = self._exposure_s > 0
@@ -330,19 +329,15 @@ class SimBridge:
         seq = self._frame_seq
         self._frame_seq += 1
         cap = self.cam_timing.capture(t)
-        # the autopilot's part of the record as of now (a message handled while the frame
-        # leaves could change it); the rest does not change before the next step's physics
-        autopilot = (self.px4.mode.label, self.px4.armed, self.px4.setpoint_age_s(t))
+        if self._truth is not None:
+            self._truth.publish(self._truth_record(t, seq, agv, frame, cap.stamp_us,
+                                                   None if cap.dropped else cap.deliver_s))
         if cap.dropped:
             self._frames_dropped += 1
         else:
             image = self.sensor.apply(frame.image, self.boot_s(t))
             self.frame_line.push(cap.deliver_s, (seq, cap.stamp_us, image))
         await self.deliver_frames(t)
-        if self._truth is not None:
-            self._truth.publish(self._truth_record(t, seq, agv, frame, cap.stamp_us,
-                                                   None if cap.dropped else cap.deliver_s,
-                                                   autopilot))
 
     async def deliver_frames(self, now_s: float) -> None:
         for seq, stamp_us, image in self.frame_line.pop_due(now_s):
@@ -353,16 +348,13 @@ class SimBridge:
                 await self._frame_server.publish(seq, stamp_us, image)
 
     def _truth_record(self, t: float, seq: int, agv: AgvState, frame: RenderedFrame,
-                      stamp_us: int, deliver_s: float | None,
-                      autopilot: tuple[str, bool, float]) -> dict[str, Any]:
-        """The ground truth of frame ``seq`` (``autopilot``: mode label, armed, setpoint age
-        at its capture)."""
+                      stamp_us: int, deliver_s: float | None) -> dict[str, Any]:
         s = self.state
-        mode, armed, age = autopilot
+        age = self.px4.setpoint_age_s(t)
         rec = truth_record(
             self.us(t), seq, s.pos_ned_m, s.vel_ned_m_s, s.q_wxyz, s.rates_frd_rad_s, agv,
-            frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=mode,
-            armed=armed, setpoint_age_s=age if math.isfinite(age) else None)
+            frame, disturbance_accel_ned_m_s2=s.disturbance_ned_m_s2, mode=self.px4.mode.label,
+            armed=self.px4.armed, setpoint_age_s=age if math.isfinite(age) else None)
         rec["sim_t_s"] = t  # t_us is on the autopilot's clock (boot offset); this is sim time
         if not self._vehicle_ideal:
             rec["hover_thrust_true"] = self.model.true_hover_thrust(t)

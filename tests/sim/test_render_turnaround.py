@@ -1,6 +1,6 @@
 """The emulator's cheaper step renders the same frames (docs/reference/emulator.md, "The step's
 cost"): the rotation is scipy's to the bit, and in lockstep every frame on the socket is, pixel
-for pixel, the frame of the pose its ground-truth record (now sent after the frame) reports
+for pixel, the frame of the pose its ground-truth record reports
 (real sockets, real rendering)."""
 
 from __future__ import annotations
