@@ -80,9 +80,9 @@ async def _run(sim: SimBridge, duration: float | None) -> None:
 
 
 def _one_render_thread() -> None:
-    """OpenCV on the calling thread only (``cv2.setNumThreads(1)``): its pool split each warp
-    and resize of a 1000 x 1000 frame across threads that spin between the calls, ~1 ms of
-    CPU per frame more for a fraction of that in wall time (bench/sim_step.py); every
+    """OpenCV on the calling thread only (``cv2.setNumThreads(1)``): its pool splits each warp
+    and resize of a 1000 x 1000 frame across threads that spin between the calls (3.9 against
+    2.8 ms of CPU per render, load 6; docs/reference/emulator.md, "The step's cost"); every
     pixel is computed the same either way."""
     import cv2
 
