@@ -14,10 +14,14 @@ does not depend on the machine's load the way wall time does. ``--thrust``: the 
 collective thrust (the vehicle's true hover thrust keeps it in the air, e.g. 0.573 with
 ``config/realistic.toml``).
 
+``--lockstep-timeout S``: the emulator's ``sim.lockstep_timeout_s`` (10 s by default with
+``--digest``).
+
 ``--digest``: an identity check of the emulator's output. The client switches the vehicle to
 OFFBOARD and flies a slow attitude wave (so the vehicle and the view move), and prints one
 SHA-256 over every frame (header and pixels) and every MAVLink datagram of the offboard link
-from the 20th frame on (after the start-up, which depends on when the client connects).
+from frame sequence number 20 on (after the start-up, which depends on when the client
+connects; the wave and the OFFBOARD request follow the frames' sequence numbers too).
 Lockstep makes it deterministic when every step delivers its frame (an ideal camera's timing:
 no latency, no drops; a step that delivers none does not wait for the client) and no step
 times out (give ``sim.lockstep_timeout_s`` room on a loaded machine): the same code and config
@@ -36,6 +40,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -43,6 +48,20 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 HEADER = struct.Struct("<4sBBHIQHHII")
+# ``python -c _PROFILED OUT ARGS...``: the emulator under cProfile timed by the process's CPU
+# clock (a wall-clock profile on a loaded machine charges other processes' time to whatever
+# line was running when the scheduler took the core away).
+_PROFILED = """import cProfile, runpy, sys, time
+out = sys.argv[1]
+sys.argv = ["sim_bridge", *sys.argv[2:]]
+p = cProfile.Profile(time.process_time)
+try:
+    p.runcall(runpy.run_module, "sim_bridge", run_name="__main__", alter_sys=True)
+except SystemExit:
+    pass
+finally:
+    p.dump_stats(out)
+"""
 
 
 def free_port(kind: int) -> int:
@@ -64,9 +83,10 @@ def read_exact(sock: socket.socket, view: memoryview, n: int) -> memoryview:
 
 def _digest_step(digest: Any, udp: socket.socket, head: tuple[int, ...], buf: memoryview,
                  mav: mavlink2.MAVLink, p_sim: int, index: int) -> None:
-    """Hash the frame just read and the datagrams that came before it (from the 20th frame
-    on), then answer it: OFFBOARD requested at the 10th frame, a slow roll/pitch wave about
-    hover."""
+    """Hash the frame just read and the datagrams that came before it (from frame ``index`` =
+    its sequence number 20 on), then answer it: OFFBOARD requested at frame 10, a slow
+    roll/pitch wave about hover. Counted by the emulator's frame sequence number, not by
+    arrival: whether the client connected before step 0's frame left does not shift it."""
     grams = []
     while True:
         try:
@@ -95,19 +115,32 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--profile", default=None, help="write the emulator's cProfile here")
+    ap.add_argument("--profile", default=None,
+                    help="write the emulator's cProfile here (CPU time: load-independent)")
     ap.add_argument("--config", default=None, help="scenario TOML for the emulator")
     ap.add_argument("--thrust", type=float, default=0.5, help="the client's hover thrust")
     ap.add_argument("--digest", action="store_true",
                     help="fly an attitude wave in OFFBOARD and print the output's SHA-256")
+    ap.add_argument("--lockstep-timeout", type=float, default=None,
+                    help="the emulator's sim.lockstep_timeout_s (default: the config's; 10 s "
+                         "with --digest, so that a loaded machine cannot time a step out)")
     args = ap.parse_args()
+    timeout_s = args.lockstep_timeout if args.lockstep_timeout is not None else (
+        10.0 if args.digest else None)
+    if timeout_s is not None:  # a variant of the config that sets only the timeout
+        base = os.path.abspath(args.config or os.path.join(os.path.dirname(__file__), "..",
+                                                           "config", "paper.toml"))
+        variant = os.path.join(tempfile.mkdtemp(prefix="lockstep-"), "config.toml")
+        with open(variant, "w", encoding="utf-8") as f:
+            f.write(f"base = {json.dumps(base)}\n[sim]\nlockstep_timeout_s = {timeout_s}\n")
+        args.config = variant
     p_comp, p_sim = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     p_frame = free_port(socket.SOCK_STREAM)
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     udp.bind(("127.0.0.1", p_comp))
-    prof = ["-m", "cProfile", "-o", args.profile] if args.profile else []
     conf = ["--config", args.config] if args.config else []
-    cmd = [sys.executable, *prof, "-m", "sim_bridge", *conf, "--lockstep",
+    entry = ["-c", _PROFILED, args.profile] if args.profile else ["-m", "sim_bridge"]
+    cmd = [sys.executable, *entry, *conf, "--lockstep",
            "--duration", str(args.duration), "--bind", "127.0.0.1", "--offboard-port", str(p_sim),
            "--offboard-remote", f"127.0.0.1:{p_comp}",
            "--gcs-port", str(free_port(socket.SOCK_DGRAM)),
@@ -151,8 +184,10 @@ def main() -> int:
                 break
             arrivals.append(time.perf_counter())
             stamps_us.append(head[5])
+            if len(arrivals) == 1:  # from now on only the emulator's end (EOF) ends the run
+                tcp.settimeout(60.0)
             if args.digest:
-                _digest_step(digest, udp, head, buf, mav, p_sim, len(arrivals) - 1)
+                _digest_step(digest, udp, head, buf, mav, p_sim, head[4])
             else:
                 udp.sendto(hover, ("127.0.0.1", p_sim))
         sim.wait(timeout=30.0)

@@ -12,7 +12,8 @@ physics stage is a point-mass stub (default, the historical figure) or the emula
 vehicle model of ``config/paper.toml`` with ``sim.vehicle.attitude_model`` = first-order or px4
 (PX4's cascade, 20 sub-steps of 2.5 ms), or that of ``config/realistic.toml`` (px4 + vehicle
 imperfections + turbulence), tracking a pose setpoint that follows the AGV. CPU time per step
-(``getrusage``, whole loop) is printed beside the wall figures.
+(``getrusage``, whole loop) is printed beside the wall figures. ``--cv-threads`` (default 1,
+as ``sim-bridge`` runs OpenCV; 0: OpenCV's own pool).
 
 Target (issue "sim_bridge"): median <= 2 ms per step at 1000 x 1000, i.e. >= 25x real time at
 the 20 Hz frame rate. Prints median/p95 per stage and for the whole step.
@@ -32,6 +33,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -172,6 +174,7 @@ def run(steps: int, pattern: str, size: int, level: str = "ideal",
         "realtime_ratio_at_20hz": round(STEP_S / med, 1),
         "target_median_ms": 2.0,
         "meets_target": med * 1e3 <= 2.0,
+        "cv_threads": cv2.getNumThreads(),
         "host": {
             "python": platform.python_version(),
             "cpus": os.cpu_count(),
@@ -190,8 +193,13 @@ def main() -> int:
     ap.add_argument("--lens", action="store_true", help="render through the distorted lens")
     ap.add_argument("--vehicle", choices=("stub", "first-order", "px4", "realistic"),
                     default="stub", help="physics stage: stub or the emulator's model")
+    ap.add_argument("--cv-threads", type=int, default=1,
+                    help="cv2.setNumThreads (default 1, as the emulator runs; 0 = OpenCV's "
+                         "default pool)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
+    if args.cv_threads > 0:
+        cv2.setNumThreads(args.cv_threads)
     res = run(args.steps, args.pattern, args.size, args.level, args.lens, args.vehicle)
     if args.json:
         print(json.dumps(res))
@@ -199,7 +207,7 @@ def main() -> int:
     print(
         f"sim step (AGV + physics stub + render {res['size_px']}^2 {res['pattern']} + sensor + "
         f"encode), vehicle {res['vehicle']}, level {res['level']}"
-        f"{', lens' if res['lens'] else ''}, "
+        f"{', lens' if res['lens'] else ''}, {res['cv_threads']} OpenCV thread(s), "
         f"{res['steps']} steps, load {res['host']['loadavg_1min']}"
     )
     print(

@@ -79,6 +79,16 @@ async def _run(sim: SimBridge, duration: float | None) -> None:
         log.info("stopped by signal")
 
 
+def _one_render_thread() -> None:
+    """OpenCV on the calling thread only (``cv2.setNumThreads(1)``): its pool splits each warp
+    and resize of a 1000 x 1000 frame across threads that spin between the calls (3.9 against
+    2.8 ms of CPU per render, load 6; docs/reference/emulator.md, "The step's cost"); every
+    pixel is computed the same either way."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(),
@@ -97,6 +107,8 @@ def main(argv: list[str] | None = None) -> int:
             print(check_config(cfg))
             return 0
         from sim_bridge.app import SimBridge  # not needed (nor its imports) to check a config
+
+        _one_render_thread()
 
         changes = {k: v for k, v in {
             "offboard_local_port": args.offboard_port, "offboard_remote": args.offboard_remote,

@@ -35,7 +35,9 @@ def _num(x: float) -> float | None:
 
 
 def _vec(x: Sequence[float] | np.ndarray) -> list[float | None]:
-    return [_num(v) for v in np.asarray(x, dtype=float).reshape(-1)]
+    # tolist(): the same Python floats as float() of each element, without a numpy scalar each
+    return [v if math.isfinite(v) else None
+            for v in np.asarray(x, dtype=float).reshape(-1).tolist()]
 
 
 def truth_record(
