@@ -31,9 +31,9 @@ def _reply_each_step(client: MavClient, rs, q: list[float], thrust: float,
     return stamps
 
 
-def test_one_step_per_setpoint_and_much_faster_than_real_time(client: MavClient) -> None:
-    """A client that answers every camera frame at once: 10 s of flight, one step per answer,
-    in a fraction of the wall time."""
+def test_one_step_per_setpoint(client: MavClient) -> None:
+    """A client that answers every camera frame at once: 10 s of flight, one step per answer.
+    (How much faster than real time is a figure for bench/lockstep.py, not a timed test.)"""
     cfg = _lockstep_cfg(client, timeout_s=2.0)
     q = [0.98078528, 0.0, 0.0, 0.19509032]  # level, yaw 22.5 deg: hover
     stamps: list[int] = []
@@ -72,7 +72,6 @@ def test_one_step_per_setpoint_and_much_faster_than_real_time(client: MavClient)
     assert first <= 1
     assert stamps == [50_000 * k for k in range(first, 200)]
     assert stats.setpoints_received == 200
-    assert wall < 10.0 / 2, f"10 s of flight took {wall:.2f} s of wall time"
     print(f"lockstep: 10 s of flight in {wall:.2f} s of wall time")
 
 
