@@ -6,6 +6,14 @@ any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one
 
     python bench/perception.py [--poses 100] [--seed 1] [--json]
     python bench/perception.py --flight LOG.mcap [--frames 600] [--json]
+    python bench/perception.py --cases [--poses 200] [--reps 3] [--json]
+
+``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``:
+"profiles", the detector before 2026-11-28, and "lean") on the same frames, interleaved: CPU
+per frame (``time.process_time``, single thread, each frame ``--reps`` times) and the worst
+corner error per frame (median / p95 / max px) for the clean poses and the degraded cases
+(noise, blur, exposure gain) the tests bound, both on the whole frame and on the region of
+interest the flight searches (the corners' box grown by its size on every side).
 
 ``--flight`` times ``Perception.process`` on a flight log's own frames in order, with the
 region-of-interest tracking the live process uses (the in-flight case), wall per frame and the
@@ -36,6 +44,7 @@ from companion.config import load_config  # noqa: E402
 from companion.perception import ArucoDetector, Perception, RectangleDetector  # noqa: E402
 from tests.companion.test_perception import (  # noqa: E402
     box_level,
+    degrade,
     ground,
     pose_ok,
     project,
@@ -68,9 +77,13 @@ def main() -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--flight", type=Path, default=None, help="time a flight log's frames")
     ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--cases", action="store_true", help="edge methods on degraded cases")
+    ap.add_argument("--reps", type=int, default=3)
     args = ap.parse_args()
     if args.flight is not None:
         return _flight(args.flight, args.frames, args.json)
+    if args.cases:
+        return _cases(args.poses, args.seed, args.reps, args.json)
 
     cfg = load_config()
     rng = np.random.default_rng(args.seed)
@@ -226,6 +239,90 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
         e = out["corner_err_px"]
         print(f"  worst corner vs the projected truth: median {e['median']:.4f} px, max "
               f"{e['max']:.4f} px over {e['frames']} frames")
+    return 0
+
+
+# (name, noise std, blur sigma px, exposure gain) of the degraded cases the tests bound
+# (tests/companion/test_perception.py, test_perception_exposure.py)
+CASES = [("clean", 0.0, 0.0, 1.0), ("noise 10", 10.0, 0.0, 1.0), ("noise 20", 20.0, 0.0, 1.0),
+         ("blur 1.0", 0.0, 1.0, 1.0), ("blur 1.5", 0.0, 1.5, 1.0),
+         ("noise 10 + blur 1.5", 10.0, 1.5, 1.0), ("blur 2.0", 0.0, 2.0, 1.0),
+         ("gain 0.5, noise 5, blur 1", 5.0, 1.0, 0.5), ("gain 1.4, noise 5, blur 1", 5.0, 1.0, 1.4)]
+
+
+def _case_frames(poses: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    rng = np.random.default_rng(seed)
+    scenes: list[tuple[np.ndarray, np.ndarray]] = []
+    while len(scenes) < poses:
+        depth = rng.uniform(1.5, 5.0)
+        top, bottom = box_level(depth, rng.uniform(-0.5, 0.5) * depth,
+                                rng.uniform(-0.5, 0.5) * depth, rng.uniform(-math.pi, math.pi))
+        phi, theta = rng.uniform(-0.3, 0.3, 2)
+        if pose_ok(top, bottom, phi, theta, margin=8):
+            scenes.append(render_box(int(rng.integers(10_000)), top, bottom, phi, theta))
+    return scenes
+
+
+def _roi(img: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from companion.perception.pipeline import roi_box
+    x0, y0, x1, y1 = roi_box(true, img.shape[1], img.shape[0])
+    return img[y0:y1, x0:x1], true - np.array([x0, y0], dtype=np.float64)
+
+
+def _cases(poses: int, seed: int, reps: int, as_json: bool) -> int:
+    """Every edge method on the same frames, interleaved frame by frame (the machine's load
+    drifts alike for all): CPU per frame and worst corner error per frame."""
+    from companion.perception.rectangle import EDGE_METHODS, RectangleSettings
+    from companion.perception.pipeline import limit_opencv_threads
+
+    limit_opencv_threads()
+    cfg = load_config()
+    dets = {m: RectangleDetector(cfg.target.length_m, cfg.target.width_m,
+                                 settings=RectangleSettings(edges=m)) for m in EDGE_METHODS}
+    scenes = _case_frames(poses, seed)
+    out: dict[str, Any] = {"poses": poses, "reps": reps, "loadavg_1min": os.getloadavg()[0],
+                           "cases": {}}
+    for name, noise, blur, gain in CASES:
+        for where in ("frame", "roi"):
+            cpu = {m: 0.0 for m in dets}
+            errs: dict[str, list[float]] = {m: [] for m in dets}
+            for i, (img, true) in enumerate(scenes):
+                if gain != 1.0:
+                    img = np.clip(np.rint(img * gain), 0, 255).astype(np.uint8)
+                if noise or blur:
+                    img = degrade(img, noise, blur, seed=i)
+                t = true
+                if where == "roi":
+                    img, t = _roi(img, true)
+                for m, det in dets.items():
+                    t0 = time.process_time()
+                    for _ in range(reps):
+                        found = det.detect(img)
+                    cpu[m] += time.process_time() - t0
+                    errs[m].append(set_error_px(found.corners_px, t) if found is not None
+                                   else math.inf)
+            for m in dets:
+                e = np.asarray(errs[m])
+                fin = e[np.isfinite(e)]
+                out["cases"][f"{name} | {where} | {m}"] = {
+                    "cpu_ms": 1e3 * cpu[m] / (reps * len(scenes)),
+                    "found": int(fin.size), "frames": len(scenes),
+                    "median_px": float(np.median(fin)) if fin.size else math.nan,
+                    "p95_px": float(np.percentile(fin, 95)) if fin.size else math.nan,
+                    "max_px": float(fin.max()) if fin.size else math.nan}
+    out["loadavg_1min_end"] = os.getloadavg()[0]
+    if as_json:
+        print(json.dumps(out))
+        return 0
+    print(f"rectangle detector, {poses} poses x {len(CASES)} cases, CPU per frame "
+          f"(process_time, single thread, {reps} reps), worst corner error per frame; load "
+          f"{out['loadavg_1min']:.2f} -> {out['loadavg_1min_end']:.2f}")
+    print(f"  {'case':28s} {'where':5s} {'edges':8s} {'CPU ms':>7s} {'found':>7s} "
+          f"{'median':>7s} {'p95':>7s} {'max px':>7s}")
+    for key, r in out["cases"].items():
+        name, where, m = key.split(" | ")
+        print(f"  {name:28s} {where:5s} {m:8s} {r['cpu_ms']:7.3f} {r['found']:3d}/{r['frames']:<3d} "
+              f"{r['median_px']:7.3f} {r['p95_px']:7.3f} {r['max_px']:7.3f}")
     return 0
 
 
