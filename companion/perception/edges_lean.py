@@ -49,7 +49,7 @@ class LeanSettings:
     min_contrast: float = 40.0
     samples_per_edge: int = 48
     passes: int = 3
-    robust_every_pass: bool = False
+    third_pass_scale: float = 1.3
 
     def __post_init__(self) -> None:
         if not self.profile_half_px >= 3:
@@ -130,15 +130,16 @@ def refine_quad_lean(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSe
     n = s.samples_per_edge
     u = g.j[None, :] * np.array([f[4] for f in frames])[:, None]  # (4, N) along each edge
     e, ok, width = _pass(gray, frames, _ONES, g, s, True)
-    lines = _fit(u, e, ok, s.robust_every_pass)
+    lines = _fit(u, e, ok, False)
     if lines is None:
         return None
     # the edges' blur sets how far apart the next passes read the plateaus
     scale = [min(max((0.5 + 0.9 * max(w, 1.0)) / 1.4, 1.0), 3.0) for w in width]
-    for it in range(1, s.passes):
+    passes = s.passes if max(scale) > s.third_pass_scale else min(s.passes, 2)
+    for it in range(1, passes):
         frames = [_on_line(f, ln) for f, ln in zip(frames, lines, strict=True)]
         e, ok, _ = _pass(gray, frames, scale, g, s, False)
-        lines = _fit(u, e, ok, s.robust_every_pass or it == s.passes - 1)
+        lines = _fit(u, e, ok, it == passes - 1)
         if lines is None:
             return None
     fits = [_edge_fit(f, ln) for f, ln in zip(frames, lines, strict=True)]
@@ -197,42 +198,41 @@ def _pass(gray: npt.NDArray[np.uint8], frames: list[_Frame], scale: list[float],
     return e, ok, _medians(width, ok.sum(axis=1)).tolist()
 
 
-def _fit(u: FloatArray, v: FloatArray, ok: npt.NDArray[np.bool_], robust: bool
+def _fit(u: FloatArray, v: FloatArray, ok: npt.NDArray[np.bool_], final: bool
          ) -> list[_Line] | None:
     """Each edge's line through its measured points ``(u, v)`` (4, N), or ``None`` when an
-    edge has fewer than max(4, 30 %) measured points. ``robust``: with one outlier pass (the
+    edge has fewer than max(4, 30 %) measured points. ``final``: with one outlier pass (the
     old detector's rule: drop points farther than max(3 (1.4826 MAD + 0.05), 0.3) px from the
-    line, refit if at least 4 remain). Per edge: a point, direction, RMS distance (px) and
-    fraction of profiles kept."""
+    line, refit if at least 4 remain), the RMS distance (px) and the fraction of profiles
+    kept (else 0, 0: the lines of the first passes only place the next profiles)."""
     n = v.shape[1]
     cnt = ok.sum(axis=1)
     if int(cnt.min()) < max(4, 0.3 * n):
         return None
     w = ok.astype(np.float64)
-    line, res = _tls(u, v, w)
-    keep = ok
-    if robust:
-        bound = np.maximum(3.0 * (_medians(np.where(ok, res, np.inf), cnt) * 1.4826 + 0.05),
-                           0.3)
-        keep = ok & (res <= bound[:, None])
-        n_keep = keep.sum(axis=1)
-        refit = (n_keep >= 4) & (n_keep < cnt)
-        if refit.any():
-            keep = np.where(refit[:, None], keep, ok)
-            w = keep.astype(np.float64)
-            line, res = _tls(u, v, w)
-    kept = keep.sum(axis=1)
+    line = _tls(u, v, w)
+    if not final:
+        return [(*ln, 0.0, 0.0) for ln in line]
+    res = _distances(u, v, line)
+    bound = np.maximum(3.0 * (_medians(np.where(ok, res, np.inf), cnt) * 1.4826 + 0.05), 0.3)
+    keep = ok & (res <= bound[:, None])
+    n_keep = keep.sum(axis=1)
+    refit = (n_keep >= 4) & (n_keep < cnt)
+    if refit.any():
+        keep = np.where(refit[:, None], keep, ok)
+        w = keep.astype(np.float64)
+        line = _tls(u, v, w)
+        res = _distances(u, v, line)
     rms = np.sqrt((w * res * res).sum(axis=1) / w.sum(axis=1)).tolist()
-    frac = (kept / n).tolist()
+    frac = (n_keep / n).tolist()
     return [(*line[i], rms[i], frac[i]) for i in range(4)]
 
 
-def _tls(u: FloatArray, v: FloatArray, w: FloatArray
-         ) -> tuple[list[tuple[float, float, float, float]], FloatArray]:
+def _tls(u: FloatArray, v: FloatArray, w: FloatArray) -> list[tuple[float, float, float, float]]:
     """Weighted total-least-squares lines through (u, v) (4, N), weights 0 or 1: per edge the
-    centroid and unit direction ``(cu, cv, cos, sin)``, and every point's distance (4, N).
-    The five weighted moments come from one sum over a stacked array; the 2 x 2 scatter and
-    its principal axis per edge in plain floats (numpy's per-call cost dominates on 4 lines)."""
+    centroid and unit direction ``(cu, cv, cos, sin)``. The five weighted moments come from
+    one sum over a stacked array; the 2 x 2 scatter and its principal axis per edge in plain
+    floats (numpy's per-call cost dominates on 4 lines)."""
     wu, wv = w * u, w * v
     mom = np.stack((w, wu, wv, wu * u, wu * v, wv * v)).sum(axis=2).tolist()
     line = []
@@ -241,9 +241,14 @@ def _tls(u: FloatArray, v: FloatArray, w: FloatArray
         sxx, sxy, syy = suu - su * cu, suv - su * cv, svv - sv * cv
         half = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
         line.append((cu, cv, math.cos(half), math.sin(half)))
+    return line
+
+
+def _distances(u: FloatArray, v: FloatArray, line: list[tuple[float, float, float, float]]
+               ) -> FloatArray:
+    """Every point's distance (4, N) from its edge's line."""
     cs = np.array([(cos, sin, cv * cos - cu * sin) for cu, cv, cos, sin in line])
-    res = np.abs(v * cs[:, 0:1] - u * cs[:, 1:2] - cs[:, 2:3])
-    return line, res
+    return np.abs(v * cs[:, 0:1] - u * cs[:, 1:2] - cs[:, 2:3])
 
 
 def _on_line(f: _Frame, ln: _Line) -> _Frame:
