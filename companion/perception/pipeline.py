@@ -7,8 +7,8 @@ The virtual-camera mapping and the image moments are the core's job
 
 from __future__ import annotations
 
-import dataclasses
 import logging
+import math
 import os
 from dataclasses import dataclass
 from typing import Literal
@@ -205,8 +205,11 @@ class Perception:
                     self.roi_hits += 1
                     self.last_region = (x0, y0, x1, y1)
                     d = sub.detection
-                    moved = dataclasses.replace(d, corners_px=d.corners_px + off)
-                    return dataclasses.replace(sub, detection=moved)
+                    # the constructors, not dataclasses.replace (its generic field walk cost
+                    # more than the rest of this function): the same values
+                    moved = Detection(d.corners_px + off, d.quality, d.area_px, d.marker_id,
+                                      d.flags)
+                    return DetectionReport(moved, sub.rejections, sub.reason, sub.candidates)
         self.full_searches += 1
         self.last_region = (0, 0, w, h)
         return self.detector.analyse(image, hint)
@@ -257,11 +260,13 @@ def roi_box(corners: FloatArray, width: int, height: int,
             ) -> tuple[int, int, int, int]:
     """``(x0, y0, x1, y1)`` (pixels, end exclusive): the corners' bounding box grown by
     ``grow`` times its size (at least ``min_margin_px``) on every side, clipped to the image."""
-    lo = corners.min(axis=0)
-    hi = corners.max(axis=0)
-    margin = np.maximum(grow * (hi - lo), min_margin_px)
-    x0, y0 = np.floor(lo - margin).astype(int)
-    x1, y1 = np.ceil(hi + margin).astype(int) + 1
+    # plain floats on 4 corners (numpy's per-call cost dominates): the same float64 arithmetic
+    xs, ys = corners[:, 0].tolist(), corners[:, 1].tolist()
+    lo_x, lo_y, hi_x, hi_y = min(xs), min(ys), max(xs), max(ys)
+    m_x = max(grow * (hi_x - lo_x), min_margin_px)
+    m_y = max(grow * (hi_y - lo_y), min_margin_px)
+    x0, y0 = math.floor(lo_x - m_x), math.floor(lo_y - m_y)
+    x1, y1 = math.ceil(hi_x + m_x) + 1, math.ceil(hi_y + m_y) + 1
     return max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
 
 

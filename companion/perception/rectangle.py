@@ -249,9 +249,14 @@ class RectangleDetector(QuadDetectorBase):
         moved more than ``_TRACK_SHIFT_PX``, or the result fails a check or has quality
         <= 0.5 (the blob search's preference)."""
         start = np.asarray(hint, dtype=np.float64)
-        lim = self.limits
-        if (start.shape != (4, 2) or not isinstance(edge_settings, LeanSettings)
-                or check_quad(start, w, h, lim) is not None or signed_area(start) <= 0.0):
+        if start.shape != (4, 2) or not isinstance(edge_settings, LeanSettings):
+            return None
+        # the hint passed every check in its own frame: here only its place in this image
+        # (plain floats on 4 corners: numpy's per-call cost dominates)
+        pts = start.tolist()
+        m = self.limits.border_margin_px
+        if (signed_area(start) <= 0.0
+                or not all(m < x < w - 1 - m and m < y < h - 1 - m for x, y in pts)):
             return None
         refined = refine_quad_lean(gray, start, edge_settings)
         if refined is None:
@@ -260,8 +265,14 @@ class RectangleDetector(QuadDetectorBase):
         shift = max(math.sqrt(dx * dx + dy * dy) for dx, dy in (corners - start).tolist())
         if shift > _TRACK_SHIFT_PX:
             return None
-        ordered = order_target_corners(corners, self.width_m <= self.length_m, start)
-        result = self._detection(ordered, fits, w, h)
+        # the hint's order is the target's unless the perspective swapped which pair of
+        # opposite edges looks shorter (then the blob search's rule orders them again)
+        (x0, y0), (x1, y1), (x2, y2), (x3, y3) = corners.tolist()
+        e02 = math.hypot(x1 - x0, y1 - y0) + math.hypot(x3 - x2, y3 - y2)
+        e13 = math.hypot(x2 - x1, y2 - y1) + math.hypot(x0 - x3, y0 - y3)
+        if (e02 <= e13) != (self.width_m <= self.length_m):
+            corners = order_target_corners(corners, self.width_m <= self.length_m, start)
+        result = self._detection(corners, fits, w, h)
         if isinstance(result, Rejection) or result.quality <= 0.5:
             return None
         return result
@@ -328,7 +339,7 @@ class RectangleDetector(QuadDetectorBase):
 _TRACK_SHIFT_PX = 3.0  # a tracked corner moving farther: search the blobs instead
 _NOMINAL_CONTRAST = 140.0  # the top above the ground's median at the nominal exposure
 _HIST_SAMPLES = 65_536  # the histogram samples every n-th row and column beyond this many px
-_HIST_SAMPLES_LEAN = 16_384  # the same with edges = "lean"
+_HIST_SAMPLES_LEAN = 4_096  # the same with edges = "lean"
 
 
 def grey_levels(gray: npt.NDArray[np.uint8], s: RectangleSettings,
