@@ -126,7 +126,16 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
 _ADDED_LATER = ("estimator", "latency")
 
 
+#: ``[perception]`` keys newer than some logs, with the value every log recorded before the key
+#: existed was flown with (such a log's config has no such key)
+_PERCEPTION_BEFORE = {"rectangle_edges": "profiles"}
+
+
 def _as_flown(cfg: dict[str, Any]) -> dict[str, Any]:
+    perception = cfg.get("perception")
+    table = dict(perception) if isinstance(perception, dict) else {}
+    if any(k not in table for k in _PERCEPTION_BEFORE):
+        cfg = {**cfg, "perception": {**_PERCEPTION_BEFORE, **table}}
     control = cfg.get("control")
     if not isinstance(control, dict) or all(k in control for k in _ADDED_LATER):
         return cfg

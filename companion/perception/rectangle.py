@@ -155,7 +155,6 @@ class RectangleDetector(QuadDetectorBase):
                          s.max_samples_per_edge) if s.edges == "profiles" else
             LeanSettings(s.profile_half_px, s.profile_step_px, s.min_contrast,
                          s.lean_samples_per_edge))
-        self._hist_samples = _HIST_SAMPLES if s.edges == "profiles" else _HIST_SAMPLES_LEAN
         aspect = max(length_m, width_m) / min(length_m, width_m)
         self.limits = limits or QuadLimits(expected_aspect=aspect)
         pts = rectangle_corners_m(length_m, width_m)  # FL, FR, RR, RL
@@ -172,7 +171,11 @@ class RectangleDetector(QuadDetectorBase):
         s = self.settings
         edge_settings = self._edge_settings
         if s.threshold is None:
-            levels = grey_levels(gray, s, self._hist_samples)
+            # tracking, the searched image is the region around the target (a ninth of it or
+            # more): a quarter of the samples still hold its level; a whole frame keeps them
+            # all (a small far target covers a few hundred of its pixels)
+            tracking = hint is not None and s.edges == "lean"
+            levels = grey_levels(gray, s, _HIST_SAMPLES_TRACK if tracking else _HIST_SAMPLES)
             if isinstance(levels, str):
                 return DetectionReport(
                     None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
@@ -339,7 +342,7 @@ class RectangleDetector(QuadDetectorBase):
 _TRACK_SHIFT_PX = 3.0  # a tracked corner moving farther: search the blobs instead
 _NOMINAL_CONTRAST = 140.0  # the top above the ground's median at the nominal exposure
 _HIST_SAMPLES = 65_536  # the histogram samples every n-th row and column beyond this many px
-_HIST_SAMPLES_LEAN = 4_096  # the same with edges = "lean"
+_HIST_SAMPLES_TRACK = 16_384  # the same while tracking with edges = "lean"
 
 
 def grey_levels(gray: npt.NDArray[np.uint8], s: RectangleSettings,
