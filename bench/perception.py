@@ -272,8 +272,8 @@ def _roi(img: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _cases(poses: int, seed: int, reps: int, as_json: bool) -> int:
     """Every edge method on the same frames, interleaved frame by frame (the machine's load
     drifts alike for all): CPU per frame and worst corner error per frame."""
-    from companion.perception.rectangle import EDGE_METHODS, RectangleSettings
     from companion.perception.pipeline import limit_opencv_threads
+    from companion.perception.rectangle import EDGE_METHODS, RectangleSettings
 
     limit_opencv_threads()
     cfg = load_config()
@@ -321,8 +321,9 @@ def _cases(poses: int, seed: int, reps: int, as_json: bool) -> int:
           f"{'median':>7s} {'p95':>7s} {'max px':>7s}")
     for key, r in out["cases"].items():
         name, where, m = key.split(" | ")
-        print(f"  {name:28s} {where:5s} {m:8s} {r['cpu_ms']:7.3f} {r['found']:3d}/{r['frames']:<3d} "
-              f"{r['median_px']:7.3f} {r['p95_px']:7.3f} {r['max_px']:7.3f}")
+        print(f"  {name:28s} {where:5s} {m:8s} {r['cpu_ms']:7.3f} "
+              f"{r['found']:3d}/{r['frames']:<3d} {r['median_px']:7.3f} {r['p95_px']:7.3f} "
+              f"{r['max_px']:7.3f}")
     return 0
 
 

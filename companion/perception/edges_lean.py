@@ -96,7 +96,7 @@ def _grid(s: LeanSettings) -> _Grid:
         mid = 0.5 * (ks[:-1] + ks[1:])
         prio = (2.0 * r - np.abs(mid)).astype(np.float32)  # > 0: nearer the centre wins
         rows = np.arange(4 * s.samples_per_edge)
-        g = _Grid(ks, ks.astype(np.float32), in_cols, out_cols, prio,
+        g = _Grid(np.asarray(ks, dtype=np.float64), ks.astype(np.float32), in_cols, out_cols, prio,
                   np.float32(1.0 / (in_cols.stop - in_cols.start)), np.float32(h),
                   np.float32(1.0 / h), np.arange(s.samples_per_edge, dtype=np.float64),
                   rows * len(ks), rows * (len(ks) - 1))
@@ -127,7 +127,6 @@ def refine_quad_lean(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSe
         tx, ty = dx / length, dy / length
         frames.append((ax + margin * tx, ay + margin * ty, tx, ty,
                        (length - 2.0 * margin) / (s.samples_per_edge - 1)))
-    n = s.samples_per_edge
     u = g.j[None, :] * np.array([f[4] for f in frames])[:, None]  # (4, N) along each edge
     e, ok, width = _pass(gray, frames, _ONES, g, s, True)
     lines = _fit(u, e, ok, False)
@@ -182,12 +181,10 @@ def _pass(gray: npt.NDArray[np.uint8], frames: list[_Frame], scale: list[float],
     frac = (v0 - level) / np.maximum(v0 - v01[:, 1], np.float32(1e-6))
     contrast = inside - outside
     ok = (found & (contrast >= s.min_contrast)).reshape(4, n)
-    if scale is _ONES:
-        e = (idx + frac) * g.step + np.float32(k0)
-    else:
-        sc = np.array(scale, dtype=np.float32)[:, None]
-        e = ((idx + frac) * g.step + np.float32(k0)).reshape(4, n) * sc
-    e = e.reshape(4, n).astype(np.float64)
+    e_unit = ((idx + frac) * g.step + np.float32(k0)).reshape(4, n)
+    if scale is not _ONES:
+        e_unit = e_unit * np.array(scale, dtype=np.float32)[:, None]
+    e: FloatArray = e_unit.astype(np.float64)
     if not want_width:
         return e, ok, []
     # transition width (px): contrast over the steepest slope at the crossing's columns
@@ -248,7 +245,8 @@ def _distances(u: FloatArray, v: FloatArray, line: list[tuple[float, float, floa
                ) -> FloatArray:
     """Every point's distance (4, N) from its edge's line."""
     cs = np.array([(cos, sin, cv * cos - cu * sin) for cu, cv, cos, sin in line])
-    return np.abs(v * cs[:, 0:1] - u * cs[:, 1:2] - cs[:, 2:3])
+    res: FloatArray = np.abs(v * cs[:, 0:1] - u * cs[:, 1:2] - cs[:, 2:3])
+    return res
 
 
 def _on_line(f: _Frame, ln: _Line) -> _Frame:

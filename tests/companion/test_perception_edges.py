@@ -62,7 +62,7 @@ def test_a_new_flight_records_its_method_even_when_the_file_leaves_it_out() -> N
 
 
 def test_an_unknown_method_is_a_clear_error() -> None:
-    with pytest.raises(ConfigError, match="perception.rectangle_edges: 'fast'"):
+    with pytest.raises(ConfigError, match=r"perception\.rectangle_edges: 'fast'"):
         load_config(overrides=["perception.rectangle_edges=fast"])
     with pytest.raises(Exception, match="edges"):
         RectangleSettings(edges="fast")
