@@ -6,14 +6,16 @@ any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one
 
     python bench/perception.py [--poses 100] [--seed 1] [--json]
     python bench/perception.py --flight LOG.mcap [--frames 600] [--json]
-    python bench/perception.py --cases [--poses 200] [--reps 3] [--json]
+    python bench/perception.py --cases [--poses 200] [--reps 3] [--where roi,frame] [--json]
 
 ``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``:
 "profiles", the detector before 2026-11-28, and "lean") on the same frames, interleaved: CPU
 per frame (``time.process_time``, single thread, each frame ``--reps`` times) and the worst
 corner error per frame (median / p95 / max px) for the clean poses and the degraded cases
-(noise, blur, exposure gain) the tests bound, both on the whole frame and on the region of
-interest the flight searches (the corners' box grown by its size on every side).
+(noise, blur, exposure gain) the tests bound, on the region of interest a flight searches (the
+corners' box grown by its size on every side; ``--where frame`` or ``roi,frame`` for the
+whole frame too). A search without a previous detection: "lean"'s tracking is not in it
+(``--flight`` has it).
 
 ``--flight`` times ``Perception.process`` on a flight log's own frames in order, with the
 region-of-interest tracking the live process uses (the in-flight case), for each edge method
@@ -80,11 +82,13 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=600)
     ap.add_argument("--cases", action="store_true", help="edge methods on degraded cases")
     ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--where", default="roi",
+                    help="--cases: roi, frame or roi,frame (a frame is degraded whole: slower)")
     args = ap.parse_args()
     if args.flight is not None:
         return _flight(args.flight, args.frames, args.json)
     if args.cases:
-        return _cases(args.poses, args.seed, args.reps, args.json)
+        return _cases(args.poses, args.seed, args.reps, args.json, args.where.split(","))
 
     cfg = load_config()
     rng = np.random.default_rng(args.seed)
@@ -283,7 +287,7 @@ def _roi(img: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return img[y0:y1, x0:x1], true - np.array([x0, y0], dtype=np.float64)
 
 
-def _cases(poses: int, seed: int, reps: int, as_json: bool) -> int:
+def _cases(poses: int, seed: int, reps: int, as_json: bool, places: list[str]) -> int:
     """Every edge method on the same frames, interleaved frame by frame (the machine's load
     drifts alike for all): CPU per frame and worst corner error per frame."""
     from companion.perception.pipeline import limit_opencv_threads
@@ -297,17 +301,17 @@ def _cases(poses: int, seed: int, reps: int, as_json: bool) -> int:
     out: dict[str, Any] = {"poses": poses, "reps": reps, "loadavg_1min": os.getloadavg()[0],
                            "cases": {}}
     for name, noise, blur, gain in CASES:
-        for where in ("frame", "roi"):
+        for where in places:
             cpu = {m: 0.0 for m in dets}
             errs: dict[str, list[float]] = {m: [] for m in dets}
             for i, (img, true) in enumerate(scenes):
+                t = true
+                if where == "roi":  # degraded after the crop (>= 40 px around the target)
+                    img, t = _roi(img, true)
                 if gain != 1.0:
                     img = np.clip(np.rint(img * gain), 0, 255).astype(np.uint8)
                 if noise or blur:
                     img = degrade(img, noise, blur, seed=i)
-                t = true
-                if where == "roi":
-                    img, t = _roi(img, true)
                 for m, det in dets.items():
                     t0 = time.process_time()
                     for _ in range(reps):
