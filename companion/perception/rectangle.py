@@ -8,7 +8,11 @@ Pipeline: per-frame grey threshold (adaptive: between the frame's ground level a
 brightest region, see :func:`grey_levels`; or a fixed level) -> external contours -> convex
 hull -> polygon approximation to 4 vertices (coarse corners, about 1 px) -> plausibility of
 the coarse quad -> sub-pixel refinement by fitting lines to the four edges
-(:mod:`companion.perception.edges`) -> plausibility of the refined quad. Measured on rendered
+(``edges = "lean"``: :mod:`companion.perception.edges_lean`, the default; ``"profiles"``:
+:mod:`companion.perception.edges`, the detector of the logs recorded before 2026-11-28) ->
+plausibility of the refined quad. With ``"lean"`` and the previous frame's corners (``hint``)
+the corners are refined from those and the blob search is skipped (``_track``; the search
+runs when that fails). Measured on rendered
 scenes (tests/companion/test_perception.py, bench/perception.py): worst corner error 0.28 px
 over 458 random poses (1.5-5 m, tilt <= 0.3 rad), median 0.07 px; about 1.4 ms per
 1000 x 1000 frame (2026-11-23, fixed threshold). The adaptive threshold holds the target
@@ -350,8 +354,9 @@ def grey_levels(gray: npt.NDArray[np.uint8], s: RectangleSettings,
     """The adaptive threshold of one frame: ``(threshold, T - G)``, or why the frame has no
     bright region standing out (a message). ``G``: the median grey level; ``T``: the median of
     the pixels above a first threshold, placed with the level that ``s.bright_count_px`` pixels
-    reach (a few noisy pixels do not set it). Images of 262 144 px or more are sampled on every
-    n-th row and column (n = isqrt(size / 65 536): 3 on 1000 x 1000; counts scaled to match):
+    reach (a few noisy pixels do not set it). Images of 4 x ``samples`` px or more are sampled on
+    every n-th row and column (n = isqrt(size / samples): 3 on 1000 x 1000 with the default
+    65 536; while tracking 16 384, 2 on a 400 x 400 region of interest; counts scaled to match):
     the levels agree with the whole image's to about a grey level."""
     step = max(math.isqrt(gray.size // samples), 1)
     sample = gray[::step, ::step] if step > 1 else gray
