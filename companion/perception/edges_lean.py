@@ -1,4 +1,4 @@
-"""Sub-pixel corners of a bright convex quadrilateral in two resampled passes (the rectangle
+"""Sub-pixel corners of a bright convex quadrilateral in three sampled passes (the rectangle
 detector's ``edges = "lean"``, the default since 2026-11-28).
 
 The measure per profile is the one of :mod:`companion.perception.edges`: the edge lies where
@@ -7,18 +7,22 @@ inside the transition) and the outside level (the darkest sample just beyond it,
 showing as a thin dark band sets it); a total-least-squares line with one outlier pass is
 fitted to each edge's crossings and adjacent lines are intersected. What differs is how the
 profiles are placed, which is where the time went (numpy's per-call cost, not the arithmetic:
-today's per-row plateau windows took ~65 calls a pass, three passes, and a second batch for a
+the old per-row plateau windows took ~65 calls a pass, three passes, and a second batch for a
 blurred edge):
 
-1. all four edges' profiles (``samples_per_edge`` each, ``profile_half_px`` long, every
-   ``profile_step_px``) come from one ``cv2.remap``; with every row centred on the coarse edge
-   the plateau windows are the same columns for every row, so a pass is ~20 whole-array calls;
-   lines are fitted to the four edges at once (weighted sums, no per-edge loop);
+1. each edge's ``samples_per_edge`` profiles (``profile_half_px`` long, every
+   ``profile_step_px``) are one ``cv2.warpAffine`` (a rotated grid); every row is centred on
+   the coarse edge, so the plateau windows are the same columns for every row and a pass is
+   ~20 whole-array calls; lines are fitted to the four edges at once (weighted moments);
 2. the profiles are sampled again, each row centred on its edge's fitted line and stretched by
    the edge's measured blur (a transition ``w`` px wide is sampled ``(0.5 + 0.9 w) / 1.4``
    times coarser, at most 3x), so the same columns again hold the plateaus at the distance
    the blur needs (the old detector's second, longer profiles, without a second layout);
-   the final lines are fitted to these crossings.
+3. once more, centred on pass 2's lines; the final lines (with the outlier pass) are fitted to
+   these crossings. Two passes were as accurate from a blob's coarse corners but not from a
+   tracked start 2-3 px off under noise 20: a second pass centred on a biased first line can
+   keep the bias, and a tracker feeds it back (measured: a corner drifting 7 px over 12
+   frames; with the third pass, 0.40 px at most).
 """
 
 from __future__ import annotations
@@ -49,7 +53,6 @@ class LeanSettings:
     min_contrast: float = 40.0
     samples_per_edge: int = 48
     passes: int = 3
-    third_pass_scale: float = 1.3
 
     def __post_init__(self) -> None:
         if not self.profile_half_px >= 3:
@@ -134,7 +137,7 @@ def refine_quad_lean(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSe
         return None
     # the edges' blur sets how far apart the next passes read the plateaus
     scale = [min(max((0.5 + 0.9 * max(w, 1.0)) / 1.4, 1.0), 3.0) for w in width]
-    passes = s.passes if max(scale) > s.third_pass_scale else min(s.passes, 2)
+    passes = s.passes
     for it in range(1, passes):
         frames = [_on_line(f, ln) for f, ln in zip(frames, lines, strict=True)]
         e, ok, _ = _pass(gray, frames, scale, g, s, False)

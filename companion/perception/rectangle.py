@@ -250,9 +250,11 @@ class RectangleDetector(QuadDetectorBase):
                edge_settings: EdgeSettings | LeanSettings) -> Detection | None:
         """``edges = "lean"`` while tracking: the previous frame's corners (``hint``) are the
         coarse corners, so the bright-blob search (window, blur, contours, polygon) is skipped.
-        The target moves about a pixel a frame (p99 1.7 px on a paper flight); the edges'
-        first profiles span +-``profile_half_px``. ``None`` (search the blobs instead) when the
-        hint is not a clockwise quad away from the border, an edge is not measured, a corner
+        The target moves about a pixel a frame (p99 1.7 px on a paper flight); a start off by
+        more than ``_TRACK_SHIFT_PX`` measures worse than the blob's coarse corners under
+        heavy noise or blur (tests/companion/test_perception_edges.py). ``None`` (search the
+        blobs instead) when the hint is not a clockwise quad away from the border, an edge is
+        not measured, a corner
         moved more than ``_TRACK_SHIFT_PX``, or the result fails a check or has quality
         <= 0.5 (the blob search's preference)."""
         start = np.asarray(hint, dtype=np.float64)
@@ -343,7 +345,7 @@ class RectangleDetector(QuadDetectorBase):
         return Detection(corners, quality, abs(signed_area(corners)), None, flags)
 
 
-_TRACK_SHIFT_PX = 3.0  # a tracked corner moving farther: search the blobs instead
+_TRACK_SHIFT_PX = 1.5  # a tracked corner moving farther: search the blobs instead
 _NOMINAL_CONTRAST = 140.0  # the top above the ground's median at the nominal exposure
 _HIST_SAMPLES = 65_536  # the histogram samples every n-th row and column beyond this many px
 _HIST_SAMPLES_TRACK = 16_384  # the same while tracking with edges = "lean"
