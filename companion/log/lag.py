@@ -172,18 +172,9 @@ class LogSeries:
     salvage_note: str = ""
 
 
-def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
-    """The offboard stretches of a companion log as :class:`Series` (see the module doc)."""
-    raw = _read(Path(path))
-    if not raw.sat:
-        why = raw.salvage_note or ": it is not a log of a flight the companion flew"
-        raise LagFitError(f"{path}: no attitude setpoints ({TOPIC_SAT}) in the log{why}")
-    f0 = raw.sat[0][1]
-    sysid, compid = f0.get("target_system"), f0.get("target_component")
-    if not (isinstance(sysid, int) and isinstance(compid, int)):
-        raise LagFitError(f"{path}: the setpoints carry no target system/component")
-    # commands
-    dropped = 0
+def _commands(raw: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The attitude setpoints' times (s), roll/pitch (rad; NaN where unusable), usable mask
+    and the count of unusable ones (body-rate setpoints are left out)."""
     cmd_t_l, q_l = [], []
     for t, f in raw.sat:
         q = f.get("q")
@@ -196,10 +187,23 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
     cmd_t = np.array(cmd_t_l)
     qs = np.array(q_l, dtype=float).reshape(-1, 4)
     ok_c = np.all(np.isfinite(qs), axis=1) & (np.linalg.norm(qs, axis=1) > 0.5)
-    dropped += int(np.count_nonzero(~ok_c))
     cmd = np.full((cmd_t.size, 2), np.nan)
     cmd[ok_c] = roll_pitch_from_quat(qs[ok_c])
-    # measurements: ATTITUDE, else ATTITUDE_QUATERNION, from the autopilot
+    return cmd_t, cmd, ok_c, int(np.count_nonzero(~ok_c))
+
+
+@dataclass
+class _Attitude:
+    topic: str
+    t_log_s: np.ndarray
+    t_boot_s: np.ndarray
+    roll_pitch: np.ndarray
+    samples: int  # in the log, before the unusable ones were dropped
+    dropped: int
+
+
+def _attitude(raw: Any, sysid: int, path: str | Path) -> _Attitude:
+    """The autopilot's measured roll/pitch: ATTITUDE, else ATTITUDE_QUATERNION."""
     topic = TOPIC_ATTITUDE
     rows = [(t, f) for t, f, s in raw.att if s == sysid]
     if not rows:
@@ -218,9 +222,65 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
         good = np.all(np.isfinite(qs_m), axis=1) & (np.linalg.norm(qs_m, axis=1) > 0.5)
         att[good] = roll_pitch_from_quat(qs_m[good])
     ok_a = np.all(np.isfinite(att), axis=1) & np.isfinite(att_boot)
-    dropped += int(np.count_nonzero(~ok_a))
-    att_log, att_boot, att = att_log[ok_a], att_boot[ok_a], att[ok_a]
+    return _Attitude(topic, att_log[ok_a], att_boot[ok_a], att[ok_a], len(rows),
+                     int(np.count_nonzero(~ok_a)))
 
+
+def _setpoint_runs(sel: np.ndarray, ok_c: np.ndarray, cmd_t: np.ndarray,
+                   max_gap_s: float) -> list[np.ndarray]:
+    """``sel``'s setpoints split at gaps longer than ``max_gap_s`` and at unusable ones; runs
+    of at least 2."""
+    runs: list[np.ndarray] = []
+    cur: list[int] = []
+    for k in sel:
+        if not ok_c[k] or (cur and cmd_t[k] - cmd_t[cur[-1]] > max_gap_s):
+            if len(cur) >= 2:
+                runs.append(np.array(cur))
+            cur = [] if not ok_c[k] else [int(k)]
+            continue
+        cur.append(int(k))
+    if len(cur) >= 2:
+        runs.append(np.array(cur))
+    return runs
+
+
+def _run_series(c_t: np.ndarray, c: np.ndarray, att: _Attitude, t_lo: float,
+                t_hi: float) -> list[Series]:
+    """One setpoint run's :class:`Series` over [t_lo, t_hi), split at autopilot reboots
+    (time_boot_ms going back)."""
+    out: list[Series] = []
+    m = (att.t_log_s >= t_lo) & (att.t_log_s < t_hi)
+    if np.count_nonzero(m) < 2:
+        return out
+    idx = np.nonzero(m)[0]
+    cuts = np.nonzero(np.diff(att.t_boot_s[idx]) < -REBOOT_JUMP_S)[0]
+    for part in np.split(idx, cuts + 1):
+        if part.size < 2:
+            continue
+        offset = float(np.min(att.t_log_s[part] - att.t_boot_s[part]))
+        t_att = att.t_boot_s[part] + offset
+        order = np.argsort(t_att, kind="stable")
+        t_att, y = t_att[order], att.roll_pitch[part][order]
+        keep = (t_att >= t_lo) & (t_att < t_hi) & (t_att >= c_t[0])
+        if np.count_nonzero(keep) < 2:
+            continue
+        out.append(Series(c_t, c, t_att[keep], y[keep]))
+    return out
+
+
+def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
+    """The offboard stretches of a companion log as :class:`Series` (see the module doc)."""
+    raw = _read(Path(path))
+    if not raw.sat:
+        why = raw.salvage_note or ": it is not a log of a flight the companion flew"
+        raise LagFitError(f"{path}: no attitude setpoints ({TOPIC_SAT}) in the log{why}")
+    f0 = raw.sat[0][1]
+    sysid, compid = f0.get("target_system"), f0.get("target_component")
+    if not (isinstance(sysid, int) and isinstance(compid, int)):
+        raise LagFitError(f"{path}: the setpoints carry no target system/component")
+    cmd_t, cmd, ok_c, dropped = _commands(raw)
+    att = _attitude(raw, sysid, path)
+    dropped += att.dropped
     intervals, n_hb = offboard_intervals(raw, sysid, compid)
     if n_hb == 0:
         raise LagFitError(f"{path}: no HEARTBEAT from the autopilot (sysid {sysid}): cannot "
@@ -238,45 +298,20 @@ def series_from_log(path: str | Path, *, max_gap_s: float = 0.5) -> LogSeries:
         # flies the first one received after the switch; before that, its previous mode's.
         # The fit then starts max_delay_s after the first setpoint kept (_trim).
         sel = np.nonzero((cmd_t > a) & (cmd_t < b))[0]
-        runs: list[np.ndarray] = []
-        cur: list[int] = []
-        for k in sel:
-            if not ok_c[k] or (cur and cmd_t[k] - cmd_t[cur[-1]] > max_gap_s):
-                if len(cur) >= 2:
-                    runs.append(np.array(cur))
-                cur = [] if not ok_c[k] else [int(k)]
-                continue
-            cur.append(int(k))
-        if len(cur) >= 2:
-            runs.append(np.array(cur))
-        for run in runs:
+        for run in _setpoint_runs(sel, ok_c, cmd_t, max_gap_s):
             c_t, c = cmd_t[run], cmd[run]
             t_lo = max(a, c_t[0])
             t_hi = min(b, c_t[-1] + max_gap_s)
-            m = (att_log >= t_lo) & (att_log < t_hi)
-            if np.count_nonzero(m) < 2:
+            if np.count_nonzero((att.t_log_s >= t_lo) & (att.t_log_s < t_hi)) < 2:
                 continue
-            # split at reboots (time_boot_ms going back)
-            idx = np.nonzero(m)[0]
-            cuts = np.nonzero(np.diff(att_boot[idx]) < -REBOOT_JUMP_S)[0]
-            for part in np.split(idx, cuts + 1):
-                if part.size < 2:
-                    continue
-                offset = float(np.min(att_log[part] - att_boot[part]))
-                t_att = att_boot[part] + offset
-                order = np.argsort(t_att, kind="stable")
-                t_att, y = t_att[order], att[part][order]
-                keep = (t_att >= t_lo) & (t_att < t_hi) & (t_att >= c_t[0])
-                if np.count_nonzero(keep) < 2:
-                    continue
-                series.append(Series(c_t, c, t_att[keep], y[keep]))
+            series += _run_series(c_t, c, att, t_lo, t_hi)
             off_s += float(t_hi - t_lo)
             n_sp += int(np.count_nonzero((c_t >= t_lo) & (c_t < t_hi)))
     if not series:
         raise LagFitError(f"{path}: no stretch with both setpoints and attitude while the "
-                          f"autopilot was in OFFBOARD ({len(raw.sat)} setpoints, {len(rows)} "
+                          f"autopilot was in OFFBOARD ({len(raw.sat)} setpoints, {att.samples} "
                           f"attitude samples in the log, {dropped} not finite){raw.salvage_note}")
-    return LogSeries(series, n_sp, off_s, dropped, topic, raw.salvage_note)
+    return LogSeries(series, n_sp, off_s, dropped, att.topic, raw.salvage_note)
 
 
 def measure_lag(path: str | Path, *, fit_delay: bool = False, max_delay_s: float = 0.2,
