@@ -183,10 +183,10 @@ def _yaw_rate_flown(rate_cmd: float, yaw_p: float = 2.8, seconds: float = 6.0) -
     dt, sub = 0.05, 20
     yaw, sp = 0.0, None
     log = []
-    for k in range(int(seconds / dt)):
+    for _ in range(int(seconds / dt)):
         ref = yaw_reference(sp, yaw, 0.4)
         sp = ref + rate_cmd * dt
-        for _ in range(sub):  # the vehicle between two setpoints
+        for _step in range(sub):  # the vehicle between two setpoints
             yaw += yaw_p * math.remainder(sp - yaw, 2 * math.pi) * dt / sub
         log.append(yaw)
     n = int(2.0 / dt)
