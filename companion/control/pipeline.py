@@ -51,7 +51,6 @@ from companion.core.geometry import (
     camera_to_body_rotation,
     euler_zyx_from_quat,
     rectangle_corners_m,
-    wrap_pi,
 )
 from companion.core.latency import Prediction, predict_error_state
 from companion.core.lead import TiltLead
@@ -59,14 +58,24 @@ from companion.core.moments import DegenerateTargetError, a_star, fold_s4
 from companion.core.prediction import advance_target, predict_target_motion
 from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
-from companion.core.setpoint import AttitudeSetpoint, attitude_setpoint, hover_setpoint
+from companion.core.setpoint import (
+    AttitudeSetpoint,
+    attitude_setpoint,
+    hover_setpoint,
+    input_in_reference_frame,
+    yaw_reference,
+)
 from companion.core.state import ErrorState, MeasurementError, build_error_state
 from companion.core.terminal import TerminalDesign
 from companion.perception import PerceptionResult
 
 log = logging.getLogger(__name__)
 
-YAW_RESYNC_RAD = 0.2
+#: How far the yaw reference may lead the measured yaw (rad): PX4's yaw loop (MC_YAW_P 2.8,
+#: its default) lags a yaw ramp by rate / 2.8, 0.3 rad at the 0.84 rad/s the vehicle's limits
+#: allow; a re-sync to the measured yaw at 0.2 rad (before) capped the achieved rate near
+#: 0.2-0.4 rad/s whatever was commanded, and the yaw ran away from a 0.5 rad/s target.
+YAW_LEAD_MAX_RAD = 0.4
 
 
 class ControlPipeline:
@@ -397,6 +406,8 @@ class ControlPipeline:
             led, lead = self._lead.apply(lead_at_s, a_ned)
             uu[0], uu[1] = cy * led[0] + sy * led[1], -sy * led[0] + cy * led[1]
             u = uu
+        # u is in the measured yaw's frame; the attitude is built on the yaw reference
+        u = input_in_reference_frame(u, self._last_yaw, yaw_rad)
         return attitude_setpoint(u, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
                                  hover_thrust=hover, thrust_min=c.thrust_min,
                                  thrust_max=c.thrust_max), lead
@@ -412,20 +423,9 @@ class ControlPipeline:
                           np.tile(eta, (n + 1, 1)), np.tile(u0, (n, 1)), 0.0, (), motion)
 
     def _yaw_reference(self) -> float:
-        """Yaw the next setpoint builds on: the previous yaw setpoint, re-synced to the measured
-        yaw when they differ by more than ``YAW_RESYNC_RAD`` (or there is none).
-
-        Spec 5 writes ``psi_d = psi_q + psidot dt`` with the measured ``psi_q``. Behind a real
-        attitude loop (first order, time constant tau) that commands a yaw step of only
-        ``psidot dt`` per step and the achieved rate settles near ``psidot dt / tau`` rather
-        than ``psidot``; integrating the setpoint makes the achieved yaw rate equal the
-        commanded one in steady state. With an instantaneous attitude (the paper's model) the
-        two are the same.
-        """
-        prev = self._yaw_sp
-        if prev is None or abs(wrap_pi(prev - self._last_yaw)) > YAW_RESYNC_RAD:
-            return self._last_yaw
-        return prev
+        """Yaw the next setpoint builds on: :func:`companion.core.setpoint.yaw_reference` of
+        the previous yaw setpoint (``None``: the measured yaw)."""
+        return yaw_reference(self._yaw_sp, self._last_yaw, YAW_LEAD_MAX_RAD)
 
     def _target_velocity(self, t_s: float, store: TelemetryStore) -> VelocityEstimate:
         tgt = store.target

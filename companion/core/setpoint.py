@@ -108,6 +108,52 @@ def attitude_setpoint(
     )
 
 
+def input_in_reference_frame(u: ArrayLike, yaw_frame_rad: float, yaw_ref_rad: float) -> np.ndarray:
+    """``u`` (4,), whose ``r1, r2`` are expressed in the frame of yaw ``yaw_frame_rad`` (the
+    measured yaw the controller's virtual frame was built on), re-expressed in the frame of
+    the yaw reference ``yaw_ref_rad`` that :func:`attitude_setpoint` builds the attitude on.
+
+    The tilt the setpoint asks for is ``Rz(psi_d) R(phi, theta)``: its roll and pitch are
+    relative to the setpoint's own yaw. When that yaw is the integrated previous setpoint (it
+    leads the measured yaw by the attitude loop's lag, ~0.2-0.3 rad behind PX4's yaw loop at
+    0.5-0.8 rad/s) the horizontal acceleration flown would be the one asked, turned by that
+    lead: on a curve, a rotating error the disturbance estimate (constant in NED) cannot
+    absorb. Rotating ``r1, r2`` by ``-(yaw_ref - yaw_frame)`` keeps the NED acceleration the
+    controller asked for; ``r3`` and the yaw rate are unchanged."""
+    uu = np.array(u, dtype=float).reshape(-1)
+    if uu.shape != (4,):
+        raise SetpointError(f"u: expected 4 components, got shape {uu.shape}")
+    d = wrap_pi(float(yaw_ref_rad) - float(yaw_frame_rad))
+    if not math.isfinite(d):
+        raise SetpointError("yaw: non-finite value")
+    c, s = math.cos(d), math.sin(d)
+    r1, r2 = float(uu[0]), float(uu[1])
+    uu[0], uu[1] = c * r1 + s * r2, -s * r1 + c * r2
+    return uu
+
+
+def yaw_reference(prev_sp_rad: float | None, measured_rad: float, max_lead_rad: float) -> float:
+    """The yaw the next setpoint builds on (``psi_d = this + psidot dt``): the previous yaw
+    setpoint, held within ``max_lead_rad`` of the measured yaw (the measured yaw when there is
+    no previous setpoint or either is not finite).
+
+    Spec 5 writes ``psi_d = psi_q + psidot dt`` with the measured ``psi_q``. Behind a real
+    attitude loop (first order, time constant tau) that commands a yaw step of only
+    ``psidot dt`` per step and the achieved rate settles near ``psidot dt / tau``; integrating
+    the setpoint makes the achieved yaw rate equal the commanded one once the setpoint leads
+    by the loop's lag ``psidot tau``. The lead is *clamped*, not reset: a reset to the measured
+    yaw whenever the lead passes the bound throws the lag away and the achieved rate collapses
+    to ~``bound / tau``, lower the faster the command (the yaw then runs away from a turning
+    target while the controller asks for ever more rate). The clamp still bounds the wind-up
+    when the vehicle does not follow (before OFFBOARD PX4 holds its own yaw)."""
+    if prev_sp_rad is None or not (math.isfinite(prev_sp_rad) and math.isfinite(measured_rad)):
+        return measured_rad
+    d = wrap_pi(prev_sp_rad - measured_rad)
+    if abs(d) <= max_lead_rad:
+        return prev_sp_rad
+    return wrap_pi(measured_rad + math.copysign(max_lead_rad, d))
+
+
 def attitude_setpoint_from_config(
     u: ArrayLike, yaw_rad: float, control: ControlParams, rmpc: RmpcParams
 ) -> AttitudeSetpoint:

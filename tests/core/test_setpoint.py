@@ -23,6 +23,8 @@ from companion.core.setpoint import (
     attitude_setpoint,
     attitude_setpoint_from_config,
     hover_setpoint,
+    input_in_reference_frame,
+    yaw_reference,
 )
 
 G = 9.81
@@ -144,3 +146,73 @@ def test_from_config_and_hover() -> None:
     assert h.thrust_norm == pytest.approx(0.4) and h.yaw_rad == 0.7 and h.yaw_rate_rad_s == 0.0
     with pytest.raises(ValueError):
         h.q_wxyz[0] = 0.0
+
+
+@given(r=st.tuples(st.floats(-2.4, 2.4), st.floats(-2.4, 2.4), st.floats(-2.4, 2.4)),
+       psidot=st.floats(-0.8, 0.8), psi=yaw, lead=st.floats(-0.6, 0.6))
+def test_setpoint_on_a_yaw_reference_flies_the_acceleration_of_the_measured_frame(
+    r: tuple[float, float, float], psidot: float, psi: float, lead: float
+) -> None:
+    """The controller's r is in the frame of the measured yaw ``psi``; the setpoint is built on
+    a yaw reference ``lead`` ahead of it (the integrated previous setpoint). Re-expressed, the
+    NED acceleration flown is Rz(psi) r whatever the lead (dt 0: the spec's own psidot dt turn
+    is a separate matter); as sent, it would be turned by the lead."""
+    ref = psi + lead
+    u = input_in_reference_frame([*r, psidot], psi, ref)
+    assert u[2] == r[2] and u[3] == psidot
+    sp = attitude_setpoint(u, ref, 0.0, **LIM)
+    assert not sp.thrust_clamped
+    a_ned = rotation_from_quat(sp.q_wxyz) @ [0, 0, -G * sp.thrust_norm / 0.5] + [0, 0, G]
+    np.testing.assert_allclose(a_ned, rot_z(psi) @ np.asarray(r), atol=1e-9)
+
+
+def test_yaw_reference_frame_known_value_and_bad_input() -> None:
+    # r = 1 m/s^2 forward in the measured frame; the reference leads by +90 deg: forward of the
+    # measured frame is the reference frame's -y (left)
+    u = input_in_reference_frame([1.0, 0.0, 0.0, 0.3], 0.0, math.pi / 2)
+    np.testing.assert_allclose(u, [0.0, -1.0, 0.0, 0.3], atol=1e-12)
+    with pytest.raises(SetpointError):
+        input_in_reference_frame([1.0, 0.0, 0.0], 0.0, 0.1)
+    with pytest.raises(SetpointError):
+        input_in_reference_frame([1.0, 0.0, 0.0, 0.0], math.nan, 0.1)
+
+
+def _yaw_rate_flown(rate_cmd: float, yaw_p: float = 2.8, seconds: float = 6.0) -> float:
+    """The yaw rate a first-order yaw loop (PX4's MC_YAW_P) achieves behind setpoints built
+    on :func:`yaw_reference` at 20 Hz, measured over the last 2 s."""
+    dt, sub = 0.05, 20
+    yaw, sp = 0.0, None
+    log = []
+    for _ in range(int(seconds / dt)):
+        ref = yaw_reference(sp, yaw, 0.4)
+        sp = ref + rate_cmd * dt
+        for _step in range(sub):  # the vehicle between two setpoints
+            yaw += yaw_p * math.remainder(sp - yaw, 2 * math.pi) * dt / sub
+        log.append(yaw)
+    n = int(2.0 / dt)
+    return (log[-1] - log[-1 - n]) / (n * dt)
+
+
+@pytest.mark.parametrize("rate", [0.3, 0.5, 0.84, -0.84])
+def test_yaw_reference_lets_a_lagging_yaw_loop_fly_the_commanded_rate(rate: float) -> None:
+    """Behind PX4's yaw loop (lag rate / 2.8: 0.3 rad at 0.84 rad/s) the setpoint must lead
+    the measured yaw by that lag; reset to the measured yaw at 0.2 rad the achieved rate was
+    0.2-0.4 rad/s whatever the command."""
+    assert _yaw_rate_flown(rate) == pytest.approx(rate, rel=1e-3)
+
+
+def test_yaw_reference_beyond_its_bound_still_turns_at_the_bound_s_rate() -> None:
+    """Asked for more than the lead allows (1.5 rad/s needs 0.54 rad > 0.4), the clamped lead
+    still drives the loop at ~2.8 x 0.4 rad/s; a reset to the measured yaw collapsed it."""
+    assert _yaw_rate_flown(1.5) > 0.95 * 2.8 * 0.4
+
+
+def test_yaw_reference_is_held_within_the_bound_when_the_vehicle_does_not_turn() -> None:
+    yaw, sp = 1.0, None
+    for _ in range(200):  # PX4 holds its own yaw (before OFFBOARD): no wind-up
+        sp = yaw_reference(sp, yaw, 0.4) + 0.8 * 0.05
+    assert math.remainder(sp - yaw, 2 * math.pi) == pytest.approx(0.44)
+    assert yaw_reference(None, 0.3, 0.4) == 0.3
+    assert yaw_reference(math.nan, 0.3, 0.4) == 0.3
+    assert yaw_reference(3.0, -3.0, 0.4) == 3.0  # within the bound across +-pi
+    assert yaw_reference(-3.0, 2.0, 0.4) == pytest.approx(2.4)
