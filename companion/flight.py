@@ -125,7 +125,11 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         "--set", "rmpc.solver_spare=false",
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
-        "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera", f"tcp://127.0.0.1:{p_frame}",
+        "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera",
+        # every frame answered in turn: the lockstep emulator waits for one answer per frame it
+        # delivers (two when latency jitter delivers two in a step); skipping to the newer one
+        # (a real camera's backlog, ?frames=newest) would cost a lockstep timeout a skip
+        f"tcp://127.0.0.1:{p_frame}?frames=all",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / READY_FILE),
         "--progress-file", str(out / PROGRESS_FILE),

@@ -7,7 +7,9 @@ keeps a small bounded buffer that drops the oldest frame and counts it (style ha
 URLs (:func:`open_camera`):
 
 - ``tcp://127.0.0.1:5700``: the emulator's frame socket (docs/reference/wire.md),
-:class:`FrameSocketSource`
+  :class:`FrameSocketSource`: the newest frame the socket holds is taken, older ones
+  skipped undecoded (``?frames=newest``, the default); ``?frames=all``: every frame in
+  turn, as the lockstep emulator expects (one answer per frame it delivers).
 - ``0``, ``/dev/video0``: a local camera device, ``rtsp://...``, ``http(s)://...``, ``udp://...``:
   a live stream; a file path (or ``file://path``): a video file (read at the consumer's pace,
   nothing dropped). All through ``cv2.VideoCapture``: :class:`VideoCaptureSource`.
@@ -53,7 +55,8 @@ __all__ = [
 # ----------------------------------------------------------------------------------------------
 # URL dispatch
 
-_TCP = re.compile(r"^tcp://(?P<host>\[[^\]]+\]|[^:/]+):(?P<port>\d+)/?$")
+_TCP = re.compile(r"^tcp://(?P<host>\[[^\]]+\]|[^:/]+):(?P<port>\d+)/?"
+                  r"(?:\?frames=(?P<frames>newest|all))?$")
 _STREAM_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "http://", "https://", "udp://", "rtp://")
 
 
@@ -67,7 +70,9 @@ def open_camera(url: str, **kwargs: Any) -> CameraSource:
     if url.startswith("tcp://"):
         m = _TCP.match(url)
         if m is None:
-            raise CameraError(f"camera url {url!r}: expected tcp://host:port")
+            raise CameraError(f"camera url {url!r}: expected tcp://host:port, optionally "
+                              "?frames=newest (the default) or ?frames=all")
+        kwargs.setdefault("read_ahead", m["frames"] != "all")
         return FrameSocketSource(m["host"].strip("[]"), int(m["port"]), **kwargs)
     if url.startswith("mcap://") or url.endswith(".mcap"):
         return _open_mcap(url, **kwargs)

@@ -224,6 +224,7 @@ class FrameSocketSource(CameraSource):
         backoff_max_s: float = 2.0,
         connect_timeout_s: float = 2.0,
         max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+        read_ahead: bool = True,
     ) -> None:
         super().__init__()
         if not 0 < port < 65536:
@@ -233,6 +234,10 @@ class FrameSocketSource(CameraSource):
         self.host = host
         self.port = port
         self._queue_size = queue_size
+        # skip to the newest record the kernel holds (_newest); False ("?frames=all"): every
+        # record in turn, as the lockstep emulator expects (it waits for one answer per frame
+        # it delivers, two when latency jitter delivers two in a step)
+        self._read_ahead = read_ahead
         self._backoff = (backoff_initial_s, backoff_max_s)
         self._connect_timeout_s = connect_timeout_s
         self._max_payload = max_payload_bytes
@@ -296,7 +301,8 @@ class FrameSocketSource(CameraSource):
         consumer asked for a queue of frames in order: ``rec`` as it is."""
         assert self._buffer is not None
         rounds = 0
-        while self._reading is not None and rounds < DRAIN_ROUNDS and self._queue_size == 1:
+        while (self._reading is not None and rounds < DRAIN_ROUNDS and self._queue_size == 1
+               and self._read_ahead):
             proto, fd = self._reading
             pending = _unread_bytes(fd)
             if pending <= 0 or pending < proto.needed_bytes():
