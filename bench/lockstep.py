@@ -111,7 +111,7 @@ def _digest_step(digest: Any, udp: socket.socket, head: tuple[int, ...], buf: me
                                               0.5).pack(mav), to)
 
 
-def main() -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--json", action="store_true")
@@ -124,84 +124,120 @@ def main() -> int:
     ap.add_argument("--lockstep-timeout", type=float, default=None,
                     help="the emulator's sim.lockstep_timeout_s (default: the config's; 10 s "
                          "with --digest, so that a loaded machine cannot time a step out)")
-    args = ap.parse_args()
+    return ap.parse_args(argv)
+
+
+def _timeout_config(args: argparse.Namespace) -> str | None:
+    """The config the emulator reads: with a lockstep timeout to set, a variant of the
+    config that sets only the timeout."""
     timeout_s = args.lockstep_timeout if args.lockstep_timeout is not None else (
         10.0 if args.digest else None)
-    if timeout_s is not None:  # a variant of the config that sets only the timeout
-        base = os.path.abspath(args.config or os.path.join(os.path.dirname(__file__), "..",
-                                                           "config", "paper.toml"))
-        variant = os.path.join(tempfile.mkdtemp(prefix="lockstep-"), "config.toml")
-        with open(variant, "w", encoding="utf-8") as f:
-            f.write(f"base = {json.dumps(base)}\n[sim]\nlockstep_timeout_s = {timeout_s}\n")
-        args.config = variant
+    config: str | None = args.config
+    if timeout_s is None:
+        return config
+    base = os.path.abspath(config or os.path.join(os.path.dirname(__file__), "..",
+                                                  "config", "paper.toml"))
+    variant = os.path.join(tempfile.mkdtemp(prefix="lockstep-"), "config.toml")
+    with open(variant, "w", encoding="utf-8") as f:
+        f.write(f"base = {json.dumps(base)}\n[sim]\nlockstep_timeout_s = {timeout_s}\n")
+    return variant
+
+
+def _emulator_cmd(args: argparse.Namespace, p_sim: int, p_comp: int, p_frame: int) -> list[str]:
+    """The emulator's command line: lockstep, every link on loopback (unused ones on free
+    ports), optionally under cProfile."""
+    conf = ["--config", args.config] if args.config else []
+    entry = ["-c", _PROFILED, args.profile] if args.profile else ["-m", "sim_bridge"]
+    return [sys.executable, *entry, *conf, "--lockstep",
+            "--duration", str(args.duration), "--bind", "127.0.0.1", "--offboard-port", str(p_sim),
+            "--offboard-remote", f"127.0.0.1:{p_comp}",
+            "--gcs-port", str(free_port(socket.SOCK_DGRAM)),
+            "--gcs-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
+            "--agv-port", str(free_port(socket.SOCK_DGRAM)), "--frame-port", str(p_frame),
+            "--truth-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
+            "--log-level", "WARNING"]
+
+
+def _connect_frames(p_frame: int) -> socket.socket:
+    """The frame socket, retried while the emulator starts (30 s)."""
+    deadline = time.monotonic() + 30.0
+    while True:
+        try:
+            return socket.create_connection(("127.0.0.1", p_frame), timeout=1.0)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
+def _client_loop(args: argparse.Namespace, tcp: socket.socket, udp: socket.socket,
+                 mav: mavlink2.MAVLink, hover: bytes, p_sim: int,
+                 digest: Any) -> tuple[list[float], list[int]]:
+    """Read every frame until the emulator ends and answer it (hover, or the digest's wave):
+    the frames' arrival times (perf_counter) and sim stamps (us)."""
+    tcp.settimeout(5.0)
+    arrivals: list[float] = []
+    stamps_us: list[int] = []
+    buf = memoryview(bytearray(64 << 20))
+    udp.setblocking(False)
+    if args.digest:  # a long lockstep timeout may hold step 0 for us: release it
+        tcp.settimeout(1.0)
+    while True:
+        try:
+            head = HEADER.unpack(read_exact(tcp, buf, HEADER.size))
+            read_exact(tcp, buf, head[8])
+        except TimeoutError:
+            if args.digest and not arrivals:  # step 0's frame left before we connected
+                udp.sendto(hover, ("127.0.0.1", p_sim))
+                tcp.settimeout(60.0)
+                continue
+            break
+        except (EOFError, OSError):
+            break
+        arrivals.append(time.perf_counter())
+        stamps_us.append(head[5])
+        if len(arrivals) == 1:  # from now on only the emulator's end (EOF) ends the run
+            tcp.settimeout(60.0)
+        if args.digest:
+            _digest_step(digest, udp, head, buf, mav, p_sim, head[4])
+        else:
+            udp.sendto(hover, ("127.0.0.1", p_sim))
+    return arrivals, stamps_us
+
+
+def _fly(args: argparse.Namespace, digest: Any) -> tuple[list[float], list[int], float]:
+    """Start the emulator and fly the client against it: arrival times, sim stamps and the
+    emulator's CPU seconds (getrusage of the children)."""
     p_comp, p_sim = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     p_frame = free_port(socket.SOCK_STREAM)
     udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     udp.bind(("127.0.0.1", p_comp))
-    conf = ["--config", args.config] if args.config else []
-    entry = ["-c", _PROFILED, args.profile] if args.profile else ["-m", "sim_bridge"]
-    cmd = [sys.executable, *entry, *conf, "--lockstep",
-           "--duration", str(args.duration), "--bind", "127.0.0.1", "--offboard-port", str(p_sim),
-           "--offboard-remote", f"127.0.0.1:{p_comp}",
-           "--gcs-port", str(free_port(socket.SOCK_DGRAM)),
-           "--gcs-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
-           "--agv-port", str(free_port(socket.SOCK_DGRAM)), "--frame-port", str(p_frame),
-           "--truth-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}", "--log-level", "WARNING"]
+    cmd = _emulator_cmd(args, p_sim, p_comp, p_frame)
     cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     sim = subprocess.Popen(cmd, env=dict(os.environ, PYTHONUNBUFFERED="1"))
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
     q = [1.0, 0.0, 0.0, 0.0]
     hover = mav.set_attitude_target_encode(0, 1, 1, 7, q, 0.0, 0.0, 0.0, args.thrust).pack(mav)
     try:
-        deadline = time.monotonic() + 30.0
-        while True:
-            try:
-                tcp = socket.create_connection(("127.0.0.1", p_frame), timeout=1.0)
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.05)
-        tcp.settimeout(5.0)
-        arrivals: list[float] = []
-        stamps_us: list[int] = []
-        buf = memoryview(bytearray(64 << 20))
-        digest = hashlib.sha256()
-        udp.setblocking(False)
-        if args.digest:  # a long lockstep timeout may hold step 0 for us: release it
-            tcp.settimeout(1.0)
-        while True:
-            try:
-                head = HEADER.unpack(read_exact(tcp, buf, HEADER.size))
-                read_exact(tcp, buf, head[8])
-            except TimeoutError:
-                if args.digest and not arrivals:  # step 0's frame left before we connected
-                    udp.sendto(hover, ("127.0.0.1", p_sim))
-                    tcp.settimeout(60.0)
-                    continue
-                break
-            except (EOFError, OSError):
-                break
-            arrivals.append(time.perf_counter())
-            stamps_us.append(head[5])
-            if len(arrivals) == 1:  # from now on only the emulator's end (EOF) ends the run
-                tcp.settimeout(60.0)
-            if args.digest:
-                _digest_step(digest, udp, head, buf, mav, p_sim, head[4])
-            else:
-                udp.sendto(hover, ("127.0.0.1", p_sim))
+        tcp = _connect_frames(p_frame)
+        arrivals, stamps_us = _client_loop(args, tcp, udp, mav, hover, p_sim, digest)
         sim.wait(timeout=30.0)
     finally:
         if sim.poll() is None:
             sim.kill()
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     emu_cpu_s = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    return arrivals, stamps_us, emu_cpu_s
+
+
+def _result(arrivals: list[float], stamps_us: list[int], emu_cpu_s: float,
+            duration_s: float) -> dict[str, Any]:
     gaps = np.diff(np.array(arrivals[5:])) * 1e3
     step_s = 0.05
     # with camera latency/drops a frame does not arrive every step: wall time per simulated step
     sim_steps = (stamps_us[-1] - stamps_us[5]) / (step_s * 1e6)
     per_step_ms = (arrivals[-1] - arrivals[5]) * 1e3 / sim_steps
-    res = {
+    return {
         "steps": len(arrivals),
         "wall_per_sim_step_ms": float(per_step_ms),
         "loadavg_1min": round(os.getloadavg()[0], 2),
@@ -211,13 +247,12 @@ def main() -> int:
         "real_time_ratio": float(step_s * 1e3 / np.median(gaps)),
         "target_ms": 2.0,
         # whole process (start-up included) over every simulated step
-        "emulator_cpu_ms_per_sim_step": float(emu_cpu_s * 1e3 / (args.duration / step_s)),
+        "emulator_cpu_ms_per_sim_step": float(emu_cpu_s * 1e3 / (duration_s / step_s)),
     }
-    if args.digest:
-        res["digest_sha256"] = digest.hexdigest()
-        print(f"emulator output digest (frames 20.., {len(stamps_us)} frames): "
-              f"{res['digest_sha256']}")
-    if args.json:
+
+
+def _print(res: dict[str, Any], as_json: bool) -> None:
+    if as_json:
         print(json.dumps(res, indent=2))
     else:
         print(f"lockstep emulator + trivial hover client, {res['steps']} steps: median "
@@ -226,8 +261,20 @@ def main() -> int:
               f"{res['wall_per_sim_step_ms']:.2f} ms wall per simulated step, emulator CPU "
               f"{res['emulator_cpu_ms_per_sim_step']:.2f} ms per simulated step, "
               f"load {res['loadavg_1min']}")
-    return 0
 
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    args.config = _timeout_config(args)
+    digest = hashlib.sha256()
+    arrivals, stamps_us, emu_cpu_s = _fly(args, digest)
+    res = _result(arrivals, stamps_us, emu_cpu_s, args.duration)
+    if args.digest:
+        res["digest_sha256"] = digest.hexdigest()
+        print(f"emulator output digest (frames 20.., {len(stamps_us)} frames): "
+              f"{res['digest_sha256']}")
+    _print(res, args.json)
+    return 0
 
 if __name__ == "__main__":
     sys.exit(main())

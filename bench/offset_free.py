@@ -38,6 +38,7 @@ Wall-clock figures move with the machine's load (printed); CPU time is per step.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -196,7 +197,7 @@ def verdict(ok: bool) -> str:
     return "MET" if ok else "MISSED"
 
 
-def main() -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--duration", type=float, default=60.0, help="simulated s per flight")
     ap.add_argument("--only", default="paper,wind,hover,latency,reach,cpu")
@@ -207,160 +208,208 @@ def main() -> int:
     ap.add_argument("--cpu-repo", type=Path, default=ROOT,
                     help="checkout whose companion/emulator the cpu case runs (e.g. main's, "
                     "for the before/after figure); its config/paper.toml is used")
-    args = ap.parse_args()
+    return ap.parse_args(argv)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Bench:
+    """What every case needs: where the flights go, their lengths, and the JSON summary the
+    cases fill in."""
+
+    tmp: Path
+    dur: float  # simulated s per flight
+    short: float  # simulated s of the hover-thrust and reach flights
+    cpu_repo: Path
+    res: dict[str, Any]
+
+
+def _both(b: _Bench, tag: str, scenario: str, on: list[str], off: list[str],
+          sim: Path | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """One flight with the compensation on and one with it off, recorded under ``tag``."""
+    x = summary(fly(b.tmp / f"{tag}-on", scenario, b.dur, on, sim))
+    y = summary(fly(b.tmp / f"{tag}-off", scenario, b.dur, off, sim))
+    b.res[tag] = {"on": x, "off": y}
+    return x, y
+
+
+def _case_paper(b: _Bench) -> None:
+    a, o = _both(b, "paper", "paper", [], OFF)
+    ok = (a["rms_h_mm"] or 1e9) <= 10 and (a["rms_z_mm"] or 1e9) <= 10
+    print(f"paper steady RMS after settling: horizontal {a['rms_h_mm']} mm, height "
+          f"{a['rms_z_mm']} mm (settled at {a['settle_s']} s) [target <= 10 mm: "
+          f"{verdict(ok)}] (last 10 s {a['last10s_h_mm']:.1f} / {a['last10s_z_mm']:.1f} mm); "
+          f"without the estimator {o['rms_h_mm']} / {o['rms_z_mm']} mm (last 10 s "
+          f"{o['last10s_h_mm']:.1f} / {o['last10s_z_mm']:.1f} mm)")
+
+
+def _case_realistic(b: _Bench) -> None:
+    b.res["realistic"] = {}
+    for sc in ("paper", "edge", "yaw-offset"):
+        sim = sim_variant(b.tmp, "realistic-patient", "", REALISTIC)
+        a = summary(fly(b.tmp / f"realistic-{sc}-tuned", sc, b.dur, [], sim, config=REALISTIC))
+        o = summary(fly(b.tmp / f"realistic-{sc}-paper-weights", sc, b.dur, PAPER_WEIGHTS, sim,
+                        config=REALISTIC))
+        b.res["realistic"][sc] = {"tuned": a, "paper_weights": o}
+        ok = (max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 10 and a["lost"] == 0
+              and a["fallbacks"] == 0)
+        print(f"realistic {sc}: RMS after settling horizontal {a['rms_h_mm']:.1f} mm, height "
+              f"{a['rms_z_mm']:.1f} mm (settled at {a['settle_s']} s, peak "
+              f"{a['peak_px']:.0f} px, lost {a['lost']}, fallbacks {a['fallbacks']}) "
+              f"[target <= 10 mm, in view, no fallback: {verdict(ok)}]; the paper's weights "
+              f"{o['rms_h_mm']:.1f} / {o['rms_z_mm']:.1f} mm (settled at {o['settle_s']} s, "
+              f"peak {o['peak_px']:.0f} px, lost {o['lost']}, fallbacks {o['fallbacks']})",
+              flush=True)
+
+
+def _case_accel(b: _Bench) -> None:
+    b.res["accel"] = {}
+    for sc in ("paper", "edge", "yaw-offset"):
+        sim = sim_variant(b.tmp, "realistic-patient", "", REALISTIC)
+        a = summary(fly(b.tmp / f"accel-{sc}-on", sc, b.dur,
+                        ["control.estimator.accelerometer=true"], sim, config=REALISTIC))
+        o = summary(fly(b.tmp / f"accel-{sc}-off", sc, b.dur, [], sim, config=REALISTIC))
+        b.res["accel"][sc] = {"on": a, "off": o}
+        ok = max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 10
+        print(f"realistic {sc}, accelerometer: RMS after settling horizontal {a['rms_h_mm']}"
+              f" mm, height {a['rms_z_mm']} mm (settled at {a['settle_s']} s, peak "
+              f"{a['peak_px']:.0f} px, lost {a['lost']}) [target <= 10 mm: {verdict(ok)}];"
+              f" without it {o['rms_h_mm']} / {o['rms_z_mm']} mm (settled at "
+              f"{o['settle_s']} s, peak {o['peak_px']:.0f} px)", flush=True)
+
+
+def _case_wind(b: _Bench) -> None:
+    sim = sim_variant(b.tmp, "wind", "[sim.disturbance]\nwind_accel_ned_m_s2 = [0.4, 0.3, 0.0]")
+    a, o = _both(b, "wind", "paper", [], OFF, sim)
+    ok = a["settle_s"] is not None and max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 20
+    print(f"wind 0.5 m/s^2 (0.4 N, 0.3 E): settles at {a['settle_s']} s, RMS horizontal "
+          f"{a['rms_h_mm']} mm, height {a['rms_z_mm']} mm [target <= 20 mm: {verdict(ok)}]"
+          f" (last 10 s: {a['last10s_h_mm']:.1f} / {a['last10s_z_mm']:.1f} mm); without the "
+          f"estimator settles at {o['settle_s']}, last 10 s RMS {o['last10s_h_mm']:.1f} / "
+          f"{o['last10s_z_mm']:.1f} mm, peak {o['peak_px']:.0f} px, lost {o['lost']}")
+
+
+def _case_hover(b: _Bench) -> None:
+    hover_pose = "[sim.scenarios.hover]\nuav_pose = [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]"
+    hover_sim = sim_variant(b.tmp, "hover-start", hover_pose)
+    real_hover_sim = sim_variant(b.tmp, "hover-start-realistic", hover_pose, REALISTIC)
+    ref = summary(fly(b.tmp / "hover-ref", "paper", b.short, []))
+    b.res["hover_ref"] = ref
+    print(f"hover thrust right (0.5): height within 2 cm from {ref['height_2cm_s']} s "
+          "(paper start, 1.2 m above the set point)")
+    cases = [("paper", "paper", None, PAPER), ("hover", "hover", hover_sim, PAPER),
+             ("realistic-hover", "hover", real_hover_sim, REALISTIC)]
+    for h in (0.35, 0.65):
+        for tag, scen, sim, comp_cfg in cases:
+            ov = [f"control.hover_thrust={h}"]
+            runs = {name: summary(fly(b.tmp / f"hover{h}-{tag}-{name}", scen, b.short,
+                                      ov + extra, sim, config=comp_cfg))
+                    for name, extra in (("on", []), ("no-autopilot-thrust", NO_AP),
+                                        ("off", OFF))}
+            b.res[f"hover{h}-{tag}"] = runs
+            for name, a in runs.items():
+                _hover_row(h, tag, scen, name, a, ref)
+
+
+def _hover_row(h: float, tag: str, scen: str, name: str, a: dict[str, Any],
+               ref: dict[str, Any]) -> None:
+    """Score one wrong-hover-thrust flight (adds ``height_2cm_after_offboard_s``) and print it."""
+    t2 = a["height_2cm_s"]
+    t_off = _offboard_s(a)
+    after = None if t2 is None or t_off is None else max(0.0, t2 - t_off)
+    a["height_2cm_after_offboard_s"] = after
+    ok = a["failures"] == 0 and a["lost"] == 0 and t2 is not None and (
+        after is not None and after <= 5.0 if scen == "hover" else
+        ref["height_2cm_s"] is not None and t2 - ref["height_2cm_s"] <= 5.0)
+    print(f"hover_thrust {h} ({tag} start, estimator {name}): failures "
+          f"{a['failures']}, frames lost {a['lost']}, height within 2 cm from "
+          f"{t2} s ({after} s after OFFBOARD at {t_off}), steady RMS "
+          f"{a['rms_h_mm']} / {a['rms_z_mm']} mm, levels {a['levels']} "
+          f"[{verdict(ok)}]", flush=True)
+
+
+def _case_latency(b: _Bench) -> None:
+    sim = sim_variant(b.tmp, "latency", "[sim.camera_model]\nlatency_ms = 60.0\n"
+                      "latency_jitter_ms = 15.0")
+    a, o = _both(b, "latency", "edge", [], LAT_OFF, sim)
+    ok = a["peak_px"] < 500 and a["lost"] == 0
+    print(f"edge, camera latency 60 +- 15 ms: peak {a['peak_px']:.0f} px (bound 500), lost "
+          f"{a['lost']}, failures {a['failures']}, RMS {a['rms_h_mm']} / {a['rms_z_mm']} mm "
+          f"[{verdict(ok)}]; without compensation peak {o['peak_px']:.0f} px, lost "
+          f"{o['lost']}, failures {o['failures']}, RMS {o['rms_h_mm']} / {o['rms_z_mm']} mm")
+
+
+def _case_reach(b: _Bench) -> None:
+    reach: dict[str, Any] = {}
+    for off_m in (1.5, 3.0, 6.0, 10.0):
+        sim = sim_variant(b.tmp, f"reach{off_m}", "[sim.scenarios.far]\n"
+                          f"uav_pose = [{-off_m}, 0.0, -3.2, 0.0, 0.0, 0.0]")
+        s = summary(fly(b.tmp / f"reach{off_m}", "far", b.short, [], sim))
+        tracked = s["levels"].get("tracking", 0)
+        reach[str(off_m)] = {**s, "tracking_steps": tracked}
+        print(f"reacquire from {off_m} m behind (target out of view): steps tracking "
+              f"{tracked}, reacquire {s['levels'].get('reacquire', 0)}, final settle "
+              f"{s['settle_s']} s, RMS {s['rms_h_mm']} / {s['rms_z_mm']} mm")
+    b.res["reach"] = reach
+
+
+def _case_cpu(b: _Bench) -> None:
+    cpu: dict[str, float] = {}
+
+    def monitor(p: Any) -> None:
+        try:
+            with open(f"/proc/{p.pid}/stat") as fh:
+                f = fh.read().rsplit(")", 1)[1].split()
+            cpu["s"] = (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+        except OSError:
+            pass
+
+    t0 = time.monotonic()
+    repo = b.cpu_repo.resolve()
+    os.environ["PYTHONPATH"] = str(repo)  # the children run that checkout's code
+    rep = run_demo(repo / "config" / "paper.toml", "paper", b.dur, b.tmp / "cpu", [], [],
+                   plots=False, monitor=monitor)
+    rep["_log"] = str(b.tmp / "cpu" / "flight.mcap")
+    n = len(steps(Path(rep["_log"])))
+    tot = [sum(v for k, v in (s.get("timings_ms") or {}).items()
+               if k in ("detect", "moments", "solve", "command"))
+           for s in steps(Path(rep["_log"]))]
+    b.res["cpu"] = {"median_step_wall_ms": float(np.median(tot)) if tot else None}
+    b.res["cpu"] |= {"repo": str(repo), "companion_cpu_s": cpu.get("s"), "steps": n,
+                     "cpu_ms_per_step": 1e3 * cpu.get("s", float("nan")) / max(n, 1),
+                     "wall_s": time.monotonic() - t0, "real_time_factor":
+                     rep["real_time_factor"]}
+    print(f"companion CPU ({repo}) on the default paper flight: "
+          f"{b.res['cpu']['cpu_ms_per_step']:.2f} "
+          f"ms/step over {n} steps (incl. start-up), median step (detect..command) "
+          f"{b.res['cpu']['median_step_wall_ms']:.2f} ms wall, "
+          f"{rep['real_time_factor']:.2f}x real time "
+          f"(load {os.getloadavg()[0]:.2f})")
+
+
+# the cases in the order they fly (``--only`` picks, this order stays)
+CASES = [("paper", _case_paper), ("realistic", _case_realistic), ("accel", _case_accel),
+         ("wind", _case_wind), ("hover", _case_hover), ("latency", _case_latency),
+         ("reach", _case_reach), ("cpu", _case_cpu)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     only = set(args.only.split(","))
     tmp = args.out or Path(tempfile.mkdtemp(prefix="offset-free-"))
     tmp.mkdir(parents=True, exist_ok=True)
     dur = args.duration
     res: dict[str, Any] = {"duration_s": dur, "load_1min": os.getloadavg()[0]}
     print(f"offset-free bench: {dur:.0f} s flights, load {os.getloadavg()[0]:.2f}, out {tmp}")
-
-    def both(tag: str, scenario: str, on: list[str], off: list[str],
-             sim: Path | None = None, d: float = dur) -> tuple[dict[str, Any], dict[str, Any]]:
-        a = summary(fly(tmp / f"{tag}-on", scenario, d, on, sim))
-        b = summary(fly(tmp / f"{tag}-off", scenario, d, off, sim))
-        res[tag] = {"on": a, "off": b}
-        return a, b
-
-    if "paper" in only:
-        a, b = both("paper", "paper", [], OFF)
-        ok = (a["rms_h_mm"] or 1e9) <= 10 and (a["rms_z_mm"] or 1e9) <= 10
-        print(f"paper steady RMS after settling: horizontal {a['rms_h_mm']} mm, height "
-              f"{a['rms_z_mm']} mm (settled at {a['settle_s']} s) [target <= 10 mm: "
-              f"{verdict(ok)}] (last 10 s {a['last10s_h_mm']:.1f} / {a['last10s_z_mm']:.1f} mm); "
-              f"without the estimator {b['rms_h_mm']} / {b['rms_z_mm']} mm (last 10 s "
-              f"{b['last10s_h_mm']:.1f} / {b['last10s_z_mm']:.1f} mm)")
-    if "realistic" in only:
-        res["realistic"] = {}
-        for sc in ("paper", "edge", "yaw-offset"):
-            sim = sim_variant(tmp, "realistic-patient", "", REALISTIC)
-            a = summary(fly(tmp / f"realistic-{sc}-tuned", sc, dur, [], sim, config=REALISTIC))
-            b = summary(fly(tmp / f"realistic-{sc}-paper-weights", sc, dur, PAPER_WEIGHTS, sim,
-                            config=REALISTIC))
-            res["realistic"][sc] = {"tuned": a, "paper_weights": b}
-            ok = (max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 10 and a["lost"] == 0
-                  and a["fallbacks"] == 0)
-            print(f"realistic {sc}: RMS after settling horizontal {a['rms_h_mm']:.1f} mm, height "
-                  f"{a['rms_z_mm']:.1f} mm (settled at {a['settle_s']} s, peak "
-                  f"{a['peak_px']:.0f} px, lost {a['lost']}, fallbacks {a['fallbacks']}) "
-                  f"[target <= 10 mm, in view, no fallback: {verdict(ok)}]; the paper's weights "
-                  f"{b['rms_h_mm']:.1f} / {b['rms_z_mm']:.1f} mm (settled at {b['settle_s']} s, "
-                  f"peak {b['peak_px']:.0f} px, lost {b['lost']}, fallbacks {b['fallbacks']})",
-                  flush=True)
-    if "accel" in only:
-        res["accel"] = {}
-        for sc in ("paper", "edge", "yaw-offset"):
-            sim = sim_variant(tmp, "realistic-patient", "", REALISTIC)
-            a = summary(fly(tmp / f"accel-{sc}-on", sc, dur,
-                            ["control.estimator.accelerometer=true"], sim, config=REALISTIC))
-            b = summary(fly(tmp / f"accel-{sc}-off", sc, dur, [], sim, config=REALISTIC))
-            res["accel"][sc] = {"on": a, "off": b}
-            ok = max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 10
-            print(f"realistic {sc}, accelerometer: RMS after settling horizontal {a['rms_h_mm']}"
-                  f" mm, height {a['rms_z_mm']} mm (settled at {a['settle_s']} s, peak "
-                  f"{a['peak_px']:.0f} px, lost {a['lost']}) [target <= 10 mm: {verdict(ok)}];"
-                  f" without it {b['rms_h_mm']} / {b['rms_z_mm']} mm (settled at "
-                  f"{b['settle_s']} s, peak {b['peak_px']:.0f} px)", flush=True)
-    if "wind" in only:
-        sim = sim_variant(tmp, "wind", "[sim.disturbance]\nwind_accel_ned_m_s2 = [0.4, 0.3, 0.0]")
-        a, b = both("wind", "paper", [], OFF, sim)
-        ok = a["settle_s"] is not None and max(a["rms_h_mm"] or 1e9, a["rms_z_mm"] or 1e9) <= 20
-        print(f"wind 0.5 m/s^2 (0.4 N, 0.3 E): settles at {a['settle_s']} s, RMS horizontal "
-              f"{a['rms_h_mm']} mm, height {a['rms_z_mm']} mm [target <= 20 mm: {verdict(ok)}]"
-              f" (last 10 s: {a['last10s_h_mm']:.1f} / {a['last10s_z_mm']:.1f} mm); without the "
-              f"estimator settles at {b['settle_s']}, last 10 s RMS {b['last10s_h_mm']:.1f} / "
-              f"{b['last10s_z_mm']:.1f} mm, peak {b['peak_px']:.0f} px, lost {b['lost']}")
-    if "hover" in only:
-        hover_pose = "[sim.scenarios.hover]\nuav_pose = [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]"
-        hover_sim = sim_variant(tmp, "hover-start", hover_pose)
-        real_hover_sim = sim_variant(tmp, "hover-start-realistic", hover_pose, REALISTIC)
-        ref = summary(fly(tmp / "hover-ref", "paper", args.short, []))
-        res["hover_ref"] = ref
-        print(f"hover thrust right (0.5): height within 2 cm from {ref['height_2cm_s']} s "
-              "(paper start, 1.2 m above the set point)")
-        cases = [("paper", "paper", None, PAPER), ("hover", "hover", hover_sim, PAPER),
-                 ("realistic-hover", "hover", real_hover_sim, REALISTIC)]
-        for h in (0.35, 0.65):
-            for tag, scen, sim, comp_cfg in cases:
-                ov = [f"control.hover_thrust={h}"]
-                runs = {name: summary(fly(tmp / f"hover{h}-{tag}-{name}", scen, args.short,
-                                          ov + extra, sim, config=comp_cfg))
-                        for name, extra in (("on", []), ("no-autopilot-thrust", NO_AP),
-                                            ("off", OFF))}
-                res[f"hover{h}-{tag}"] = runs
-                for name, a in runs.items():
-                    t2 = a["height_2cm_s"]
-                    t_off = _offboard_s(a)
-                    after = None if t2 is None or t_off is None else max(0.0, t2 - t_off)
-                    a["height_2cm_after_offboard_s"] = after
-                    ok = a["failures"] == 0 and a["lost"] == 0 and t2 is not None and (
-                        after is not None and after <= 5.0 if scen == "hover" else
-                        ref["height_2cm_s"] is not None and t2 - ref["height_2cm_s"] <= 5.0)
-                    print(f"hover_thrust {h} ({tag} start, estimator {name}): failures "
-                          f"{a['failures']}, frames lost {a['lost']}, height within 2 cm from "
-                          f"{t2} s ({after} s after OFFBOARD at {t_off}), steady RMS "
-                          f"{a['rms_h_mm']} / {a['rms_z_mm']} mm, levels {a['levels']} "
-                          f"[{verdict(ok)}]", flush=True)
-    if "latency" in only:
-        sim = sim_variant(tmp, "latency", "[sim.camera_model]\nlatency_ms = 60.0\n"
-                          "latency_jitter_ms = 15.0")
-        a, b = both("latency", "edge", [], LAT_OFF, sim)
-        ok = a["peak_px"] < 500 and a["lost"] == 0
-        print(f"edge, camera latency 60 +- 15 ms: peak {a['peak_px']:.0f} px (bound 500), lost "
-              f"{a['lost']}, failures {a['failures']}, RMS {a['rms_h_mm']} / {a['rms_z_mm']} mm "
-              f"[{verdict(ok)}]; without compensation peak {b['peak_px']:.0f} px, lost "
-              f"{b['lost']}, failures {b['failures']}, RMS {b['rms_h_mm']} / {b['rms_z_mm']} mm")
-    if "reach" in only:
-        reach: dict[str, Any] = {}
-        for off_m in (1.5, 3.0, 6.0, 10.0):
-            sim = sim_variant(tmp, f"reach{off_m}", "[sim.scenarios.far]\n"
-                              f"uav_pose = [{-off_m}, 0.0, -3.2, 0.0, 0.0, 0.0]")
-            s = summary(fly(tmp / f"reach{off_m}", "far", args.short, [], sim))
-            tracked = s["levels"].get("tracking", 0)
-            reach[str(off_m)] = {**s, "tracking_steps": tracked}
-            print(f"reacquire from {off_m} m behind (target out of view): steps tracking "
-                  f"{tracked}, reacquire {s['levels'].get('reacquire', 0)}, final settle "
-                  f"{s['settle_s']} s, RMS {s['rms_h_mm']} / {s['rms_z_mm']} mm")
-        res["reach"] = reach
-    if "cpu" in only:
-        cpu: dict[str, float] = {}
-
-        def monitor(p: Any) -> None:
-            try:
-                with open(f"/proc/{p.pid}/stat") as fh:
-                    f = fh.read().rsplit(")", 1)[1].split()
-                cpu["s"] = (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-            except OSError:
-                pass
-
-        t0 = time.monotonic()
-        repo = args.cpu_repo.resolve()
-        os.environ["PYTHONPATH"] = str(repo)  # the children run that checkout's code
-        rep = run_demo(repo / "config" / "paper.toml", "paper", dur, tmp / "cpu", [], [],
-                       plots=False, monitor=monitor)
-        rep["_log"] = str(tmp / "cpu" / "flight.mcap")
-        n = len(steps(Path(rep["_log"])))
-        tot = [sum(v for k, v in (s.get("timings_ms") or {}).items()
-                   if k in ("detect", "moments", "solve", "command"))
-               for s in steps(Path(rep["_log"]))]
-        res["cpu"] = {"median_step_wall_ms": float(np.median(tot)) if tot else None}
-        res["cpu"] |= {"repo": str(repo), "companion_cpu_s": cpu.get("s"), "steps": n,
-                      "cpu_ms_per_step": 1e3 * cpu.get("s", float("nan")) / max(n, 1),
-                      "wall_s": time.monotonic() - t0, "real_time_factor":
-                      rep["real_time_factor"]}
-        print(f"companion CPU ({repo}) on the default paper flight: "
-              f"{res['cpu']['cpu_ms_per_step']:.2f} "
-              f"ms/step over {n} steps (incl. start-up), median step (detect..command) "
-              f"{res['cpu']['median_step_wall_ms']:.2f} ms wall, "
-              f"{rep['real_time_factor']:.2f}x real time "
-              f"(load {os.getloadavg()[0]:.2f})")
+    bench = _Bench(tmp, dur, args.short, args.cpu_repo, res)
+    for name, case in CASES:
+        if name in only:
+            case(bench)
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     res["children_cpu_s"] = ru.ru_utime + ru.ru_stime
     if args.json:
         args.json.write_text(json.dumps(res, indent=2, default=str))
     print(json.dumps(res, default=str))
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

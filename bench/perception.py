@@ -73,7 +73,7 @@ def _timed(fn: Any, arg: Any) -> tuple[Any, float]:
     return out, 1e3 * (time.perf_counter() - t0)
 
 
-def main() -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--poses", type=int, default=100)
     ap.add_argument("--seed", type=int, default=1)
@@ -84,20 +84,27 @@ def main() -> int:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--where", default="roi",
                     help="--cases: roi, frame or roi,frame (a frame is degraded whole: slower)")
-    args = ap.parse_args()
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     if args.flight is not None:
         return _flight(args.flight, args.frames, args.json)
     if args.cases:
         return _cases(args.poses, args.seed, args.reps, args.json, args.where.split(","))
+    out = _poses(args.poses, args.seed)
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    _print_poses(out)
+    return 0
 
-    cfg = load_config()
-    rng = np.random.default_rng(args.seed)
-    rect = RectangleDetector(cfg.target.length_m, cfg.target.width_m)
-    aruco = ArucoDetector(cfg.target.aruco_dictionary, cfg.target.aruco_id, cfg.target.aruco_size_m)
-    perception = Perception(cfg.camera, cfg.target, track_order=False)
 
+def _box_scenes(rng: np.random.Generator, poses: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``poses`` rendered boxes (image, true corners) at random poses the detector can see."""
     scenes: list[tuple[np.ndarray, np.ndarray]] = []
-    while len(scenes) < args.poses:
+    while len(scenes) < poses:
         depth = rng.uniform(1.5, 5.0)
         top, bottom = box_level(
             depth,
@@ -108,8 +115,14 @@ def main() -> int:
         phi, theta = rng.uniform(-0.3, 0.3, 2)
         if pose_ok(top, bottom, phi, theta, margin=8):
             scenes.append(render_box(int(rng.integers(10_000)), top, bottom, phi, theta))
+    return scenes
+
+
+def _marker_scenes(rng: np.random.Generator, count: int,
+                   cfg: Any) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``count`` ground images with the ArUco marker (image, true corners) well inside."""
     marker_scenes: list[tuple[np.ndarray, np.ndarray]] = []
-    while len(marker_scenes) < max(10, args.poses // 4):
+    while len(marker_scenes) < count:
         depth = rng.uniform(1.5, 3.0)
         top, _ = box_level(
             depth, *(rng.uniform(-0.3, 0.3, 2) * depth), rng.uniform(-math.pi, math.pi), 0.4, 0.4
@@ -119,6 +132,19 @@ def main() -> int:
             img = ground(int(rng.integers(10_000)))
             render_marker(img, true, cfg.target.aruco_dictionary, cfg.target.aruco_id)
             marker_scenes.append((img, true))
+    return marker_scenes
+
+
+def _poses(poses: int, seed: int) -> dict[str, Any]:
+    """The random-pose figures: each detector's time and corner error, the pipeline's time,
+    the frame decoders' time."""
+    cfg = load_config()
+    rng = np.random.default_rng(seed)
+    rect = RectangleDetector(cfg.target.length_m, cfg.target.width_m)
+    aruco = ArucoDetector(cfg.target.aruco_dictionary, cfg.target.aruco_id, cfg.target.aruco_size_m)
+    perception = Perception(cfg.camera, cfg.target, track_order=False)
+    scenes = _box_scenes(rng, poses)
+    marker_scenes = _marker_scenes(rng, max(10, poses // 4), cfg)
     empty = ground(0)
 
     rect.detect(scenes[0][0])
@@ -127,7 +153,7 @@ def main() -> int:
         "image_px": [1000, 1000],
         "cpus": os.cpu_count(),
         "loadavg_1min": os.getloadavg()[0],
-        "poses": args.poses,
+        "poses": poses,
     }
     t_rect, e_rect = [], []
     for img, true in scenes:
@@ -155,11 +181,11 @@ def main() -> int:
         decode = functools.partial(decode_payload, FrameHeader.unpack(rec[:32]))
         out[name] = _stats([_timed(decode, rec[32:])[1] for _ in range(30)])
     out["opencv"] = cv2.__version__
+    return out
 
-    if args.json:
-        print(json.dumps(out))
-        return 0
-    print(f"perception at 1000 x 1000 px, {args.poses} poses, load {out['loadavg_1min']:.2f}")
+
+def _print_poses(out: dict[str, Any]) -> None:
+    print(f"perception at 1000 x 1000 px, {out['poses']} poses, load {out['loadavg_1min']:.2f}")
     for key in (
         "rectangle_detect",
         "rectangle_empty_image",
@@ -175,14 +201,14 @@ def main() -> int:
         )
     for key in ("rectangle_err_px", "aruco_err_px"):
         print(f"  {key:24s} median {out[key]['median']:.3f} px  max {out[key]['max']:.3f} px")
-    return 0
 
 
-def _flight(path: Path, n: int, as_json: bool) -> int:
+def _flight_frames(path: Path, n: int) -> tuple[list[Any], list[Any]]:
+    """Up to ``n`` of a flight log's frames in order and, per frame, the emulator's projected
+    top corners (None where the log has none)."""
     from companion.log.reader import LogReader
     from companion.replay_inputs import _Canvas
 
-    cfg = load_config()
     frames = []
     truth: list[Any] = []  # the emulator's projected top corners per frame (None if absent)
     with LogReader(path, verify=False) as r:
@@ -211,6 +237,12 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
                     frames.append(m.image)
                 if len(frames) >= n:
                     break
+    return frames, truth
+
+
+def _flight(path: Path, n: int, as_json: bool) -> int:
+    cfg = load_config()
+    frames, truth = _flight_frames(path, n)
     from companion.perception.rectangle import EDGE_METHODS, RectangleSettings
 
     # every edge method on the same frames, interleaved frame by frame (the machine's load
@@ -246,8 +278,13 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
     if as_json:
         print(json.dumps(out))
         return 0
-    print(f"{path}: {len(frames)} flight frames, load {out['loadavg_1min']:.2f}")
-    for m in runs:
+    _print_flight(path, out, list(runs))
+    return 0
+
+
+def _print_flight(path: Path, out: dict[str, Any], methods: list[str]) -> None:
+    print(f"{path}: {out['frames']} flight frames, load {out['loadavg_1min']:.2f}")
+    for m in methods:
         r = out[m]
         s = r["perception_process"]
         print(f"  edges = {m!r}: {r['detected']} detected, {r['roi_hits']} in the region of "
@@ -257,7 +294,6 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
             e = r["corner_err_px"]
             print(f"    worst corner vs the projected truth: median {e['median']:.4f} px, p95 "
                   f"{e['p95']:.4f}, max {e['max']:.4f} px over {e['frames']} frames")
-    return 0
 
 
 # (name, noise std, blur sigma px, exposure gain) of the degraded cases the tests bound
@@ -269,16 +305,7 @@ CASES = [("clean", 0.0, 0.0, 1.0), ("noise 10", 10.0, 0.0, 1.0), ("noise 20", 20
 
 
 def _case_frames(poses: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    rng = np.random.default_rng(seed)
-    scenes: list[tuple[np.ndarray, np.ndarray]] = []
-    while len(scenes) < poses:
-        depth = rng.uniform(1.5, 5.0)
-        top, bottom = box_level(depth, rng.uniform(-0.5, 0.5) * depth,
-                                rng.uniform(-0.5, 0.5) * depth, rng.uniform(-math.pi, math.pi))
-        phi, theta = rng.uniform(-0.3, 0.3, 2)
-        if pose_ok(top, bottom, phi, theta, margin=8):
-            scenes.append(render_box(int(rng.integers(10_000)), top, bottom, phi, theta))
-    return scenes
+    return _box_scenes(np.random.default_rng(seed), poses)
 
 
 def _roi(img: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -83,53 +83,68 @@ def _vehicle(kind: str) -> VehicleDynamics | None:
     return build_vehicle_model(cfg)
 
 
-def run(steps: int, pattern: str, size: int, level: str = "ideal",
-        lens: bool = False, vehicle: str = "stub") -> dict[str, Any]:
+def _camera(size: int, pattern: str, lens: bool) -> Camera:
     pixel = 5.04e-6 * 1000 / size  # same field of view at any resolution
     k = d = None
     if lens:
         k, d = read_calibration(Path(__file__).resolve().parent.parent / "config"
                                 / "camera-distorted.yaml", size, size)
-    cam = Camera(2.8e-3, pixel, size, size, pattern=pattern, aruco_size_m=0.3,
-                 camera_matrix=k, dist_coeffs=d)
-    model = CameraModelConfig(level=level, **CAMERA_LEVELS[level])
-    sensor = Sensor(model, size, size, seed=1)
-    exposure_s = model.exposure_ms * 1e-3
+    return Camera(2.8e-3, pixel, size, size, pattern=pattern, aruco_size_m=0.3,
+                  camera_matrix=k, dist_coeffs=d)
+
+
+def _physics_stage(model: VehicleDynamics | None, hover: float, state: Any, pos: np.ndarray,
+                   vel: np.ndarray, agv: Any, t: float) -> tuple[Any, np.ndarray, np.ndarray,
+                                                                 np.ndarray, np.ndarray]:
+    """One step's physics: the point-mass stub (``pos``/``vel`` in place) or the real model
+    tracking a pose above the AGV. Returns (state, pos, vel, q, rates)."""
+    if model is None:
+        _physics_stub(pos, vel, agv.pos_ned_m + np.array([0.0, 0.0, -2.0]))
+        q = _quat_from_euler(0.05 * math.sin(t), -0.05 * math.cos(0.7 * t), agv.yaw_rad)
+        rates = np.array([0.3 * math.cos(t), 0.3 * math.sin(0.7 * t), agv.yaw_rate_rad_s])
+        return state, pos, vel, q, rates
+    # a PD pose tracker above the AGV -> tilt setpoint -> the real model
+    err = agv.pos_ned_m + np.array([0.0, 0.0, -2.0]) - state.pos_ned_m
+    acc = 1.0 * err - 1.8 * state.vel_ned_m_s
+    cy, sy = math.cos(agv.yaw_rad), math.sin(agv.yaw_rad)
+    cmd = AttitudeCommand(max(-0.3, min(0.3, (-sy * acc[0] + cy * acc[1]) / 9.81)),
+                          max(-0.3, min(0.3, -(cy * acc[0] + sy * acc[1]) / 9.81)),
+                          agv.yaw_rad, hover * (1 - acc[2] / 9.81))
+    state = model.step(state, cmd, STEP_S)
+    return (state, state.pos_ned_m, state.vel_ned_m_s, state.q_wxyz,
+            state.rates_frd_rad_s)
+
+
+@dataclasses.dataclass
+class _Measured:
+    """What the measuring loop gathers over the steps after the warm-up."""
+
+    stages: dict[str, list[float]]
+    total: list[float] = dataclasses.field(default_factory=list)
+    physics_cpu_s: float = 0.0
+    cpu0: float = 0.0  # getrusage utime at the first measured step
+    in_image: int = 0
+    n_bytes: int = 0
+
+
+def _measure(steps: int, cam: Camera, sensor: Sensor, exposure_s: float,
+             model: VehicleDynamics | None) -> _Measured:
+    """``steps`` emulator steps after 20 warm-up steps, each stage timed (perf_counter)."""
     agv_traj = AgvTrajectory("paper")
     pos = np.array([-0.2, 0.4, -2.0])
     vel = np.zeros(3)
-    model = _vehicle(vehicle)
     state = initial_state(pos, yaw_rad=0.39)
     hover = model.true_hover_thrust(0.0) if model is not None else 0.5
-    stages: dict[str, list[float]] = {k: [] for k in ("agv", "physics", "render", "sensor",
-                                                       "encode")}
-    total: list[float] = []
-    physics_cpu_s = 0.0
-    cpu0 = 0.0
-    in_image = 0
-    n_bytes = 0
+    m = _Measured({k: [] for k in ("agv", "physics", "render", "sensor", "encode")})
     for k in range(steps + 20):  # 20 warm-up steps
         t = k * STEP_S
         t0 = time.perf_counter()
         agv = agv_traj.state(t)
         if k == 20:
-            cpu0 = resource.getrusage(resource.RUSAGE_SELF).ru_utime
+            m.cpu0 = resource.getrusage(resource.RUSAGE_SELF).ru_utime
         t1 = time.perf_counter()
         c1 = time.process_time()
-        if model is None:
-            _physics_stub(pos, vel, agv.pos_ned_m + np.array([0.0, 0.0, -2.0]))
-            q = _quat_from_euler(0.05 * math.sin(t), -0.05 * math.cos(0.7 * t), agv.yaw_rad)
-            rates = np.array([0.3 * math.cos(t), 0.3 * math.sin(0.7 * t), agv.yaw_rate_rad_s])
-        else:  # a PD pose tracker above the AGV -> tilt setpoint -> the real model
-            err = agv.pos_ned_m + np.array([0.0, 0.0, -2.0]) - state.pos_ned_m
-            acc = 1.0 * err - 1.8 * state.vel_ned_m_s
-            cy, sy = math.cos(agv.yaw_rad), math.sin(agv.yaw_rad)
-            cmd = AttitudeCommand(max(-0.3, min(0.3, (-sy * acc[0] + cy * acc[1]) / 9.81)),
-                                  max(-0.3, min(0.3, -(cy * acc[0] + sy * acc[1]) / 9.81)),
-                                  agv.yaw_rad, hover * (1 - acc[2] / 9.81))
-            state = model.step(state, cmd, STEP_S)
-            pos, vel, q, rates = (state.pos_ned_m, state.vel_ned_m_s, state.q_wxyz,
-                                  state.rates_frd_rad_s)
+        state, pos, vel, q, rates = _physics_stage(model, hover, state, pos, vel, agv, t)
         c2 = time.process_time()
         t2 = time.perf_counter()
         frame = cam.render(pos, q, agv, uav_vel_ned_m_s=vel.copy(), uav_rates_frd_rad_s=rates,
@@ -141,35 +156,44 @@ def run(steps: int, pattern: str, size: int, level: str = "ideal",
         t4 = time.perf_counter()
         if k < 20:
             continue
-        physics_cpu_s += c2 - c1
-        for name, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t35 - t3, t4 - t35),
+        m.physics_cpu_s += c2 - c1
+        for name, dt in zip(m.stages, (t1 - t0, t2 - t1, t3 - t2, t35 - t3, t4 - t35),
                             strict=True):
-            stages[name].append(dt)
-        total.append(t4 - t0)
-        in_image += frame.target_in_image
-        n_bytes = len(rec)
+            m.stages[name].append(dt)
+        m.total.append(t4 - t0)
+        m.in_image += frame.target_in_image
+        m.n_bytes = len(rec)
+    return m
 
-    def ms(xs: list[float], p: float) -> float:
-        return round(float(np.percentile(xs, p)) * 1e3, 4)
 
-    cpu_s = resource.getrusage(resource.RUSAGE_SELF).ru_utime - cpu0
-    med = float(np.median(total))
+def _ms(xs: list[float], p: float) -> float:
+    return round(float(np.percentile(xs, p)) * 1e3, 4)
+
+
+def run(steps: int, pattern: str, size: int, level: str = "ideal",
+        lens: bool = False, vehicle: str = "stub") -> dict[str, Any]:
+    cam = _camera(size, pattern, lens)
+    cam_model = CameraModelConfig(level=level, **CAMERA_LEVELS[level])
+    sensor = Sensor(cam_model, size, size, seed=1)
+    m = _measure(steps, cam, sensor, cam_model.exposure_ms * 1e-3, _vehicle(vehicle))
+    cpu_s = resource.getrusage(resource.RUSAGE_SELF).ru_utime - m.cpu0
+    med = float(np.median(m.total))
     return {
         "vehicle": vehicle,
         "cpu_ms_per_step": round(cpu_s / steps * 1e3, 4),
-        "physics_cpu_ms_per_step": round(physics_cpu_s / steps * 1e3, 4),
+        "physics_cpu_ms_per_step": round(m.physics_cpu_s / steps * 1e3, 4),
         "steps": steps,
         "size_px": size,
         "pattern": pattern,
         "level": level,
         "lens": lens,
-        "record_bytes": n_bytes,
-        "target_in_image_fraction": in_image / steps,
-        "median_ms": ms(total, 50),
-        "p95_ms": ms(total, 95),
-        "max_ms": ms(total, 100),
-        "stages_median_ms": {k: ms(v, 50) for k, v in stages.items()},
-        "stages_p95_ms": {k: ms(v, 95) for k, v in stages.items()},
+        "record_bytes": m.n_bytes,
+        "target_in_image_fraction": m.in_image / steps,
+        "median_ms": _ms(m.total, 50),
+        "p95_ms": _ms(m.total, 95),
+        "max_ms": _ms(m.total, 100),
+        "stages_median_ms": {k: _ms(v, 50) for k, v in m.stages.items()},
+        "stages_p95_ms": {k: _ms(v, 95) for k, v in m.stages.items()},
         "frames_per_s": round(1.0 / med, 1),
         "realtime_ratio_at_20hz": round(STEP_S / med, 1),
         "target_median_ms": 2.0,

@@ -86,55 +86,59 @@ def _run(mpc: Rmpc, eta0: np.ndarray, steps: int,
     return times, [s.result for s in loop]
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--rti-only", action="store_true",
                     help="only the RTI loops and the full NLP's paper loop")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
-    cfg = load_config()
-    design = design_terminal(cfg.rmpc, cfg.camera)
+
+def _build(rmpc_cfg: Any, cfg: Any, design: Any) -> tuple[Rmpc, float]:
+    """An Rmpc of ``rmpc_cfg`` and its build time (s, perf_counter; compile or cache load)."""
     t0 = time.perf_counter()
-    mpc = Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp"), cfg.camera, design,
-               clock=time.perf_counter)
-    build_s = time.perf_counter() - t0
+    mpc = Rmpc(rmpc_cfg, cfg.camera, design, clock=time.perf_counter)
+    return mpc, time.perf_counter() - t0
+
+
+def _measure(args: argparse.Namespace, cfg: Any) -> dict[str, Any]:
+    """Every loop, in this order: the full NLP on paper (and edge), the RTI on paper and edge,
+    IPOPT on paper (not with ``--rti-only``)."""
+    design = design_terminal(cfg.rmpc, cfg.camera)
+    mpc, build_s = _build(dataclasses.replace(cfg.rmpc, solver="nlp"), cfg, design)
     paper0 = initial_error(*PAPER_POSE)
     edge0 = initial_error(*EDGE_POSE)
 
     times, res = _run(mpc, paper0, args.steps, args.seed)
-    paper = _summary(times, res)
-    first = _summary(times[:40], res[:40])
-    edge: dict[str, Any] = {}
+    m: dict[str, Any] = {"mpc": mpc, "build_s": build_s, "paper": _summary(times, res),
+                         "paper_first40": _summary(times[:40], res[:40]), "edge": {}}
     if not args.rti_only:
-        times_e, res_e = _run(mpc, edge0, args.steps, args.seed)
-        edge = _summary(times_e, res_e)
+        m["edge"] = _summary(*_run(mpc, edge0, args.steps, args.seed))
 
-    rti_cfg = dataclasses.replace(cfg.rmpc, solver="rti")
-    t0 = time.perf_counter()
-    rti = Rmpc(rti_cfg, cfg.camera, design, clock=time.perf_counter)
-    rti_build_s = time.perf_counter() - t0
-    times_r, res_r = _run(rti, paper0, args.steps, args.seed)
-    rti_paper = _summary(times_r, res_r)
-    rti_first = _summary(times_r[:40], res_r[:40])
-    times_re, res_re = _run(rti, edge0, args.steps, args.seed)
-    rti_edge = _summary(times_re, res_re)
+    m["rti_cfg"] = dataclasses.replace(cfg.rmpc, solver="rti")
+    m["rti"], m["rti_build_s"] = _build(m["rti_cfg"], cfg, design)
+    times_r, res_r = _run(m["rti"], paper0, args.steps, args.seed)
+    m["rti_paper"] = _summary(times_r, res_r)
+    m["rti_paper_first40"] = _summary(times_r[:40], res_r[:40])
+    m["rti_edge"] = _summary(*_run(m["rti"], edge0, args.steps, args.seed))
     u_nlp = np.array([r.u0 for r in res])
     u_rti = np.array([r.u0 for r in res_r])
+    m["rti_vs_nlp_max_abs_u0_paper"] = float(np.max(np.abs(u_rti - u_nlp)))
 
-    ip: dict[str, Any] = {"median_ms": float("nan")}
-    ipopt_build_s = float("nan")
+    m["ipopt_paper"] = {"median_ms": float("nan")}
+    m["ipopt_build_s"] = float("nan")
     if not args.rti_only:
         ipopt_cfg = dataclasses.replace(cfg.rmpc, solver="nlp", nlp_solver="ipopt")
-        t0 = time.perf_counter()
-        ipopt = Rmpc(ipopt_cfg, cfg.camera, design, clock=time.perf_counter)
-        ipopt_build_s = time.perf_counter() - t0
-        times_i, res_i = _run(ipopt, paper0, args.steps, args.seed)
-        ip = _summary(times_i, res_i)
+        ipopt, m["ipopt_build_s"] = _build(ipopt_cfg, cfg, design)
+        m["ipopt_paper"] = _summary(*_run(ipopt, paper0, args.steps, args.seed))
+    return m
 
-    out: dict[str, Any] = {
+
+def _result(cfg: Any, m: dict[str, Any]) -> dict[str, Any]:
+    paper, ip = m["paper"], m["ipopt_paper"]
+    return {
         "solver": cfg.rmpc.solver,
         "nlp_solver": cfg.rmpc.nlp_solver,
         "median_ms": paper["median_ms"],
@@ -144,33 +148,34 @@ def main(argv: list[str] | None = None) -> int:
         "ipopt_median_ms": ip["median_ms"],
         "ratio_ipopt_over_fatrop": ip["median_ms"] / paper["median_ms"],
         "paper": paper,
-        "paper_first40": first,
-        "edge": edge,
+        "paper_first40": m["paper_first40"],
+        "edge": m["edge"],
         "ipopt_paper": ip,
-        "build_s": build_s,
-        "ipopt_build_s": ipopt_build_s,
-        "rti_paper": rti_paper,
-        "rti_paper_first40": rti_first,
-        "rti_edge": rti_edge,
-        "rti_build_s": rti_build_s,
-        "rti_vs_nlp_max_abs_u0_paper": float(np.max(np.abs(u_rti - u_nlp))),
-        "rti_max_qp": rti_cfg.rti_max_qp,
-        "rti_qps": rti.rti_qps,
-        "rti_to_nlp": rti.rti_rejected,
-        "cache_hit": [c is not None and not c.compiled_now for c in mpc.compiled],
+        "build_s": m["build_s"],
+        "ipopt_build_s": m["ipopt_build_s"],
+        "rti_paper": m["rti_paper"],
+        "rti_paper_first40": m["rti_paper_first40"],
+        "rti_edge": m["rti_edge"],
+        "rti_build_s": m["rti_build_s"],
+        "rti_vs_nlp_max_abs_u0_paper": m["rti_vs_nlp_max_abs_u0_paper"],
+        "rti_max_qp": m["rti_cfg"].rti_max_qp,
+        "rti_qps": m["rti"].rti_qps,
+        "rti_to_nlp": m["rti"].rti_rejected,
+        "cache_hit": [c is not None and not c.compiled_now for c in m["mpc"].compiled],
         "loadavg_1min": os.getloadavg()[0],
         "cpus": os.cpu_count(),
         "timing": "perf_counter around Rmpc.solve (Python call); internal_* = CasADi t_wall",
     }
-    if args.json:
-        print(json.dumps(out, indent=2))
-        return 0
-    print(f"RMPC solve time (N={cfg.rmpc.horizon}), measured around the "
+
+
+def _print(out: dict[str, Any], horizon: int, steps: int) -> None:
+    print(f"RMPC solve time (N={horizon}), measured around the "
           f"Python call; load avg {out['loadavg_1min']:.2f} on {out['cpus']} CPUs")
-    print(f"build {build_s:.2f} s (cache hit: {out['cache_hit']})")
-    rows = [("nlp paper, all", paper), ("nlp paper, 1st 40", first), ("nlp edge, all", edge),
-            ("ipopt paper", ip), ("rti paper, all", rti_paper),
-            ("rti paper, 1st 40", rti_first), ("rti edge, all", rti_edge)]
+    print(f"build {out['build_s']:.2f} s (cache hit: {out['cache_hit']})")
+    rows = [("nlp paper, all", out["paper"]), ("nlp paper, 1st 40", out["paper_first40"]),
+            ("nlp edge, all", out["edge"]), ("ipopt paper", out["ipopt_paper"]),
+            ("rti paper, all", out["rti_paper"]),
+            ("rti paper, 1st 40", out["rti_paper_first40"]), ("rti edge, all", out["rti_edge"])]
     rows = [(name, s) for name, s in rows if "steps" in s]
     print(f"{'run':<19}{'median':>8}{'p95':>8}{'max':>8}{'cpu.med':>8}{'cpu.p95':>8}"
           f"{'intern':>8}{'it.med':>7}{'it.max':>7}{'fail':>5}{'recov':>6}{'fallb':>6}"
@@ -182,15 +187,25 @@ def main(argv: list[str] | None = None) -> int:
               f"{s['iterations_max']:>7d}{s['failures']:>5d}{s['recovery']:>6d}"
               f"{s['fallback']:>6d}{s['rti_flown']:>5d}")
     print("(ms; rti: steps that flew the RTI's plan; the others solved the full NLP)")
+    rti_paper, rti_edge = out["rti_paper"], out["rti_edge"]
     print(f"rti (rmpc.rti_max_qp = {out['rti_max_qp']}): {out['rti_qps']} QPs in "
-          f"{2 * args.steps} steps, {out['rti_to_nlp']} steps to the full NLP; internal "
+          f"{2 * steps} steps, {out['rti_to_nlp']} steps to the full NLP; internal "
           f"(linearisation + QP + check) median / p95 ms: paper "
           f"{rti_paper['internal_median_ms']:.3f} / {rti_paper['internal_p95_ms']:.3f}, edge "
           f"{rti_edge['internal_median_ms']:.3f} / {rti_edge['internal_p95_ms']:.3f}")
     print(f"ipopt / fatrop median ratio: {out['ratio_ipopt_over_fatrop']:.2f}; rti vs nlp, "
           f"paper loop: max |u0 difference| {out['rti_vs_nlp_max_abs_u0_paper']:.2e}")
-    return 0
 
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    cfg = load_config()
+    out = _result(cfg, _measure(args, cfg))
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    _print(out, cfg.rmpc.horizon, args.steps)
+    return 0
 
 if __name__ == "__main__":
     raise SystemExit(main())
