@@ -180,14 +180,16 @@ def _client_loop(args: argparse.Namespace, tcp: socket.socket, udp: socket.socke
     stamps_us: list[int] = []
     buf = memoryview(bytearray(64 << 20))
     udp.setblocking(False)
-    if args.digest:  # a long lockstep timeout may hold step 0 for us: release it
+    # a long lockstep timeout (--digest sets 10 s) may hold step 0 for us: release it
+    release = args.digest or args.lockstep_timeout is not None
+    if release:
         tcp.settimeout(1.0)
     while True:
         try:
             head = HEADER.unpack(read_exact(tcp, buf, HEADER.size))
             read_exact(tcp, buf, head[8])
         except TimeoutError:
-            if args.digest and not arrivals:  # step 0's frame left before we connected
+            if release and not arrivals:  # step 0's frame left before we connected
                 udp.sendto(hover, ("127.0.0.1", p_sim))
                 tcp.settimeout(60.0)
                 continue
