@@ -35,11 +35,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from companion.core.nlp_buffer import NlpBuffer
+
 __all__ = ["NlpRecipe", "child_main"]
 
 _PR_SET_PDEATHSIG = 1
-STATS_KEYS = ("success", "return_status", "unified_return_status", "iter_count")
-"""The solver statistics a result carries (companion.core.rmpc_types.STATS_KEYS)."""
 
 
 @dataclass(frozen=True)
@@ -64,30 +64,12 @@ class LoadedNlp:
 
     def __init__(self, r: NlpRecipe) -> None:
         self.solver = ca.nlpsol(r.name, r.solver, r.library, r.options)
-        nw, ng = int(self.solver.nnz_in(0)), len(r.lbg)
-        buf: Any = self.solver.buffer()[0]
-        self._buf = buf
         self._lbg, self._ubg = np.array(r.lbg, dtype=float), np.array(r.ubg, dtype=float)
-        self._w0_in, self._p_in = np.zeros(nw), np.zeros(r.n_p)
-        self._lbx_in, self._ubx_in = np.zeros(nw), np.zeros(nw)
-        self._x_out, self._f_out, self._g_out = np.zeros(nw), np.zeros(1), np.zeros(ng)
-        for i, a in enumerate((self._w0_in, self._p_in, self._lbx_in, self._ubx_in,
-                               self._lbg, self._ubg)):
-            buf.set_arg(i, a.data)
-        for i, a in enumerate((self._x_out, self._f_out, self._g_out)):
-            buf.set_res(i, a.data)
+        self._buffer = NlpBuffer(self.solver, self._lbg, self._ubg)
 
     def evaluate(self, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray,
                  ubx: np.ndarray) -> tuple[int, dict[str, Any], np.ndarray, float, np.ndarray]:
-        self._w0_in[:] = w0
-        self._p_in[:] = par
-        self._lbx_in[:] = lbx
-        self._ubx_in[:] = ubx
-        self._buf._eval()
-        flag = int(self._buf.ret())
-        st = self._buf.stats() if flag == 0 else {}
-        stats = {k: st[k] for k in STATS_KEYS if k in st}
-        return flag, stats, self._x_out.copy(), float(self._f_out[0]), self._g_out.copy()
+        return self._buffer.evaluate(w0, par, lbx, ubx)
 
 
 def _die_with_parent() -> None:

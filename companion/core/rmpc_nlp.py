@@ -18,12 +18,12 @@ import casadi as ca
 import numpy as np
 
 from companion.core.dynamics import S_REF
+from companion.core.nlp_buffer import NlpBuffer
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError, compiled_nlp
 from companion.core.rmpc_problem import NX, Layout, build_nlp
 from companion.core.rmpc_recovery import recovery_design, velocity_box_return
 from companion.core.rmpc_types import (
-    STATS_KEYS,
     Evaluation,
     SolveBackend,
     TargetMotion,
@@ -96,22 +96,9 @@ class NlpSolver:
         for row in layout.rows:
             self.lbg[row.g_index] = -np.inf
             self.ubg[row.g_index] = row.upper
-        # Zero-copy calls (CasADi's FunctionBuffer): the solver reads its inputs from these
-        # numpy arrays and writes x, f, g into the output arrays, with no DM conversion (4 DMs
-        # in, 3 out: ~0.3-0.8 ms of Python-side overhead per call measured on this machine).
-        # The arrays are filled in place: the buffer keeps pointers to them. The multipliers'
-        # initial guesses are left unset (0, as with an empty DM). Results are bit-identical to
-        # ``self.solver.call`` (tests/core/test_rmpc.py).
-        buf: Any = self.solver.buffer()[0]  # (the stubs want a byte size the binding infers)
-        self._buf = buf
-        self._w0_in, self._p_in = np.zeros(nw), np.zeros(self.solver.nnz_in(1))
-        self._lbx_in, self._ubx_in = np.zeros(nw), np.zeros(nw)
-        self._x_out, self._f_out, self._g_out = np.zeros(nw), np.zeros(1), np.zeros(ng)
-        for i, a in enumerate((self._w0_in, self._p_in, self._lbx_in, self._ubx_in,
-                               self.lbg, self.ubg)):
-            buf.set_arg(i, a.data)
-        for i, a in enumerate((self._x_out, self._f_out, self._g_out)):
-            buf.set_res(i, a.data)
+        # zero-copy calls (companion/core/nlp_buffer.py); results bit-identical to
+        # ``self.solver.call`` (tests/core/test_rmpc.py)
+        self._buffer = NlpBuffer(self.solver, self.lbg, self.ubg)
         self.calls = 0  # evaluations of the solver (tests: nothing bad reaches it)
         self.eta_max = np.asarray(rmpc.eta_max, dtype=float)
         self.state_lo = state_lower(rmpc)
@@ -148,17 +135,7 @@ class NlpSolver:
                  ubx: np.ndarray) -> Evaluation:
         """One evaluation of the compiled solver in this thread (CasADi's ``RuntimeError``
         passes through). What a solver process runs for :class:`SolveBackend`."""
-        self._w0_in[:] = w0
-        self._p_in[:] = par
-        self._lbx_in[:] = lbx
-        self._ubx_in[:] = ubx
-        self._buf._eval()
-        flag = int(self._buf.ret())
-        # per-solve entries (success, return_status, iter_count) are set by every solve; the
-        # buffer does not reset the cumulative counters and timers, which are not read here
-        st = self._buf.stats() if flag == 0 else {}
-        stats = {k: st[k] for k in STATS_KEYS if k in st}
-        return flag, stats, self._x_out.copy(), float(self._f_out[0]), self._g_out.copy()
+        return self._buffer.evaluate(w0, par, lbx, ubx)
 
     def solve(
         self, w0: np.ndarray, par: np.ndarray, lbx: np.ndarray, ubx: np.ndarray,

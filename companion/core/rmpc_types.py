@@ -54,7 +54,6 @@ class SolveBackend(Protocol):
     def close(self) -> None: ...
 
 
-STATS_KEYS = ("success", "return_status", "unified_return_status", "iter_count")
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
