@@ -171,6 +171,45 @@ class Px4VehicleModel:
         return CascadeState(q, w, RateState(prev_rates_rad_s=w), (hover,) * 4)  # type: ignore[arg-type]
 
     # ---------------------------------------------------------------- stepping
+    def _motors(self, f: list[float], w: V3, w_sp: V3, rs: RateState, thrust_cmd: float,
+                on_ground: bool) -> RateState:
+        """One sub-step of PX4's rate loop, the mixer and the motors' lag: ``f`` (the motors'
+        thrusts as fractions of f_max) updated in place; the rate loop's new state."""
+        g, a = self.gains, self.params
+        torque, rs = rate_control(w, w_sp, rs, self.dt_s, on_ground, g)
+        u, unalloc = allocate(torque, thrust_cmd)
+        sat_pos, sat_neg = saturation_flags(unalloc)
+        if sat_pos != rs.sat_pos or sat_neg != rs.sat_neg:
+            rs = RateState(rs.integral, rs.ang_acc_rad_s2, rs.prev_rates_rad_s, sat_pos, sat_neg)
+        ma, thr_fac, true_fac = self._motor_alpha, g.thr_mdl_fac, a.motor_curve_factor
+        for i in range(4):
+            target = thrust_curve(thrust_curve_inverse(u[i], thr_fac), true_fac)
+            f[i] += (target - f[i]) * ma
+        return rs
+
+    def _rotate(self, q: Quat, w: V3, forces: tuple[float, float, float, float],
+                resting: bool) -> tuple[Quat, V3]:
+        """One sub-step of the attitude: Euler's equations under the rotors' torques, or, when
+        ``resting`` on the ground, level with no rotation (yaw kept)."""
+        if resting:
+            yaw = euler_from_quat(np.array(q))[2]
+            level: Quat = tuple(float(v) for v in quat_from_euler(0.0, 0.0, yaw))  # type: ignore[assignment]
+            return level, (0.0, 0.0, 0.0)
+        f0, f1, f2, f3 = forces
+        d_arm, km, dt = self.params.arm_xy_m, self.params.km_m, self.dt_s
+        ixx, iyy, izz = self.inertia
+        # rotors at d QUAD_X_POS with yaw signs QUAD_X_YAW (px4_control):
+        # tau = sum r_i x (0, 0, -F_i) + km yaw_i F_i
+        tx = -d_arm * (f0 - f1 - f2 + f3)
+        ty = d_arm * (f0 - f1 + f2 - f3)
+        tz = km * (f0 + f1 - f2 - f3)
+        p, qq, r = w
+        dp = (tx - (izz - iyy) * qq * r) / ixx
+        dq = (ty - (ixx - izz) * r * p) / iyy
+        dr = (tz - (iyy - ixx) * p * qq) / izz
+        w = (p + dp * dt, qq + dq * dt, r + dr * dt)
+        return _integrate_quat(q, w, dt), w
+
     def step(self, s: VehicleState, cmd: AttitudeCommand, duration_s: float) -> VehicleState:
         n = max(1, round(duration_s / self.dt_s))
         a, g, dt = self.params, self.gains, self.dt_s
@@ -179,7 +218,7 @@ class Px4VehicleModel:
         px, py, pz = (float(v) for v in s.pos_ned_m)
         vx, vy, vz = (float(v) for v in s.vel_ned_m_s)
         on_ground = s.on_ground
-        m, (ixx, iyy, izz) = self.mass_kg, self.inertia
+        m = self.mass_kg
         grav = a.g_m_s2
         drag = a.drag_per_s
         t = s.t_s
@@ -191,46 +230,20 @@ class Px4VehicleModel:
         ff = cmd.yaw_rate_ff_rad_s
         rates_sp = cmd.body_rates_frd_rad_s  # offboard rate setpoint: straight to the rate loop
         ma = self._motor_alpha
-        thr_fac, true_fac = g.thr_mdl_fac, a.motor_curve_factor
-        d_arm, km = a.arm_xy_m, a.km_m
         ax = ay = az = 0.0
         dist = np.zeros(3)
         for _ in range(n):
             f_max = self.f_max_n * battery_factor(t, a.battery_loss_per_s, a.battery_max_loss)
             if motors_on:
                 w_sp = rates_sp if rates_sp is not None else attitude_control(q, qd, ff, g)
-                torque, rs = rate_control(w, w_sp, rs, dt, on_ground, g)
-                u, unalloc = allocate(torque, thrust_cmd)
-                sat_pos, sat_neg = saturation_flags(unalloc)
-                if sat_pos != rs.sat_pos or sat_neg != rs.sat_neg:
-                    rs = RateState(
-                        rs.integral, rs.ang_acc_rad_s2, rs.prev_rates_rad_s, sat_pos, sat_neg
-                    )
-                for i in range(4):
-                    target = thrust_curve(thrust_curve_inverse(u[i], thr_fac), true_fac)
-                    f[i] += (target - f[i]) * ma
+                rs = self._motors(f, w, w_sp, rs, thrust_cmd, on_ground)
             else:
                 for i in range(4):
                     f[i] -= f[i] * ma
             f0, f1, f2, f3 = f[0] * f_max, f[1] * f_max, f[2] * f_max, f[3] * f_max
             total = f0 + f1 + f2 + f3
-            # rotors at d QUAD_X_POS with yaw signs QUAD_X_YAW (px4_control):
-            # tau = sum r_i x (0, 0, -F_i) + km yaw_i F_i
-            tx = -d_arm * (f0 - f1 - f2 + f3)
-            ty = d_arm * (f0 - f1 + f2 - f3)
-            tz = km * (f0 + f1 - f2 - f3)
-            p, qq, r = w
-            if on_ground and (total <= m * grav or not motors_on):
-                # resting on the ground: level, no rotation (yaw kept)
-                yaw = euler_from_quat(np.array(q))[2]
-                q = tuple(float(v) for v in quat_from_euler(0.0, 0.0, yaw))  # type: ignore[assignment]
-                w = (0.0, 0.0, 0.0)
-            else:
-                dp = (tx - (izz - iyy) * qq * r) / ixx
-                dq = (ty - (ixx - izz) * r * p) / iyy
-                dr = (tz - (iyy - ixx) * p * qq) / izz
-                w = (p + dp * dt, qq + dq * dt, r + dr * dt)
-                q = _integrate_quat(q, w, dt)
+            q, w = self._rotate(q, w, (f0, f1, f2, f3),
+                                resting=on_ground and (total <= m * grav or not motors_on))
             qw, qx, qy, qz = q
             # body z axis in NED (third column of R): specific thrust = -total/m along it
             zx = 2 * (qx * qz + qw * qy)
@@ -243,17 +256,11 @@ class Px4VehicleModel:
             az = sf * zz + grav - drag * vz + float(dist[2])
             vx, vy, vz = vx + ax * dt, vy + ay * dt, vz + az * dt
             nx, ny, nz = px + vx * dt, py + vy * dt, pz + vz * dt  # semi-implicit Euler
-            was_on_ground, on_ground = on_ground, False
             if nz >= a.ground_z_m:
-                if az >= 0 or vz >= 0:
-                    if was_on_ground:  # pressed onto the ground: it stops there, no sliding
-                        nx, ny = px, py
-                    nz = a.ground_z_m
-                    vx = vy = vz = ax = ay = az = 0.0
-                    on_ground = True
-                else:
-                    nz = a.ground_z_m
-            px, py, pz = nx, ny, nz
+                (px, py, pz), (vx, vy, vz), (ax, ay, az), on_ground = _ground_contact(
+                    (px, py, pz), (nx, ny), (vx, vy, vz), (ax, ay, az), a.ground_z_m, on_ground)
+            else:
+                px, py, pz, on_ground = nx, ny, nz, False
             t += dt
         roll, pitch, yaw = euler_from_quat(np.array(q))
         cascade = CascadeState(q, w, rs, (f[0], f[1], f[2], f[3]))
@@ -272,6 +279,17 @@ class Px4VehicleModel:
             cascade=cascade,
             hover_thrust_true=self.true_hover_thrust(t),
         )
+
+
+def _ground_contact(p_old: V3, n_xy: tuple[float, float], v: V3, acc: V3, ground_z_m: float,
+                    was_on_ground: bool) -> tuple[V3, V3, V3, bool]:
+    """A sub-step that ends at or below the ground: position, velocity, acceleration after the
+    contact and whether the vehicle rests on it. Pushed down or still moving down it stops
+    there (on the ground already: without sliding); lifting off, only its height is held."""
+    if acc[2] >= 0 or v[2] >= 0:
+        nx, ny = (p_old[0], p_old[1]) if was_on_ground else n_xy
+        return (nx, ny, ground_z_m), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), True
+    return (n_xy[0], n_xy[1], ground_z_m), v, acc, False
 
 
 def _integrate_quat(q: Quat, w: V3, dt: float) -> Quat:
