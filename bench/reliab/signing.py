@@ -77,6 +77,43 @@ def _sim_signing_counters(sim_log: Path) -> dict[str, int]:
     return {}
 
 
+def _attack(f: Any, out: Path, sent: dict[str, Any], n_unsigned: int, n_replay: int,
+            attack_at_s: float) -> None:
+    """The attacker, from the side, during the flight: unsigned frames claiming each end's
+    identity, one forged signature, then genuine frames replayed from the log."""
+    # during the flight: once OFFBOARD is active (both ends up and talking; a fixed wall
+    # time after the start sent the emulator's share to an unbound port under load)
+    while f.comp.poll() is None and f.sim.poll() is None:
+        if "-> active" in (out / "companion.log").read_text():
+            break
+        time.sleep(0.05)
+    time.sleep(attack_at_s)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    comp = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
+    to_c, to_v = ("127.0.0.1", f.comp_port), ("127.0.0.1", f.sim_port)
+    for i in range(n_unsigned):  # unsigned, plausible, marked
+        s.sendto(bytes(ap.attitude_quaternion_encode(MARK_MS + i, 1, 0, 0, 0, 0, 0, 0)
+                       .pack(ap)), to_c)
+        s.sendto(bytes(comp.set_attitude_target_encode(
+            0, 1, 1, 7, [1, 0, 0, 0], 0, 0, 0, 0.0).pack(comp)), to_v)
+        time.sleep(0.002)
+    sent["t_forge_ns"] = time.monotonic_ns()
+    s.sendto(forged_frame(ap.heartbeat_encode(2, 12, 209, 3 << 16, 8, 3), 1, 1), to_c)
+    s.sendto(forged_frame(comp.set_attitude_target_encode(
+        0, 1, 1, 7, [1, 0, 0, 0], 0, 0, 0, 0.0), 1, 191), to_v)
+    time.sleep(2.0)  # the log is flushed every second: genuine frames to replay
+    rin = _raw_frames(f.out / "flight.mcap", "/mavlink/in/ATTITUDE_QUATERNION", n_replay)
+    rout = _raw_frames(f.out / "flight.mcap", "/mavlink/out/SET_ATTITUDE_TARGET",
+                       n_replay)
+    for d in rin:
+        s.sendto(d, to_c)
+    for d in rout:
+        s.sendto(d, to_v)
+    sent.update(replayed_in=len(rin), replayed_out=len(rout))
+    s.close()
+
+
 def run_signing(out: Path, duration_s: float = 30.0, n_unsigned: int = 200,
                 n_replay: int = 50, attack_at_s: float = 4.0) -> ProbeResult:
     t_w, c0 = time.monotonic(), children_cpu_s()
@@ -91,40 +128,8 @@ def run_signing(out: Path, duration_s: float = 30.0, n_unsigned: int = 200,
     sent: dict[str, Any] = {}
     load0 = load_avg()
     with flight(out, duration_s=duration_s, overrides=overrides, sim_config=sim_cfg) as f:
-        def attack() -> None:
-            # during the flight: once OFFBOARD is active (both ends up and talking; a fixed wall
-            # time after the start sent the emulator's share to an unbound port under load)
-            while f.comp.poll() is None and f.sim.poll() is None:
-                if "-> active" in (out / "companion.log").read_text():
-                    break
-                time.sleep(0.05)
-            time.sleep(attack_at_s)
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
-            comp = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
-            to_c, to_v = ("127.0.0.1", f.comp_port), ("127.0.0.1", f.sim_port)
-            for i in range(n_unsigned):  # unsigned, plausible, marked
-                s.sendto(bytes(ap.attitude_quaternion_encode(MARK_MS + i, 1, 0, 0, 0, 0, 0, 0)
-                               .pack(ap)), to_c)
-                s.sendto(bytes(comp.set_attitude_target_encode(
-                    0, 1, 1, 7, [1, 0, 0, 0], 0, 0, 0, 0.0).pack(comp)), to_v)
-                time.sleep(0.002)
-            sent["t_forge_ns"] = time.monotonic_ns()
-            s.sendto(forged_frame(ap.heartbeat_encode(2, 12, 209, 3 << 16, 8, 3), 1, 1), to_c)
-            s.sendto(forged_frame(comp.set_attitude_target_encode(
-                0, 1, 1, 7, [1, 0, 0, 0], 0, 0, 0, 0.0), 1, 191), to_v)
-            time.sleep(2.0)  # the log is flushed every second: genuine frames to replay
-            rin = _raw_frames(f.out / "flight.mcap", "/mavlink/in/ATTITUDE_QUATERNION", n_replay)
-            rout = _raw_frames(f.out / "flight.mcap", "/mavlink/out/SET_ATTITUDE_TARGET",
-                               n_replay)
-            for d in rin:
-                s.sendto(d, to_c)
-            for d in rout:
-                s.sendto(d, to_v)
-            sent.update(replayed_in=len(rin), replayed_out=len(rout))
-            s.close()
-
-        th = threading.Thread(target=attack, daemon=True)
+        th = threading.Thread(target=_attack, args=(f, out, sent, n_unsigned, n_replay,
+                                                    attack_at_s), daemon=True)
         th.start()
         sim_rc, comp_rc = wait_flight(f, 120.0 + 4.0 * duration_s)
         th.join(timeout=30)
