@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
+import contextlib
 import dataclasses
 import json
 import math
@@ -36,6 +37,7 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -178,10 +180,10 @@ async def _receive(cfg: Any, frames: list[bytes], tmp: Path, conn: Any) -> dict[
     }
 
 
-def receive(cfg: Any, frames: list[bytes], tmp: Path) -> dict[str, Any]:
-    """The receive and send figures; the writer thread's CPU (``time.thread_time`` in it) over
-    its whole life, per record written."""
-    cpu: dict[str, float] = {}
+@contextlib.contextmanager
+def _writer_cpu(cpu: dict[str, float]) -> Iterator[None]:
+    """While inside: every McapLogger's writer thread records its whole life's CPU
+    (``time.thread_time`` in it) in ``cpu["writer"]``."""
     orig_run = McapLogger._run
 
     def timed_run(self: McapLogger) -> None:
@@ -193,14 +195,22 @@ def receive(cfg: Any, frames: list[bytes], tmp: Path) -> dict[str, Any]:
 
     McapLogger._run = timed_run  # type: ignore[method-assign]
     try:
+        yield
+    finally:
+        McapLogger._run = orig_run  # type: ignore[method-assign]
+
+
+def receive(cfg: Any, frames: list[bytes], tmp: Path) -> dict[str, Any]:
+    """The receive and send figures; the writer thread's CPU (``time.thread_time`` in it) over
+    its whole life, per record written."""
+    cpu: dict[str, float] = {}
+    with _writer_cpu(cpu):
         ctx = multiprocessing.get_context("fork")
         here, there = ctx.Pipe()
         proc = ctx.Process(target=_sender, args=(there, frames), daemon=True)
         proc.start()  # before any thread of ours exists
         res = asyncio.run(_receive(cfg, frames, tmp, here))
         proc.join(10.0)
-    finally:
-        McapLogger._run = orig_run  # type: ignore[method-assign]
     records = res["counters"].get("rx_accepted", 0) + res["counters"].get("tx_frames", 0)
     res["writer_us_per_record"] = 1e6 * cpu.get("writer", math.nan) / max(records, 1)
     res["writer_us_per_datagram_and_send"] = 1e6 * cpu.get("writer", math.nan) / max(
@@ -228,25 +238,13 @@ def direct(cfg: Any, frames: list[bytes]) -> float:
 def crops(cfg: Any, images: list[Any], tmp: Path, encoding: str) -> dict[str, Any]:
     """Writer-thread CPU and file bytes per crop logged with ``encoding``."""
     cpu: dict[str, float] = {}
-    orig_run = McapLogger._run
-
-    def timed_run(self: McapLogger) -> None:
-        t0 = time.thread_time()
-        try:
-            orig_run(self)
-        finally:
-            cpu["writer"] = time.thread_time() - t0
-
     path = tmp / f"crops-{encoding}.mcap"
-    McapLogger._run = timed_run  # type: ignore[method-assign]
-    try:
+    with _writer_cpu(cpu):
         lg = McapLogger.from_config(cfg.logging, path)
         lg.block_on_backlog = True
         with lg:
             for i, img in enumerate(images):
                 lg.log_image("/perception/input", 1_000_000 + i * 50_000_000, img, encoding)
-    finally:
-        McapLogger._run = orig_run  # type: ignore[method-assign]
     n = max(len(images), 1)
     return {"encoding": encoding, "crops": len(images),
             "writer_us_per_crop": 1e6 * cpu["writer"] / n,
