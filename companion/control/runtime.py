@@ -264,7 +264,10 @@ class CompanionApp:
     # -- background tasks -------------------------------------------------------------------
 
     async def _drain(self, link: MavlinkLink) -> None:
-        async for _rx in link:  # the callback did the work; keep the queue empty
+        """Wait for the link to close: the callback does the work on every frame (the link
+        queues none, ``queue_frames`` is off), and a link closed by an error raises it here,
+        which ends the flight's task group."""
+        async for _rx in link:
             pass
 
     async def _heartbeat(self, link: MavlinkLink) -> None:

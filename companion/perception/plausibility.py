@@ -171,13 +171,19 @@ def order_target_corners(
     return options[0 if rows[0] <= rows[1] else 1]
 
 
+def _touches(p: list[tuple[float, float]] | list[list[float]], width: int, height: int,
+             margin_px: float) -> bool:
+    """:func:`touches_border` on a few points as plain floats."""
+    hx, hy = width - 1 - margin_px, height - 1 - margin_px
+    return any(x <= margin_px or y <= margin_px or x >= hx or y >= hy for x, y in p)
+
+
 def touches_border(points: npt.ArrayLike, width: int, height: int, margin_px: float) -> bool:
     """True if any point lies within ``margin_px`` of the image border (pixel centres)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     lo = margin_px
     if p.shape[0] <= 8:  # a quad: scalar comparisons (numpy's per-call cost dominates)
-        hx, hy = width - 1 - lo, height - 1 - lo
-        return any(x <= lo or y <= lo or x >= hx or y >= hy for x, y in p.tolist())
+        return _touches(p.tolist(), width, height, lo)
     return bool(
         np.any(p[:, 0] <= lo)
         or np.any(p[:, 1] <= lo)
@@ -209,8 +215,6 @@ def check_quad(corners: npt.ArrayLike, width: int, height: int, limits: QuadLimi
     hi = limits.expected_aspect * limits.max_aspect_distortion
     if not lo <= ratio <= hi:
         return f"aspect ratio {ratio:.2f} outside [{lo:.2f}, {hi:.2f}]"
-    m = limits.border_margin_px
-    hx, hy = width - 1 - m, height - 1 - m  # touches_border of a quad
-    if any(x <= m or y <= m or x >= hx or y >= hy for x, y in p):
+    if _touches(p, width, height, limits.border_margin_px):
         return "touches image border: partially visible"
     return None
