@@ -472,9 +472,7 @@ def nlp_recipes(mpc: Rmpc) -> dict[str, NlpRecipe | None]:
     built and its options (None: not compiled, ``rmpc.jit = false``; the child builds it)."""
     out: dict[str, NlpRecipe | None] = {}
     # the controller's compiled NLPs (hard, and the soft copy when there is one)
-    for nlp in (mpc._hard, mpc._soft):
-        if nlp is None:
-            continue
+    for nlp in mpc.nlps():
         opts = getattr(nlp, "options", None)
         if nlp.compiled is None or opts is None:
             out[nlp.kind] = None

@@ -152,6 +152,11 @@ class Rmpc:
             out[self._soft.kind] = (True, self._soft.solver_name)
         return out
 
+    def nlps(self) -> list[NlpSolver]:
+        """The NLP solvers this controller built (hard, and the soft copy when there is
+        one): what a solver process loads (companion/control/solve_guard.py)."""
+        return [self._hard] + ([self._soft] if self._soft is not None else [])
+
     def close(self) -> None:
         """Stop the solve backend (its child process), if any. Idempotent."""
         if self.backend is not None:
