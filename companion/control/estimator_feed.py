@@ -17,7 +17,7 @@ import numpy as np
 from companion.config import Config
 from companion.control.telemetry import TelemetryStore
 from companion.core.disturbance import DisturbanceEstimator
-from companion.core.geometry import rotation_from_quat
+from companion.core.geometry import body_z_from_quat, rotation_from_quat
 
 PX4_MAIN_OFFBOARD = 6  # PX4 custom main mode (companion/link/px4.py; core-side copy)
 
@@ -75,7 +75,8 @@ class EstimatorFeed:
             f.update_accel(t_s, sample.f_frd_m_s2[:2], thrust, body_z, rot)
 
     def _inputs_over(self, t0: float | None, t1: float, store: TelemetryStore,
-                     since: float | None, own: bool) -> tuple[float | None, np.ndarray | None]:
+                     since: float | None, own: bool
+                     ) -> tuple[float | None, tuple[float, float, float] | None]:
         """The thrust that flew over ``[t0, t1]`` (ours while in control, the autopilot's
         before) and the body z axis at its middle; ``(None, None)`` when unknown."""
         if t0 is None:
@@ -94,7 +95,7 @@ class EstimatorFeed:
         a = store.attitude_at(0.5 * (t0 + t1))
         if a is None:
             return None, None
-        return thrust, rotation_from_quat(np.array(a.q_wxyz))[:, 2]
+        return thrust, body_z_from_quat(a.q_wxyz)
 
     def _thrust_over(self, t0: float, t1: float) -> float | None:
         """Time-weighted thrust commanded over ``[t0, t1]``; ``None`` if nothing was in force

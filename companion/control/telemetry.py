@@ -17,8 +17,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from companion.core.geometry import euler_zyx_from_quat, quat_from_euler_zyx
 
 EARTH_RADIUS_M = 6378137.0
@@ -251,9 +249,9 @@ class TelemetryStore:
             return None
         span = nxt.t_s - prev.t_s
         w = 0.0 if span <= 0 else (t_s - prev.t_s) / span
-        q = _slerp(np.array(prev.q_wxyz), np.array(nxt.q_wxyz), w)
+        q = _slerp(prev.q_wxyz, nxt.q_wxyz, w)
         rate = prev.yaw_rate_rad_s + w * (nxt.yaw_rate_rad_s - prev.yaw_rate_rad_s)
-        return AttitudeSample(t_s, tuple(float(x) for x in q), rate)  # type: ignore[arg-type]
+        return AttitudeSample(t_s, q, rate)
 
     def autopilot_thrust_over(self, t0_s: float, t1_s: float,
                               max_age_s: float = 0.25) -> float | None:
@@ -327,14 +325,19 @@ def _norm(q: Sequence[float]) -> float:
     return math.sqrt(sum(x * x for x in q))
 
 
-def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
-    dot = float(q0 @ q1)
+def _slerp(q0: tuple[float, float, float, float], q1: tuple[float, float, float, float],
+           w: float) -> tuple[float, float, float, float]:
+    """Spherical interpolation of unit quaternions, normalised (plain floats: numpy's
+    per-call overhead on 4-vectors cost more than the arithmetic; the same values)."""
+    dot = q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3]
     if dot < 0.0:
-        q1, dot = -q1, -dot
+        q1 = (-q1[0], -q1[1], -q1[2], -q1[3])
+        dot = -dot
     if dot > 0.9995:
-        q = q0 + w * (q1 - q0)
+        q = [a + w * (b - a) for a, b in zip(q0, q1, strict=True)]
     else:
         th = math.acos(dot)
-        q = (math.sin((1 - w) * th) * q0 + math.sin(w * th) * q1) / math.sin(th)
-    out: np.ndarray = q / np.linalg.norm(q)
-    return out
+        s0, s1, st = math.sin((1 - w) * th), math.sin(w * th), math.sin(th)
+        q = [(s0 * a + s1 * b) / st for a, b in zip(q0, q1, strict=True)]
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)

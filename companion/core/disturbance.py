@@ -33,7 +33,8 @@ estimate where the velocity puts it, while the fast part of ``d`` is read direct
 
 Safety: every input is checked (non-finite or implausible data is rejected and counted, the
 estimate is kept); the estimate is clipped to configured bounds after each update; the
-covariance is kept symmetric and bounded; a non-finite result resets the filter. Pure numpy.
+covariance is kept symmetric and bounded; a non-finite result resets the filter. numpy, and the
+velocity step compiled (:mod:`companion.core.disturbance_step`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from companion.core.disturbance_step import VelocityStep
 from companion.core.errors import ParamError
 
 _NX = 7  # v (3), d (3), theta
@@ -176,12 +178,14 @@ class DisturbanceEstimator:
     reason: str = field(init=False, default="")
     _t_vel: float | None = field(init=False, default=None)  # the last velocity sample's time
     _t_acc: float | None = field(init=False, default=None)  # the last accelerometer update's
+    _step: VelocityStep = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         h0 = float(self.hover_thrust0)
         if not (self.params.hover_min <= h0 <= self.params.hover_max):
             raise ParamError(
                 f"control.hover_thrust {h0} is outside control.estimator.hover_min..hover_max")
+        self._step = VelocityStep(self.n)
         self.reset()
 
     @property
@@ -254,11 +258,7 @@ class DisturbanceEstimator:
         if self.t_s is None or self._t_vel is None or t_s - self._t_vel > self.params.max_dt_s:
             self._anchor(t_s, v)
             return True
-        dt = t_s - self.t_s
-        x_pred, p_pred = self._predict(t_s, dt, float(thrust_norm), b)
-        # correction with z = v: H = [I 0], R = r I (the structure used by _correct_velocity)
-        innov = v - x_pred[:3]
-        res = self._correct_velocity(x_pred, p_pred, innov, self.params.velocity_noise_m_s**2)
+        res, innov = self._velocity_step(t_s, t_s - self.t_s, float(thrust_norm), b, v)
         if isinstance(res, str):
             if res.startswith("outlier"):
                 # an outlier: keep the estimate, re-anchor the velocity so one glitch is not
@@ -329,33 +329,29 @@ class DisturbanceEstimator:
 
     # ------------------------------------------------------------------------------------------
 
-    def _correct_velocity(self, x_pred: np.ndarray, p_pred: np.ndarray, innov: np.ndarray,
-                          r: float) -> str | None:
-        """:meth:`_correct` for ``H = [I3 0]``, ``R = r I3`` (the velocity measurement),
-        without the products by H: ``H P H' = P[:3, :3]``, ``P H' = P[:, :3]``, ``K H = [K 0]``
-        and ``K R K' = r K K'`` are exact (products by 0 and 1), so the result is the general
-        form's to rounding (the same where numpy's kernels sum in the same order)."""
-        s = p_pred[:3, :3] + np.diag((r, r, r))
-        try:
-            s_inv = np.linalg.inv(s)
-        except np.linalg.LinAlgError:
+    def _velocity_step(self, t_s: float, dt: float, thrust: float, b: np.ndarray,
+                       v: np.ndarray) -> tuple[str | None, np.ndarray]:
+        """:meth:`_predict` to ``t_s``, then :meth:`_correct` with ``v`` (``H = [I 0]``,
+        ``R = r I``, without the products by H), in one call of
+        :mod:`companion.core.disturbance_step`; returns the verdict and the innovation."""
+        g = self.g_m_s2
+        c = -dt * g * thrust
+        bx, by, bz = b.tolist()
+        r = self.params.velocity_noise_m_s**2
+        x_new, p_new, innov, nis, det = self._step(
+            self.x, self.p, dt, (c * bx, c * by, c * bz), g * dt, self._q_diag(t_s, dt),
+            tuple(v.tolist()), r)
+        if det == 0.0:
             self.reset()
-            return "singular innovation covariance: filter reset"
-        nis = float(innov @ s_inv @ innov)
+            return "singular innovation covariance: filter reset", innov
         if not math.isfinite(nis) or nis > self.params.innovation_gate:
-            return f"outlier (normalised innovation {nis:.3g})"
-        k = p_pred[:, :3] @ s_inv
-        x_new = x_pred + k @ innov
-        i_kh = np.eye(self.n)
-        i_kh[:, :3] -= k
-        p_new = i_kh @ p_pred @ i_kh.T + (k * r) @ k.T  # Joseph form: stays PSD
-        p_new = 0.5 * (p_new + p_new.T)
+            return f"outlier (normalised innovation {nis:.3g})", innov
         if not (np.isfinite(x_new).all() and np.isfinite(p_new).all()):
             self.reset()
-            return "non-finite estimate: filter reset"
+            return "non-finite estimate: filter reset", innov
         self.x = self._clip(x_new)
         self.p = p_new
-        return None
+        return None, innov
 
     def _correct(self, x_pred: np.ndarray, p_pred: np.ndarray, h: np.ndarray,
                  innov: np.ndarray, r: np.ndarray) -> str | None:
@@ -385,7 +381,6 @@ class DisturbanceEstimator:
 
     def _predict(self, t_s: float, dt: float, thrust: float,
                  b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pr = self.params
         g = self.g_m_s2
         n = self.n
         f = np.eye(n)
@@ -393,22 +388,26 @@ class DisturbanceEstimator:
         f[0:3, 6] = -dt * g * thrust * b
         x = f @ self.x
         x[2] += g * dt
+        # the velocity also integrates the disturbance's random walk over the interval
+        p = f @ self.p @ f.T + np.diag(self._q_diag(t_s, dt))
+        return x, p
+
+    def _q_diag(self, t_s: float, dt: float) -> list[float]:
+        """The process noise's diagonal over ``dt`` up to ``t_s``."""
+        pr = self.params
         h = self.hover_thrust
-        q = np.zeros((n, n))
         # with a recent accelerometer sample the horizontal disturbance may move faster: it is
         # measured directly, not only through the velocity's derivative
         q_d = pr.disturbance_noise_m_s2_sqrt_s
         if (pr.accelerometer and self._t_acc is not None
                 and t_s - self._t_acc <= pr.accel_max_age_s):
             q_d = pr.accel_disturbance_noise_m_s2_sqrt_s
-        q[3, 3] = q[4, 4] = q_d**2 * dt
-        q[5, 5] = pr.vertical_disturbance_noise_m_s2_sqrt_s**2 * dt
-        q[6, 6] = (pr.hover_noise_per_sqrt_s / (h * h)) ** 2 * dt
+        q = [0.0, 0.0, 0.0, q_d**2 * dt, q_d**2 * dt,
+             pr.vertical_disturbance_noise_m_s2_sqrt_s**2 * dt,
+             (pr.hover_noise_per_sqrt_s / (h * h)) ** 2 * dt]
         if pr.accelerometer:
-            q[7, 7] = q[8, 8] = pr.accel_bias_noise_m_s2_sqrt_s**2 * dt
-        # the velocity also integrates the disturbance's random walk over the interval
-        p = f @ self.p @ f.T + q
-        return x, p
+            q += [pr.accel_bias_noise_m_s2_sqrt_s**2 * dt] * _NB
+        return q
 
     def _anchor(self, t_s: float, v: np.ndarray) -> None:
         self.x[:3] = v

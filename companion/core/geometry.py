@@ -189,6 +189,19 @@ def rotation_from_quat(q_wxyz: ArrayLike) -> np.ndarray:
     )
 
 
+def body_z_from_quat(q_wxyz: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """The body z axis in NED, ``rotation_from_quat(q)[:, 2]`` (the same values, on plain
+    floats); :class:`GeometryError` as there."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    nrm = math.sqrt(w * w + x * x + y * y + z * z)
+    if not math.isfinite(nrm):
+        raise GeometryError("rotation_from_quat: non-finite input")
+    if nrm < 1e-9:
+        raise GeometryError("rotation_from_quat: zero quaternion")
+    w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+    return 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+
+
 def quat_from_rotation(r: ArrayLike) -> np.ndarray:
     """Quaternion ``[w, x, y, z]`` (``w >= 0``) of a rotation matrix (Shepperd's method)."""
     m = np.asarray(r, dtype=float)
@@ -211,6 +224,20 @@ def quat_from_rotation(r: ArrayLike) -> np.ndarray:
 
 def euler_zyx_from_quat(q_wxyz: ArrayLike) -> tuple[float, float, float]:
     """``(phi, theta, psi)`` (rad) of a quaternion ``[w, x, y, z]`` (body FRD rel. to NED)."""
+    if isinstance(q_wxyz, tuple) and len(q_wxyz) == 4:
+        # a telemetry sample's tuple (once per control step): the same formulas as the
+        # matrix path below, on plain floats
+        w, x, y, z = (float(v) for v in q_wxyz)
+        nrm = math.sqrt(w * w + x * x + y * y + z * z)
+        if not math.isfinite(nrm):
+            raise GeometryError("rotation_from_quat: non-finite input")
+        if nrm < 1e-9:
+            raise GeometryError("rotation_from_quat: zero quaternion")
+        w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+        theta = -math.asin(max(-1.0, min(1.0, 2 * (x * z - w * y))))
+        phi = math.atan2(2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+        psi = math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+        return phi, theta, psi
     return euler_zyx_from_rotation(rotation_from_quat(q_wxyz))
 
 
@@ -319,6 +346,25 @@ def real_points_to_virtual(points_m: ArrayLike, phi: float, theta: float, lam: f
         raise GeometryError("real_points_to_virtual: ray at or above the horizon (D <= 0)")
     u_v, n_v = real_to_virtual(u, n, phi, theta, lam)
     return np.column_stack([u_v, n_v])
+
+
+def real_lists_to_virtual(us: list[float], ns: list[float], phi: float, theta: float,
+                          lam: float) -> tuple[list[float], list[float]]:
+    """:func:`real_points_to_virtual` of points given as two lists of floats (``u``, ``n``,
+    m), returned the same way: the control step's path, without arrays (the same formulas
+    on plain floats)."""
+    _finite("real_points_to_virtual", phi, theta, lam)
+    sp, cp = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(theta), math.cos(theta)
+    uv: list[float] = []
+    nv: list[float] = []
+    for u, n in zip(us, ns, strict=True):
+        d = sp * ct * n + lam * cp * ct - u * st
+        if not d > 0.0:
+            raise GeometryError("real_points_to_virtual: ray at or above the horizon (D <= 0)")
+        uv.append(lam * (sp * st * n + lam * cp * st + u * ct) / d)
+        nv.append(lam * (n * cp - lam * sp) / d)
+    return uv, nv
 
 
 def metric_to_normalised(u_m: Any, n_m: Any, lam: float) -> tuple[Any, Any]:

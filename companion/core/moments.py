@@ -90,6 +90,12 @@ def central_moments(points_v_m: ArrayLike) -> tuple[float, float, float, float, 
         ub, nb = float(np.mean(p[:, 0])), float(np.mean(p[:, 1]))
         du, dn = p[:, 0] - ub, p[:, 1] - nb
         return ub, nb, float(np.sum(du * du)), float(np.sum(dn * dn)), float(np.sum(du * dn))
+    return _small_central_moments(us, ns)
+
+
+def _small_central_moments(us: list[float],
+                           ns: list[float]) -> tuple[float, float, float, float, float]:
+    """:func:`central_moments` of fewer than eight finite points (two lists of floats)."""
     # a handful of points (the target's corners): plain floats, summed in order as numpy sums
     # fewer than eight (the same values, without its per-call overhead)
     ub, nb = _ordered_sum(us) / len(us), _ordered_sum(ns) / len(ns)
@@ -158,6 +164,17 @@ def heading_from_ordered_corners(points_v_m: ArrayLike) -> float:
     return math.atan2(float(d[1]), float(d[0]))
 
 
+def _heading_xy(us: list[float], ns: list[float]) -> float:
+    """:func:`heading_from_ordered_corners` of four finite corners given as float lists."""
+    if len(us) != 4:
+        raise DegenerateTargetError(f"heading needs 4 finite ordered corners, got {len(us)}")
+    du = 0.5 * (us[0] + us[1]) - 0.5 * (us[2] + us[3])
+    dn = 0.5 * (ns[0] + ns[1]) - 0.5 * (ns[2] + ns[3])
+    if not math.hypot(du, dn) > 0:
+        raise DegenerateTargetError("heading: front and rear edges coincide")
+    return math.atan2(dn, du)
+
+
 def unwrap_angle(raw_rad: float, prev_rad: float | None, period_rad: float) -> float:
     """``raw_rad`` shifted by a multiple of ``period_rad`` to lie nearest ``prev_rad``."""
     if prev_rad is None or not math.isfinite(prev_rad):
@@ -201,23 +218,58 @@ def image_moments(
     (needed for square targets such as ArUco markers).
     Raises :class:`DegenerateTargetError` (see :func:`central_moments`).
     """
+    p = np.asarray(points_v_m, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise DegenerateTargetError(f"target points: expected shape (N, 2), got {p.shape}")
+    if p.shape[0] >= 8:  # numpy's pairwise sums (central_moments): keep its values there
+        _check_scalars(a_star, lam)
+        mom = central_moments(p)
+        return _moments_of(mom, p[:, 0].tolist(), p[:, 1].tolist(), a_star, lam,
+                           s4_prev_rad, heading_from_corners)
+    return image_moments_xy(p[:, 0].tolist(), p[:, 1].tolist(), a_star, lam, s4_prev_rad,
+                            heading_from_corners=heading_from_corners)
+
+
+def image_moments_xy(
+    us: list[float], ns: list[float], a_star: float, lam: float,
+    s4_prev_rad: float | None = None, *, heading_from_corners: bool = False,
+) -> ImageMoments:
+    """:func:`image_moments` of a few points given as two lists of floats (``u_v``, ``n_v``,
+    m): the control step's path, without arrays (the same values as the array form)."""
+    _check_scalars(a_star, lam)
+    if len(us) < 3:
+        raise DegenerateTargetError(f"target points: need >= 3, got {len(us)}")
+    if not all(math.isfinite(v) for v in us + ns):
+        raise DegenerateTargetError("target points: non-finite value")
+    if len(us) >= 8:
+        return image_moments(np.column_stack([us, ns]), a_star, lam, s4_prev_rad,
+                             heading_from_corners=heading_from_corners)
+    return _moments_of(_small_central_moments(us, ns), us, ns, a_star, lam, s4_prev_rad,
+                       heading_from_corners)
+
+
+def _check_scalars(a_star: float, lam: float) -> None:
     if not (math.isfinite(a_star) and a_star > 0):
         raise DegenerateTargetError(f"a_star must be finite and > 0 (got {a_star})")
     if not (math.isfinite(lam) and lam > 0):
         raise DegenerateTargetError(f"lam must be finite and > 0 (got {lam})")
-    ub, nb, mu20, mu02, mu11 = central_moments(points_v_m)
-    p = np.asarray(points_v_m, dtype=float)
-    _check_spread(mu20, mu02, mu11, p.shape[0], max(lam, max(abs(v) for v in p.ravel().tolist())))
+
+
+def _moments_of(mom: tuple[float, float, float, float, float], us: list[float],
+                ns: list[float], a_star: float, lam: float, s4_prev_rad: float | None,
+                heading_from_corners: bool) -> ImageMoments:
+    ub, nb, mu20, mu02, mu11 = mom
+    scale = max(lam, max(abs(v) for v in us), max(abs(v) for v in ns))
+    _check_spread(mu20, mu02, mu11, len(us), scale)
     a = mu20 + mu02
     s3 = math.sqrt(a_star / a)
     if heading_from_corners:
-        s4 = unwrap_angle(heading_from_ordered_corners(p), s4_prev_rad, 2.0 * math.pi)
+        s4 = unwrap_angle(_heading_xy(us, ns), s4_prev_rad, 2.0 * math.pi)
     else:
         s4 = unwrap_s4(orientation_raw(mu20, mu02, mu11), s4_prev_rad)
-    s = np.array([s3 * ub / lam, s3 * nb / lam, s3, s4])
     return ImageMoments(
-        s=s, u_v_bar_m=ub, n_v_bar_m=nb, a=a, mu20=mu20, mu02=mu02, mu11=mu11,
-        n_points=int(p.shape[0]),
+        s=np.array([s3 * ub / lam, s3 * nb / lam, s3, s4]), u_v_bar_m=ub, n_v_bar_m=nb, a=a,
+        mu20=mu20, mu02=mu02, mu11=mu11, n_points=len(us),
     )
 
 

@@ -28,10 +28,15 @@ from companion.core.dynamics import S_REF
 from companion.core.errors import CoreError
 from companion.core.geometry import (
     camera_points_to_body_image,
+    real_lists_to_virtual,
     real_points_to_virtual,
-    rot_z,
 )
-from companion.core.moments import DegenerateTargetError, ImageMoments, image_moments
+from companion.core.moments import (
+    DegenerateTargetError,
+    ImageMoments,
+    image_moments,
+    image_moments_xy,
+)
 
 
 class MeasurementError(CoreError, ValueError):
@@ -55,16 +60,44 @@ def _scalar(x: float, name: str) -> float:
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
+    if (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.base is None
+            and not a.flags.writeable):
+        return a  # already a read-only array owning its data (built here): no copy needed
     a = np.array(a, dtype=float)
     a.setflags(write=False)
     return a
 
 
+def _frozen(values: list[float]) -> np.ndarray:
+    a = np.array(values)
+    a.setflags(write=False)
+    return a
+
+
+def _xyz(x: ArrayLike, name: str) -> tuple[float, float, float]:
+    """A finite 3-vector as floats (:func:`_vec`'s checks; tuples without numpy)."""
+    if isinstance(x, tuple) and len(x) == 3:
+        a, b, c = (float(v) for v in x)
+        if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
+            raise MeasurementError(f"{name}: non-finite value")
+        return a, b, c
+    a, b, c = _vec(x, 3, name).tolist()
+    return a, b, c
+
+
+def _to_virtual(x: tuple[float, float, float], c: float, s: float) -> list[float]:
+    """``Rz(yaw)^T x`` with ``c, s = cos, sin(yaw)``: the matrix product's terms in its
+    order (the same bits as ``rot_z(yaw).T @ x``)."""
+    x0, x1, x2 = x
+    return [c * x0 + s * x1 + 0.0 * x2, -s * x0 + c * x1 + 0.0 * x2,
+            0.0 * x0 + 0.0 * x1 + 1.0 * x2]
+
+
 def ned_to_virtual(vec_ned: ArrayLike, yaw_rad: float) -> np.ndarray:
     """A world (NED) vector (3,) in the virtual frame's axes: ``Rz(yaw)^T vec`` (3,)."""
-    v = _vec(vec_ned, 3, "vec_ned")
-    out: np.ndarray = rot_z(_scalar(yaw_rad, "yaw_rad")).T @ v
-    return out
+    v = _xyz(vec_ned, "vec_ned")
+    yaw = _scalar(yaw_rad, "yaw_rad")
+    return np.array(_to_virtual(v, math.cos(yaw), math.sin(yaw)))
 
 
 @dataclass(frozen=True, eq=False)  # holds arrays: no element-wise ==
@@ -99,16 +132,19 @@ def target_motion_in_virtual(
     rate, at the virtual frame's yaw ``yaw_rad`` turning at ``yaw_rate_rad_s`` (the vehicle's
     yaw rate ``psidot_q``). Vertical components are dropped (spec: ``v_az = 0``)."""
     psidot_q = _scalar(yaw_rate_rad_s, "yaw_rate_rad_s")
-    v = ned_to_virtual(_vec(v_a_ned_m_s, 3, "v_a_ned_m_s"), yaw_rad)[:2]
-    acc = ned_to_virtual(_vec(a_a_ned_m_s2, 3, "a_a_ned_m_s2"), yaw_rad)[:2]
-    vdot = acc + psidot_q * np.array([v[1], -v[0]])
-    return TargetMotion(
-        v_a_m_s=v,
-        vdot_a_m_s2=vdot,
-        psidot_a_rad_s=_scalar(psidot_a_rad_s, "psidot_a_rad_s"),
-        accel_a_v_m_s2=acc,
-        yaw_rate_rad_s=psidot_q,
-    )
+    yaw = _scalar(yaw_rad, "yaw_rad")
+    return _motion(_xyz(v_a_ned_m_s, "v_a_ned_m_s"), _xyz(a_a_ned_m_s2, "a_a_ned_m_s2"),
+                   _scalar(psidot_a_rad_s, "psidot_a_rad_s"), math.cos(yaw), math.sin(yaw),
+                   psidot_q)
+
+
+def _motion(v_ned: tuple[float, float, float], a_ned: tuple[float, float, float],
+            psidot_a: float, c: float, s: float, psidot_q: float) -> TargetMotion:
+    v = _to_virtual(v_ned, c, s)[:2]
+    acc = _to_virtual(a_ned, c, s)[:2]
+    vdot = [acc[0] + psidot_q * v[1], acc[1] + psidot_q * -v[0]]
+    return TargetMotion(v_a_m_s=_frozen(v), vdot_a_m_s2=_frozen(vdot), psidot_a_rad_s=psidot_a,
+                        accel_a_v_m_s2=_frozen(acc), yaw_rate_rad_s=psidot_q)
 
 
 def virtual_image_points(
@@ -209,15 +245,29 @@ def build_error_state(
     roll = _scalar(roll_rad, "roll_rad")
     pitch = _scalar(pitch_rad, "pitch_rad")
     yaw = _scalar(yaw_rad, "yaw_rad")
-    pts_v = virtual_image_points(points_real_m, roll, pitch, lam, cam_to_body)
-    mom = image_moments(pts_v, a_star, lam, s4_prev_rad,
-                        heading_from_corners=heading_from_corners)
-    motion = target_motion_in_virtual(v_a_ned_m_s, a_a_ned_m_s2, psidot_a_rad_s, yaw,
-                                      yaw_rate_rad_s)
-    v_q = ned_to_virtual(_vec(v_q_ned_m_s, 3, "v_q_ned_m_s"), yaw)
-    v_a = np.array([motion.v_a_m_s[0], motion.v_a_m_s[1], 0.0])
-    eta = np.concatenate([mom.s - np.asarray(S_REF), v_q - v_a])
+    pts = np.asarray(points_real_m, dtype=float)
+    if cam_to_body is None and pts.ndim == 2 and pts.shape[1] == 2 and 3 <= pts.shape[0] < 8:
+        # the corners of one frame (every control step): plain floats, the same formulas
+        us, ns = pts[:, 0].tolist(), pts[:, 1].tolist()
+        if not all(math.isfinite(v) for v in us + ns):
+            raise DegenerateTargetError("target points: non-finite value")
+        uv, nv = real_lists_to_virtual(us, ns, roll, pitch, lam)
+        mom = image_moments_xy(uv, nv, a_star, lam, s4_prev_rad,
+                               heading_from_corners=heading_from_corners)
+    else:
+        pts_v = virtual_image_points(pts, roll, pitch, lam, cam_to_body)
+        mom = image_moments(pts_v, a_star, lam, s4_prev_rad,
+                            heading_from_corners=heading_from_corners)
+    c, s = math.cos(yaw), math.sin(yaw)
+    motion = _motion(_xyz(v_a_ned_m_s, "v_a_ned_m_s"), _xyz(a_a_ned_m_s2, "a_a_ned_m_s2"),
+                     _scalar(psidot_a_rad_s, "psidot_a_rad_s"), c, s,
+                     _scalar(yaw_rate_rad_s, "yaw_rate_rad_s"))
+    v_q = _to_virtual(_xyz(v_q_ned_m_s, "v_q_ned_m_s"), c, s)
+    va0, va1 = motion.v_a_m_s.tolist()
+    s_list = mom.s.tolist()
+    eta = [s_list[i] - S_REF[i] for i in range(4)] + [v_q[0] - va0, v_q[1] - va1, v_q[2] - 0.0]
     return ErrorState(
-        eta_e=eta, s=mom.s, v_q_v_m_s=v_q, v_a_v_m_s=v_a, moments=mom, motion=motion,
+        eta_e=_frozen(eta), s=mom.s, v_q_v_m_s=_frozen(v_q),
+        v_a_v_m_s=_frozen([va0, va1, 0.0]), moments=mom, motion=motion,
         roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
     )
