@@ -41,16 +41,13 @@ from companion.control.stages import (
 )
 from companion.control.telemetry import KinematicsSample, TelemetryStore
 from companion.core.design import design_terminal
-from companion.core.disturbance import (
-    DisturbanceEstimate,
-    DisturbanceEstimator,
-    compensated_input,
-)
+from companion.core.disturbance import DisturbanceEstimate, DisturbanceEstimator
 from companion.core.estimator import ImageVelocityEstimator
 from companion.core.geometry import (
     camera_to_body_rotation,
     euler_zyx_from_quat,
     rectangle_corners_m,
+    wrap_pi,
 )
 from companion.core.latency import Prediction, predict_error_state
 from companion.core.lead import TiltLead
@@ -60,9 +57,9 @@ from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import (
     AttitudeSetpoint,
+    SetpointError,
     attitude_setpoint,
     hover_setpoint,
-    input_in_reference_frame,
     yaw_reference,
 )
 from companion.core.state import ErrorState, MeasurementError, build_error_state
@@ -393,22 +390,33 @@ class ControlPipeline:
         Returns the setpoint and the lead term added (``None``: not led)."""
         c = self.cfg.control
         hover = c.hover_thrust
+        # plain floats throughout (compensated_input's, the lead's and
+        # input_in_reference_frame's formulas, the same values): numpy's per-call overhead on
+        # 4-vectors cost more than the arithmetic
+        uu = [float(x) for x in np.asarray(u, dtype=float).reshape(4).tolist()]
+        cy, sy = math.cos(self._last_yaw), math.sin(self._last_yaw)
         if est is not None:
-            u = compensated_input(u, est.d_ned_m_s2, self._last_yaw)
+            d0, d1, d2 = est.d_ned_m_s2
+            uu[0] -= cy * d0 + sy * d1
+            uu[1] -= -sy * d0 + cy * d1
+            uu[2] -= d2
             hover = est.hover_thrust
         lead: np.ndarray | None = None
         if lead_at_s is None:
             self._lead.reset()
         else:
-            cy, sy = math.cos(self._last_yaw), math.sin(self._last_yaw)
-            uu = np.array(u, dtype=float).reshape(4)
-            a_ned = np.array([cy * uu[0] - sy * uu[1], sy * uu[0] + cy * uu[1]])
+            a_ned = (cy * uu[0] - sy * uu[1], sy * uu[0] + cy * uu[1])
             led, lead = self._lead.apply(lead_at_s, a_ned)
-            uu[0], uu[1] = cy * led[0] + sy * led[1], -sy * led[0] + cy * led[1]
-            u = uu
+            lx, ly = led.tolist()
+            uu[0], uu[1] = cy * lx + sy * ly, -sy * lx + cy * ly
         # u is in the measured yaw's frame; the attitude is built on the yaw reference
-        u = input_in_reference_frame(u, self._last_yaw, yaw_rad)
-        return attitude_setpoint(u, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
+        dy = wrap_pi(float(yaw_rad) - float(self._last_yaw))
+        if not math.isfinite(dy):
+            raise SetpointError("yaw: non-finite value")
+        cd, sd = math.cos(dy), math.sin(dy)
+        r1, r2 = uu[0], uu[1]
+        uu[0], uu[1] = cd * r1 + sd * r2, -sd * r1 + cd * r2
+        return attitude_setpoint(uu, yaw_rad, dt_s, g_m_s2=self.cfg.rmpc.g_m_s2,
                                  hover_thrust=hover, thrust_min=c.thrust_min,
                                  thrust_max=c.thrust_max), lead
 

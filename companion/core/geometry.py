@@ -153,15 +153,16 @@ def quat_from_euler_zyx(phi: float, theta: float, psi: float) -> np.ndarray:
     cr, sr = math.cos(0.5 * phi), math.sin(0.5 * phi)
     cp, sp = math.cos(0.5 * theta), math.sin(0.5 * theta)
     cy, sy = math.cos(0.5 * psi), math.sin(0.5 * psi)
-    q = np.array(
-        [
-            cr * cp * cy + sr * sp * sy,
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-        ]
-    )
-    return _canonical(q)
+    w = cr * cp * cy + sr * sp * sy
+    x = sr * cp * cy - cr * sp * sy
+    y = cr * sp * cy + sr * cp * sy
+    z = cr * cp * sy - sr * sp * cy
+    # _canonical on plain floats (the same values); read-only: a setpoint keeps it as is
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    k = -1.0 if w / n < 0 else 1.0
+    q = np.array([k * (w / n), k * (x / n), k * (y / n), k * (z / n)])
+    q.setflags(write=False)
+    return q
 
 
 def _canonical(q: np.ndarray) -> np.ndarray:

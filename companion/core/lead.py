@@ -60,7 +60,7 @@ class TiltLead:
     command is not the controller's (level hover, nothing sent, PX4 flying itself)."""
 
     params: LeadParams
-    _prev: tuple[float, np.ndarray] | None = field(init=False, default=None)
+    _prev: tuple[float, tuple[float, float]] | None = field(init=False, default=None)
 
     def reset(self) -> None:
         self._prev = None
@@ -68,23 +68,32 @@ class TiltLead:
     def apply(self, t_s: float, a_ned_h: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """``(command, lead term)``, both (2,) NED m/s^2, for the desired horizontal specific
         force ``a_ned_h`` at ``t_s``. Non-finite input raises ``ValueError`` (and resets)."""
-        a = np.asarray(a_ned_h, dtype=float).reshape(-1)
-        if a.shape != (2,) or not np.all(np.isfinite(a)) or not math.isfinite(float(t_s)):
+        if isinstance(a_ned_h, tuple) and len(a_ned_h) == 2:
+            ax, ay = float(a_ned_h[0]), float(a_ned_h[1])  # the control step's path
+        else:
+            a = np.asarray(a_ned_h, dtype=float).reshape(-1)
+            if a.shape != (2,):
+                self._prev = None
+                raise ValueError(f"tilt lead: malformed input {a.tolist()} at {t_s!r}")
+            ax, ay = a.tolist()
+        if not (math.isfinite(ax) and math.isfinite(ay) and math.isfinite(float(t_s))):
             self._prev = None
-            raise ValueError(f"tilt lead: non-finite or malformed input {a.tolist()} at {t_s!r}")
-        prev, self._prev = self._prev, (float(t_s), a.copy())
+            raise ValueError(f"tilt lead: non-finite or malformed input {[ax, ay]} at {t_s!r}")
+        prev, self._prev = self._prev, (float(t_s), (ax, ay))
         p = self.params
-        zero = np.zeros(2)
         if not p.enabled or p.attitude_lag_s <= 0.0 or prev is None:
-            return a, zero
+            return np.array([ax, ay]), np.zeros(2)
         dt = float(t_s) - prev[0]
         if not 0.0 < dt <= p.max_gap_s:
-            return a, zero
-        lead = p.attitude_lag_s * (a - prev[1]) / dt
-        n = float(np.linalg.norm(lead))
+            return np.array([ax, ay]), np.zeros(2)
+        # plain floats, numpy's formulas: lag (a - prev) / dt, its norm, the bound
+        lx = p.attitude_lag_s * (ax - prev[1][0]) / dt
+        ly = p.attitude_lag_s * (ay - prev[1][1]) / dt
+        n = math.sqrt(lx * lx + ly * ly)
         if n > p.max_m_s2:
-            lead *= p.max_m_s2 / n
-        return a + lead, lead
+            k = p.max_m_s2 / n
+            lx, ly = lx * k, ly * k
+        return np.array([ax + lx, ay + ly]), np.array([lx, ly])
 
 
 __all__ = ["LeadParams", "TiltLead"]

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.core.errors import CoreError
-from companion.core.geometry import attitude_from_accel, quat_from_euler_zyx, wrap_pi
+from companion.core.geometry import quat_from_euler_zyx, wrap_pi
 from companion.core.params import ControlParams, RmpcParams
 
 
@@ -51,8 +51,11 @@ class AttitudeSetpoint:
     thrust_clamped: bool
 
     def __post_init__(self) -> None:
-        q = np.array(self.q_wxyz, dtype=float).reshape(4)
-        q.setflags(write=False)
+        q = self.q_wxyz
+        if not (isinstance(q, np.ndarray) and q.dtype == np.float64 and q.shape == (4,)
+                and q.base is None and not q.flags.writeable):
+            q = np.array(q, dtype=float).reshape(4)
+            q.setflags(write=False)
         object.__setattr__(self, "q_wxyz", q)
 
 
@@ -72,27 +75,31 @@ def attitude_setpoint(
     :class:`SetpointError` for non-finite inputs, bad thrust limits, or ``r3 >= g`` (the
     commanded specific force would not point up: no attitude realises it).
     """
-    uu = np.asarray(u, dtype=float).reshape(-1)
-    if uu.shape != (4,):
-        raise SetpointError(f"u: expected 4 components, got shape {uu.shape}")
-    scalars = {
-        "yaw_rad": yaw_rad, "dt_s": dt_s, "hover_thrust": hover_thrust,
-        "thrust_min": thrust_min, "thrust_max": thrust_max, "g_m_s2": g_m_s2,
-    }
-    if not np.all(np.isfinite(uu)):
-        raise SetpointError(f"u: non-finite value {uu.tolist()}")
-    for name, v in scalars.items():
+    if isinstance(u, list | tuple) and len(u) == 4:
+        vals = [float(x) for x in u]  # the control step's path: no array
+    else:
+        uu = np.asarray(u, dtype=float).reshape(-1)
+        if uu.shape != (4,):
+            raise SetpointError(f"u: expected 4 components, got shape {uu.shape}")
+        vals = uu.tolist()
+    if not all(math.isfinite(x) for x in vals):
+        raise SetpointError(f"u: non-finite value {vals}")
+    for name, v in (("yaw_rad", yaw_rad), ("dt_s", dt_s), ("hover_thrust", hover_thrust),
+                    ("thrust_min", thrust_min), ("thrust_max", thrust_max),
+                    ("g_m_s2", g_m_s2)):
         if not math.isfinite(float(v)):
             raise SetpointError(f"{name}: non-finite value")
     if not (0.0 <= thrust_min < hover_thrust < thrust_max <= 1.0):
         raise SetpointError("need 0 <= thrust_min < hover_thrust < thrust_max <= 1")
     if not (g_m_s2 > 0 and dt_s >= 0):
         raise SetpointError("need g_m_s2 > 0 and dt_s >= 0")
-    r1, r2, r3, psidot = (float(x) for x in uu)
+    r1, r2, r3, psidot = vals
     if r3 - g_m_s2 >= 0.0:
         raise SetpointError(f"r3 = {r3} m/s^2 >= g: the thrust would not point up")
-    phi_d, theta_d, f_norm = attitude_from_accel(r1, r2, r3, g_m_s2)
-    phi_d, theta_d, f_norm = float(phi_d), float(theta_d), float(f_norm)
+    # attitude_from_accel's formulas on plain floats (math's functions give numpy's values)
+    f_norm = math.sqrt(r1 * r1 + r2 * r2 + (r3 - g_m_s2) * (r3 - g_m_s2))
+    phi_d = math.asin(r2 / f_norm)
+    theta_d = math.atan(r1 / (r3 - g_m_s2))
     psi_d = wrap_pi(float(yaw_rad) + psidot * float(dt_s))
     thrust_raw = hover_thrust * f_norm / g_m_s2
     thrust = min(max(thrust_raw, thrust_min), thrust_max)
