@@ -9,6 +9,8 @@ stage's ``v_a`` and ``vdot_a`` are then expressed in that stage's virtual frame 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from companion.core.rmpc import TargetMotion
@@ -62,42 +64,41 @@ def predict_target_motion(
     terminal set, ``v_q = v_a`` inside the box, unreachable whatever the state); a target
     already faster than the bound keeps its measured speed.
     """
-    v0 = np.asarray(v_a_ned_m_s, dtype=float)[:2]
-    a0 = np.asarray(a_a_ned_m_s2, dtype=float)[:2]
-    speed = float(np.hypot(*v0))
-    heading = float(np.arctan2(v0[1], v0[0])) if speed > 1e-6 else 0.0
-    tangent = np.array([np.cos(heading), np.sin(heading)])
-    a_along = float(a0 @ tangent) if speed > 1e-6 else 0.0
+    v0x, v0y = np.asarray(v_a_ned_m_s, dtype=float)[:2].tolist()
+    a0x, a0y = np.asarray(a_a_ned_m_s2, dtype=float)[:2].tolist()
+    # stage by stage on plain floats (numpy's formulas row by row; ~16 stages of 2-vectors
+    # cost more in numpy's per-call overhead than in arithmetic)
+    speed = float(np.hypot(v0x, v0y))  # numpy's hypot: math's differs in the last bit
+    moving = speed > 1e-6
+    heading = math.atan2(v0y, v0x) if moving else 0.0
+    a_along = a0x * math.cos(heading) + a0y * math.sin(heading) if moving else 0.0
     w = float(psidot_a_rad_s)
-    # all stages at once (the loop's formulas, row n = stage n): ~4x less CPU per step
-    t = np.arange(horizon) * dt_s
-    if speed > 1e-6:
-        sp = np.maximum(0.0, speed + a_along * t)
-        acc = np.full_like(t, a_along)
-        if speed_cap_m_s is not None and a_along > 0.0:
-            top = max(speed, float(speed_cap_m_s))
-            acc = np.where(sp >= top, 0.0, acc)
-            sp = np.minimum(sp, top)
-        hd = heading + w * t
-        ch, sh = np.cos(hd), np.sin(hd)
-        v_ned = np.column_stack([sp * ch, sp * sh])
-        a_ned = np.column_stack([acc * ch - sp * w * sh, acc * sh + sp * w * ch])
-    else:
-        v_ned = v0[None, :] + a0[None, :] * t[:, None]
-        a_ned = np.tile(a0, (horizon, 1))
-    psi_q = yaw_q_rad + w * t
-    c, s = np.cos(psi_q), np.sin(psi_q)
-
-    def to_virtual(x: np.ndarray) -> np.ndarray:
-        """Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y], row by row."""
-        return np.column_stack([c * x[:, 0] + s * x[:, 1], -s * x[:, 0] + c * x[:, 1]])
-
-    v_v = to_virtual(v_ned)
-    # d/dt (Rz^T v) = Rz^T a + psidot_q [v_y, -v_x]  with psidot_q = w (vehicle turns along)
-    vdot = to_virtual(a_ned) + w * np.column_stack([v_v[:, 1], -v_v[:, 0]])
-    d_out = np.zeros((horizon, 3))
-    if d_ned_m_s2 is not None:
-        d_ned = np.asarray(d_ned_m_s2, dtype=float).reshape(3)
-        d_out[:, :2] = to_virtual(np.tile(d_ned[:2], (horizon, 1)))
-        d_out[:, 2] = d_ned[2]
-    return TargetMotion(v_v, vdot, np.full(horizon, w), d_out)
+    top = math.inf
+    if moving and speed_cap_m_s is not None and a_along > 0.0:
+        top = max(speed, float(speed_cap_m_s))
+    d = None if d_ned_m_s2 is None else np.asarray(d_ned_m_s2, dtype=float).reshape(3).tolist()
+    v_v: list[tuple[float, float]] = []
+    vdot: list[tuple[float, float]] = []
+    d_out: list[tuple[float, float, float]] = []
+    for n in range(horizon):
+        t = n * dt_s
+        if moving:
+            sp = max(0.0, speed + a_along * t)
+            acc = 0.0 if sp >= top else a_along
+            sp = min(sp, top)
+            hd = heading + w * t
+            ch, sh = math.cos(hd), math.sin(hd)
+            vx, vy = sp * ch, sp * sh
+            ax, ay = acc * ch - sp * w * sh, acc * sh + sp * w * ch
+        else:
+            vx, vy, ax, ay = v0x + a0x * t, v0y + a0y * t, a0x, a0y
+        psi_q = yaw_q_rad + w * t
+        c, s = math.cos(psi_q), math.sin(psi_q)
+        # Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y]; d/dt (Rz^T v) = Rz^T a + psidot_q
+        # [v_y, -v_x] with psidot_q = w (the vehicle turns along)
+        vvx, vvy = c * vx + s * vy, -s * vx + c * vy
+        v_v.append((vvx, vvy))
+        vdot.append((c * ax + s * ay + w * vvy, -s * ax + c * ay + w * -vvx))
+        d_out.append((0.0, 0.0, 0.0) if d is None
+                     else (c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
+    return TargetMotion(np.array(v_v), np.array(vdot), np.full(horizon, w), np.array(d_out))
