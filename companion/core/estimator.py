@@ -21,22 +21,26 @@ class ImageVelocityEstimator:
 
     z_star: float
     alpha: float = 0.2
-    prev: tuple[float, np.ndarray] | None = None
+    prev: tuple[float, list[float]] | None = None
     v_ned: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def update(self, t_s: float, s: np.ndarray, v_q_v: np.ndarray, yaw: float,
                yaw_rate: float) -> np.ndarray:
+        # plain floats (numpy's element-wise formulas, the same values)
+        sl = np.asarray(s, dtype=float).tolist()
         if self.prev is not None and t_s > self.prev[0]:
             dt = t_s - self.prev[0]
-            sd = (s - self.prev[1]) / dt
-            v_a_v = np.array([
-                v_q_v[0] + self.z_star * (sd[0] - s[1] * yaw_rate),
-                v_q_v[1] + self.z_star * (sd[1] + s[0] * yaw_rate),
-                0.0,
-            ])
+            sp = self.prev[1]
+            sd0, sd1 = (sl[0] - sp[0]) / dt, (sl[1] - sp[1]) / dt
+            vq0, vq1 = float(v_q_v[0]), float(v_q_v[1])
+            vx = vq0 + self.z_star * (sd0 - sl[1] * yaw_rate)
+            vy = vq1 + self.z_star * (sd1 + sl[0] * yaw_rate)
             c, sn = math.cos(yaw), math.sin(yaw)
-            v_a_ned = np.array([c * v_a_v[0] - sn * v_a_v[1], sn * v_a_v[0] + c * v_a_v[1], 0.0])
-            if np.all(np.isfinite(v_a_ned)):
-                self.v_ned = (1 - self.alpha) * self.v_ned + self.alpha * v_a_ned
-        self.prev = (t_s, np.array(s, dtype=float))
+            v_a_ned = (c * vx - sn * vy, sn * vx + c * vy, 0.0)
+            if all(math.isfinite(v) for v in v_a_ned):
+                a = self.alpha
+                self.v_ned = np.array([(1 - a) * o + a * n
+                                       for o, n in zip(self.v_ned.tolist(), v_a_ned,
+                                                       strict=True)])
+        self.prev = (t_s, sl)
         return self.v_ned.copy()

@@ -108,22 +108,34 @@ def predict_error_state(
     most ``params.step_s``, split at every input change). ``history``: ``(t_effect_s, u (4,))``
     sorted by time; ``v_a``, ``vdot_a`` (2,) and ``psidot_a`` the target's motion in the
     virtual frame, held constant. A non-positive horizon returns ``eta_e`` unchanged."""
-    eta = np.array(eta_e, dtype=float).reshape(7)
-    va = np.asarray(v_a, dtype=float)
-    vda = np.asarray(vdot_a, dtype=float)
+    # plain floats (the same IEEE arithmetic as numpy's element-wise form, without its
+    # per-call overhead on 7-vectors)
+    eta = np.asarray(eta_e, dtype=float).reshape(7).tolist()
+    va = np.asarray(v_a, dtype=float).tolist()
+    vda = np.asarray(vdot_a, dtype=float).tolist()
+    psidot_a = float(psidot_a)
     want = float(t_to_s) - float(t_from_s)
     horizon = min(max(want, 0.0), params.max_prediction_s)
     clipped = want > params.max_prediction_s
     t = float(t_from_s)
     t_end = t + horizon
-    changes = sorted(te for te, _ in history if t < te < t_end)
+    # the input changes inside (t, t_end): the history is sorted, so from the newest back
+    changes: list[float] = []
+    for i in range(len(history) - 1, -1, -1):
+        te = history[i][0]
+        if te <= t:
+            break
+        if te < t_end:
+            changes.append(te)
+    changes.reverse()
     for bound in [*changes, t_end]:
         while t < bound - 1e-12:
             h = min(params.step_s, bound - t)
-            u = input_at(history, t)
-            eta = eta + h * np.asarray(error_dynamics(eta, u, va, vda, psidot_a, z_star))
+            u = input_at(history, t).tolist()
+            f = error_dynamics(eta, u, va, vda, psidot_a, z_star).tolist()
+            eta = [e + h * d for e, d in zip(eta, f, strict=True)]
             t += h
-    return Prediction(eta, float(t_from_s), t_end, horizon, clipped)
+    return Prediction(np.array(eta), float(t_from_s), t_end, horizon, clipped)
 
 
 __all__ = ["LatencyParams", "Prediction", "input_at", "predict_error_state"]
