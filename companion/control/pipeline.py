@@ -102,7 +102,8 @@ class ControlPipeline:
         self._yaw_sp: float | None = None
         est = cfg.control.estimator
         self._dist: DisturbanceEstimator | None = (
-            DisturbanceEstimator(est, cfg.control.hover_thrust, cfg.rmpc.g_m_s2)
+            DisturbanceEstimator(est, cfg.control.hover_thrust, cfg.rmpc.g_m_s2,
+                                 cfg.rmpc.cache_dir if cfg.rmpc.jit else None)
             if est.enabled else None)
         # (t_effect_s, u: the vehicle's acceleration/yaw rate asked for (4,), thrust sent)
         self._commands: deque[tuple[float, np.ndarray, float]] = deque(maxlen=64)

@@ -61,6 +61,7 @@ class SafetySupervisor:
         self.level = SafetyLevel.TRACKING
         self.reason = "start"
         self._trouble_since: float | None = None
+        self._last: SafetyDecision | None = None  # the last unchanged decision (reused)
 
     def state_valid(self, h: Health) -> bool:
         """The measured error state can be trusted (fresh, finite telemetry and target)."""
@@ -98,10 +99,16 @@ class SafetySupervisor:
         return self._set(SafetyLevel.TERMINAL, f"{why}: terminal law")
 
     def _set(self, level: SafetyLevel, reason: str) -> SafetyDecision:
+        last = self._last
+        if (last is not None and level is last.level is self.level and reason == last.reason
+                and reason == self.reason):
+            return last  # the same decision as the step before (frozen: shared, not rebuilt)
         changed = level is not self.level
         self.level = level
         self.reason = reason
-        return SafetyDecision(level, reason, changed)
+        decision = SafetyDecision(level, reason, changed)
+        self._last = None if changed else decision
+        return decision
 
 
 def _describe(

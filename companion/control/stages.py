@@ -175,6 +175,8 @@ class Command:
 def _lst(a: Any) -> Any:
     if a is None:
         return None
+    if isinstance(a, np.ndarray) and a.dtype == np.float64:
+        return a.tolist()  # most values: no conversion to make
     return np.asarray(a, dtype=float).tolist()
 
 

@@ -168,6 +168,8 @@ class DisturbanceEstimator:
     params: EstimatorParams
     hover_thrust0: float
     g_m_s2: float = 9.81
+    #: compile the velocity step there (:class:`companion.core.disturbance_step.VelocityStep`)
+    cache_dir: str | None = None
     x: np.ndarray = field(init=False)
     p: np.ndarray = field(init=False)
     t_s: float | None = field(init=False, default=None)
@@ -185,7 +187,7 @@ class DisturbanceEstimator:
         if not (self.params.hover_min <= h0 <= self.params.hover_max):
             raise ParamError(
                 f"control.hover_thrust {h0} is outside control.estimator.hover_min..hover_max")
-        self._step = VelocityStep(self.n)
+        self._step = VelocityStep(self.n, self.cache_dir)
         self.reset()
 
     @property

@@ -61,8 +61,11 @@ class ImageMoments:
     n_points: int = field(default=0)
 
     def __post_init__(self) -> None:
-        s = np.array(self.s, dtype=float).reshape(4)
-        s.setflags(write=False)
+        s = self.s
+        if not (isinstance(s, np.ndarray) and s.dtype == np.float64 and s.shape == (4,)
+                and s.base is None and not s.flags.writeable):
+            s = np.array(s, dtype=float).reshape(4)
+            s.setflags(write=False)
         object.__setattr__(self, "s", s)
 
     @property
@@ -267,8 +270,10 @@ def _moments_of(mom: tuple[float, float, float, float, float], us: list[float],
         s4 = unwrap_angle(_heading_xy(us, ns), s4_prev_rad, 2.0 * math.pi)
     else:
         s4 = unwrap_s4(orientation_raw(mu20, mu02, mu11), s4_prev_rad)
+    s = np.array([s3 * ub / lam, s3 * nb / lam, s3, s4])
+    s.setflags(write=False)  # owned and read-only: ImageMoments keeps it without a copy
     return ImageMoments(
-        s=np.array([s3 * ub / lam, s3 * nb / lam, s3, s4]), u_v_bar_m=ub, n_v_bar_m=nb, a=a,
+        s=s, u_v_bar_m=ub, n_v_bar_m=nb, a=a,
         mu20=mu20, mu02=mu02, mu11=mu11, n_points=len(us),
     )
 
