@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion.core.dynamics import error_dynamics
 from companion.core.errors import ParamError
 
 
@@ -131,11 +130,23 @@ def predict_error_state(
     for bound in [*changes, t_end]:
         while t < bound - 1e-12:
             h = min(params.step_s, bound - t)
-            u = input_at(history, t).tolist()
-            f = error_dynamics(eta, u, va, vda, psidot_a, z_star).tolist()
-            eta = [e + h * d for e, d in zip(eta, f, strict=True)]
+            eta = _euler(eta, input_at(history, t).tolist(), va, vda, psidot_a, z_star, h)
             t += h
     return Prediction(np.array(eta), float(t_from_s), t_end, horizon, clipped)
+
+
+def _euler(eta: list[float], u: list[float], va: list[float], vda: list[float],
+           psidot_a: float, z_star: float, h: float) -> list[float]:
+    """``eta + h f(eta, u)``: :func:`companion.core.dynamics.error_dynamics` (spec 4) written
+    out on plain floats, term by term (the same values; the generic form checks its
+    arguments for CasADi symbols on every call, many times per control step here)."""
+    s1, s2, _, _, ve1, ve2, ve3 = eta
+    psidot = u[3]
+    ue0 = u[0] + u[3] * va[1] - vda[0]
+    ue1 = u[1] - u[3] * va[0] - vda[1]
+    f = (-ve1 / z_star + s2 * psidot, -ve2 / z_star - s1 * psidot, -ve3 / z_star,
+         -psidot + psidot_a, psidot * ve2 + ue0, -psidot * ve1 + ue1, u[2])
+    return [e + h * d for e, d in zip(eta, f, strict=True)]
 
 
 __all__ = ["LatencyParams", "Prediction", "input_at", "predict_error_state"]
