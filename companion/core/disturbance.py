@@ -348,7 +348,7 @@ class DisturbanceEstimator:
             return "singular innovation covariance: filter reset", innov
         if not math.isfinite(nis) or nis > self.params.innovation_gate:
             return f"outlier (normalised innovation {nis:.3g})", innov
-        if not (np.isfinite(x_new).all() and np.isfinite(p_new).all()):
+        if not math.isfinite(float(x_new.sum() + p_new.sum())):  # finite iff every entry is
             self.reset()
             return "non-finite estimate: filter reset", innov
         self.x = self._clip(x_new)

@@ -7,6 +7,7 @@ Split out of :mod:`companion.core.rmpc` (which re-exports every public name here
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -92,10 +93,14 @@ class TargetMotion:
               else np.asarray(self.disturbance_v_m_s2, dtype=float))
         if dd.shape != (v.shape[0], 3):
             raise RmpcParameterError(f"TargetMotion.disturbance_v_m_s2: need (N,3), got {dd.shape}")
-        for name, a in (("v_a_m_s", v), ("vdot_a_m_s2", vd), ("psidot_a_rad_s", pd),
-                        ("disturbance_v_m_s2", dd)):
-            if not np.all(np.isfinite(a)):
-                raise RmpcParameterError(f"TargetMotion.{name}: not finite ({a.tolist()})")
+        # one finiteness test of everything (a sum is finite only if every term is, short of
+        # an overflow near 1e308); the per-array test names the culprit when it fails
+        if not math.isfinite(float(v.sum() + vd.sum() + pd.sum() + dd.sum())):
+            for name, a in (("v_a_m_s", v), ("vdot_a_m_s2", vd), ("psidot_a_rad_s", pd),
+                            ("disturbance_v_m_s2", dd)):
+                if not np.all(np.isfinite(a)):
+                    raise RmpcParameterError(f"TargetMotion.{name}: not finite ({a.tolist()})")
+            raise RmpcParameterError("TargetMotion: values too large (their sum overflows)")
         object.__setattr__(self, "v_a_m_s", _ro(v))
         object.__setattr__(self, "vdot_a_m_s2", _ro(vd))
         object.__setattr__(self, "psidot_a_rad_s", _ro(pd))
