@@ -225,8 +225,8 @@ def quat_from_rotation(r: ArrayLike) -> np.ndarray:
 
 def euler_zyx_from_quat(q_wxyz: ArrayLike) -> tuple[float, float, float]:
     """``(phi, theta, psi)`` (rad) of a quaternion ``[w, x, y, z]`` (body FRD rel. to NED)."""
-    if isinstance(q_wxyz, tuple) and len(q_wxyz) == 4:
-        # a telemetry sample's tuple (once per control step): the same formulas as the
+    if isinstance(q_wxyz, tuple | list) and len(q_wxyz) == 4:
+        # a telemetry sample's tuple or list (every step): the same formulas as the
         # matrix path below, on plain floats
         w, x, y, z = (float(v) for v in q_wxyz)
         nrm = math.sqrt(w * w + x * x + y * y + z * z)
