@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -181,6 +182,7 @@ class DisturbanceEstimator:
     _t_vel: float | None = field(init=False, default=None)  # the last velocity sample's time
     _t_acc: float | None = field(init=False, default=None)  # the last accelerometer update's
     _step: VelocityStep = field(init=False, repr=False)
+    _est_cache: tuple[Any, ...] | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
         h0 = float(self.hover_thrust0)
@@ -219,6 +221,20 @@ class DisturbanceEstimator:
         return 1.0 / float(self.x[6])
 
     def estimate(self) -> DisturbanceEstimate:
+        # the same estimate as the last call while nothing it reads changed (every change
+        # replaces x, p or innovation, or counts; _anchor's in-place writes touch only the
+        # velocity, which it does not read): the step asks twice (frozen: shared)
+        c = self._est_cache
+        key = (self.updates, self.rejected, self.accel_updates, self.reason)
+        if (c is not None and c[0] is self.x and c[1] is self.p and c[2] is self.innovation
+                and c[3] == key):
+            cached: DisturbanceEstimate = c[4]
+            return cached
+        est = self._estimate()
+        self._est_cache = (self.x, self.p, self.innovation, key, est)
+        return est
+
+    def _estimate(self) -> DisturbanceEstimate:
         # plain floats: numpy's per-call overhead on 3-vectors cost more than the arithmetic
         x = self.x.tolist()
         p_diag = self.p.diagonal().tolist()

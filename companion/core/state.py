@@ -76,8 +76,9 @@ def _frozen(values: list[float]) -> np.ndarray:
 
 def _xyz(x: ArrayLike, name: str) -> tuple[float, float, float]:
     """A finite 3-vector as floats (:func:`_vec`'s checks; tuples without numpy)."""
-    if isinstance(x, tuple) and len(x) == 3:
-        a, b, c = (float(v) for v in x)
+    if (isinstance(x, tuple) and len(x) == 3) or (isinstance(x, np.ndarray)
+                                                  and x.shape == (3,)):
+        a, b, c = (float(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x))
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
             raise MeasurementError(f"{name}: non-finite value")
         return a, b, c
