@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import orjson
 
 from companion.camera import CameraFrame, open_camera
 from companion.config import Config
@@ -79,10 +80,6 @@ class _Sent:
     sent_ns: int | None
     measured_delay_s: float | None
     t_start_ns: int
-
-
-def _finite_or_none(x: float) -> float | None:
-    return x if math.isfinite(x) else None
 
 
 def _cpu_s(controller: Any = None) -> float:
@@ -303,10 +300,14 @@ class CompanionApp:
 
         class _Proto(asyncio.DatagramProtocol):
             def datagram_received(self, data: bytes, addr: Any) -> None:
-                try:
-                    rec = json.loads(data)
-                except ValueError:
-                    return
+                try:  # strict JSON is logged as received (orjson: ~10x json's speed)
+                    rec = orjson.loads(data)
+                    rec = bytes(data) if isinstance(rec, dict) else rec
+                except orjson.JSONDecodeError:  # json's extensions (NaN) decoded as before
+                    try:
+                        rec = json.loads(data)
+                    except ValueError:
+                        return
                 records.at(clock.now_ns(),
                            lambda t: logger.log(TOPIC_TRUTH, t, rec, schema=sch.JSON))
 
@@ -474,7 +475,8 @@ class CompanionApp:
             "rx_count": self.rx_count, "offboard": self.offboard.phase.value,
             "fault_injected": self.pipeline.force_solver_failure, "sent": sent_ns is not None,
             "frame_late_s": frame_late_s,
-            "telemetry_age_s": _finite_or_none(self.store.telemetry_age_s(t_s)),
+            "telemetry_age_s": age if math.isfinite(age := self.store.telemetry_age_s(t_s))
+            else None,
             "latency_ms": None if sent_ns is None else (sent_ns - frame.t_rx_ns) * 1e-6,
             "actuation_delay": None if meter is None else {
                 "used_s": res.actuation_delay_s, "measured": sent.measured_delay_s is not None,

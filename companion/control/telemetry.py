@@ -199,8 +199,8 @@ class TelemetryStore:
         lat = int(f["lat"]) * 1e-7
         lon = int(f["lon"]) * 1e-7
         alt = float(f["alt"])
-        vel = tuple(float(v) for v in f["vel"])
-        acc = tuple(float(v) for v in f["acc"]) if caps & 0b100 else (0.0, 0.0, 0.0)
+        vel = tuple([float(v) for v in f["vel"]])  # a list first: cheaper than a generator
+        acc = tuple([float(v) for v in f["acc"]]) if caps & 0b100 else (0.0, 0.0, 0.0)
         q = [float(v) for v in f["attitude_q"]]
         rates = [float(v) for v in f["rates"]]
         if not _finite(lat, lon, alt, *vel, *acc):
