@@ -261,8 +261,8 @@ class DisturbanceEstimator:
         ``thrust_norm is None`` (nothing was commanded: not flying under our control) only
         re-anchors the velocity; the estimate is not touched.
         """
-        v = np.asarray(v_ned_m_s, dtype=float).reshape(-1)
-        if v.shape != (3,) or not _all_finite(v.tolist()) or not math.isfinite(float(t_s)):
+        v = _three(v_ned_m_s)
+        if v is None or not _all_finite(list(v)) or not math.isfinite(float(t_s)):
             return self._reject("non-finite velocity or time")
         if self.t_s is not None and t_s <= self.t_s:
             return self._reject("velocity sample not newer than the last one")
@@ -328,7 +328,8 @@ class DisturbanceEstimator:
             if b is None:
                 return self._reject(f"non-finite or implausible thrust {thrust_norm!r} or "
                                     f"body z {np.asarray(body_z_ned).tolist()}")
-            x_pred, p_pred = self._predict(t_s, t_s - self.t_s, float(thrust_norm), b)
+            x_pred, p_pred = self._predict(t_s, t_s - self.t_s, float(thrust_norm),
+                                           np.array(b))
         h = np.zeros((2, self.n))
         h[:, 3:6] = rot[:, 0:2].T  # (R' d)_xy
         h[:, 7:9] = np.eye(2)
@@ -347,18 +348,19 @@ class DisturbanceEstimator:
 
     # ------------------------------------------------------------------------------------------
 
-    def _velocity_step(self, t_s: float, dt: float, thrust: float, b: np.ndarray,
-                       v: np.ndarray) -> tuple[str | None, np.ndarray]:
+    def _velocity_step(self, t_s: float, dt: float, thrust: float,
+                       b: tuple[float, float, float], v: tuple[float, float, float]
+                       ) -> tuple[str | None, np.ndarray]:
         """:meth:`_predict` to ``t_s``, then :meth:`_correct` with ``v`` (``H = [I 0]``,
         ``R = r I``, without the products by H), in one call of
         :mod:`companion.core.disturbance_step`; returns the verdict and the innovation."""
         g = self.g_m_s2
         c = -dt * g * thrust
-        bx, by, bz = b.tolist()
+        bx, by, bz = b
         r = self.params.velocity_noise_m_s**2
         x_new, p_new, innov, nis, det = self._step(
             self.x, self.p, dt, (c * bx, c * by, c * bz), g * dt, self._q_diag(t_s, dt),
-            tuple(v.tolist()), r)
+            v, r)
         if det == 0.0:
             self.reset()
             return "singular innovation covariance: filter reset", innov
@@ -427,7 +429,7 @@ class DisturbanceEstimator:
             q += [pr.accel_bias_noise_m_s2_sqrt_s**2 * dt] * _NB
         return q
 
-    def _anchor(self, t_s: float, v: np.ndarray) -> None:
+    def _anchor(self, t_s: float, v: ArrayLike) -> None:
         self.x[:3] = v
         self.p[:3, :] = 0.0
         self.p[:, :3] = 0.0
@@ -460,12 +462,19 @@ def _all_finite(values: list[float]) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
-def _checked_inputs(thrust_norm: float, body_z_ned: ArrayLike) -> np.ndarray | None:
-    """The body z axis as an array, or None when it or the thrust is non-finite/implausible."""
-    b = np.asarray(body_z_ned, dtype=float).reshape(-1)
-    if b.shape != (3,):
+def _three(x: ArrayLike) -> tuple[float, float, float] | None:
+    """Three floats (a telemetry 3-tuple without an array); ``None`` for another shape."""
+    a = x if isinstance(x, tuple) else np.asarray(x, dtype=float).reshape(-1).tolist()
+    return (float(a[0]), float(a[1]), float(a[2])) if len(a) == 3 else None
+
+
+def _checked_inputs(thrust_norm: float,
+                    body_z_ned: ArrayLike) -> tuple[float, float, float] | None:
+    """The body z axis as floats, or None when it or the thrust is non-finite/implausible."""
+    b = _three(body_z_ned)
+    if b is None:
         return None
-    bx, by, bz = b.tolist()
+    bx, by, bz = b
     if (not _all_finite([bx, by, bz]) or not math.isfinite(thrust_norm)
             or not 0.0 <= thrust_norm <= 1.0
             or abs(math.sqrt(bx * bx + by * by + bz * bz) - 1.0) > 1e-3):
