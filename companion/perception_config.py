@@ -24,7 +24,7 @@ class PerceptionConfig:
 
     rectangle_threshold: int = 0
     rectangle_level_fraction: float = 0.7
-    rectangle_edges: str = "lean"
+    rectangle_edges: str = "lean2"
 
     def __post_init__(self) -> None:
         if not 0 <= self.rectangle_threshold <= 254:
@@ -41,5 +41,5 @@ class PerceptionConfig:
                 f" {', '.join(map(repr, RECTANGLE_EDGES))}")
 
 
-RECTANGLE_EDGES = ("lean", "profiles")
+RECTANGLE_EDGES = ("lean2", "lean", "profiles")
 """The rectangle detector's edge methods (``companion.perception.rectangle.EDGE_METHODS``)."""

@@ -43,6 +43,7 @@ from companion.perception._types import (
 )
 from companion.perception.edges import EdgeFit, EdgeSettings, refine_quad
 from companion.perception.edges_lean import LeanSettings, refine_quad_lean
+from companion.perception.edges_lean2 import refine_quad_lean2
 from companion.perception.plausibility import (
     QuadLimits,
     check_quad,
@@ -97,7 +98,7 @@ class RectangleSettings:
     max_candidates: int = 5
     min_fill: float = 0.85
     max_corner_shift_px: float = 4.0
-    edges: str = "lean"
+    edges: str = "lean2"
     lean_samples_per_edge: int = 48
 
     def __post_init__(self) -> None:
@@ -125,7 +126,8 @@ class RectangleSettings:
 #: "profiles" (:mod:`companion.perception.edges`, the detector of every log recorded before
 #: 2026-11-28) and "lean" (:mod:`companion.perception.edges_lean`, with a histogram of fewer
 #: samples; about a third of the CPU, the same accuracy: docs/reference/perception.md).
-EDGE_METHODS = ("profiles", "lean")
+EDGE_METHODS = ("profiles", "lean", "lean2")
+_TRACKING_METHODS = ("lean", "lean2")  # the methods that refine from the previous corners
 
 
 class RectangleDetector(QuadDetectorBase):
@@ -178,7 +180,7 @@ class RectangleDetector(QuadDetectorBase):
             # tracking, the searched image is the region around the target (a ninth of it or
             # more): a quarter of the samples still hold its level; a whole frame keeps them
             # all (a small far target covers a few hundred of its pixels)
-            tracking = hint is not None and s.edges == "lean"
+            tracking = hint is not None and s.edges in _TRACKING_METHODS
             levels = grey_levels(gray, s, _HIST_SAMPLES_TRACK if tracking else _HIST_SAMPLES)
             if isinstance(levels, str):
                 return DetectionReport(
@@ -196,7 +198,7 @@ class RectangleDetector(QuadDetectorBase):
             edge_settings = cached
         else:
             threshold = s.threshold
-        if hint is not None and s.edges == "lean":
+        if hint is not None and s.edges in _TRACKING_METHODS:
             tracked = self._track(gray, hint, w, h, edge_settings)
             if tracked is not None:
                 return DetectionReport(tracked, (), "", 1)
@@ -267,7 +269,7 @@ class RectangleDetector(QuadDetectorBase):
         if (signed_area(start) <= 0.0
                 or not all(m < x < w - 1 - m and m < y < h - 1 - m for x, y in pts)):
             return None
-        refined = refine_quad_lean(gray, start, edge_settings)
+        refined = self._refine(gray, start, edge_settings)
         if refined is None:
             return None
         corners, fits = refined
@@ -316,9 +318,7 @@ class RectangleDetector(QuadDetectorBase):
         corners = ordered
         fits: list[EdgeFit] = []
         for _ in range(s.refine_passes):
-            refined = (refine_quad_lean(gray, corners, edge_settings)
-                       if isinstance(edge_settings, LeanSettings) else
-                       refine_quad(gray, corners, edge_settings))
+            refined = self._refine(gray, corners, edge_settings)
             if refined is None:
                 return Rejection("edges not measurable (low contrast or too short)", ordered)
             corners, fits = refined
@@ -328,6 +328,16 @@ class RectangleDetector(QuadDetectorBase):
         if shift > limit:
             return Rejection(f"refinement moved a corner by {shift:.1f} px", ordered)
         return self._detection(corners, fits, w, h)
+
+    def _refine(self, gray: npt.NDArray[np.uint8], corners: FloatArray,
+                edge_settings: EdgeSettings | LeanSettings
+                ) -> tuple[FloatArray, list[EdgeFit]] | None:
+        """The settings' edge method on coarse ``corners``."""
+        if not isinstance(edge_settings, LeanSettings):
+            return refine_quad(gray, corners, edge_settings)
+        if self.settings.edges == "lean2":
+            return refine_quad_lean2(gray, corners, edge_settings)
+        return refine_quad_lean(gray, corners, edge_settings)
 
     def _detection(self, corners: FloatArray, fits: list[EdgeFit], w: int, h: int
                    ) -> Detection | Rejection:

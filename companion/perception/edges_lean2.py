@@ -1,0 +1,200 @@
+"""Sub-pixel corners of a bright convex quadrilateral, the rectangle detector's
+``edges = "lean2"`` (the default since 2026-11-28): the measure of ``"lean"``
+(:mod:`companion.perception.edges_lean`: per profile the crossing of the midpoint between the
+inside plateau and the darkest sample just outside, a total-least-squares line per edge with
+one outlier pass, adjacent lines intersected; three passes, the later ones centred on the
+previous lines and stretched by the edge's blur), laid out for numpy's cost instead of the
+arithmetic's:
+
+- the profiles are the *columns* of a (4 edges, k samples, N profiles) array, so every
+  per-profile reduction (plateau mean, outside minimum, crossing search) runs along a middle
+  axis, which numpy vectorises across the N profiles; along the last axis (``"lean"``'s rows
+  of 33 samples) it loops per row and cost 10-16 us a reduction;
+- the crossing's two samples are one gather on the flattened array, its presence the
+  crossing test on them (no second reduction);
+- a pass whose lines moved less than ``_CONVERGED_PX`` (at both ends of every edge) from
+  the lines it was centred on ends the loop: the next pass would read the same pixels (the
+  warp places samples on a 1/32 px grid) and measure the same crossings. While tracking
+  this skips the third pass on most frames; from a start a pixel or more off (a blob's
+  coarse corners, fast motion) all three run.
+
+The lines of the last pass get the outlier pass (``"lean"``'s rule). The corners differ from
+``"lean"``'s by hundredths of a pixel (the samples are the same, the passes' ends and the
+float widths not), hence a method of its own: a log flown with ``"lean"`` replays with it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from companion.perception._types import FloatArray
+from companion.perception.edges import EdgeFit
+from companion.perception.edges_lean import (
+    LeanSettings,
+    _edge_fit,
+    _fit,
+    _Frame,
+    _intersections,
+    _Line,
+    _medians,
+    _on_line,
+)
+
+_F32 = npt.NDArray[np.float32]
+_CONVERGED_PX = 0.02  # a pass moving no line end farther ends the passes (see above)
+
+
+@dataclass(frozen=True)
+class _Grid2:
+    """Layout of a batch of profiles (depends only on the settings): ``k`` samples at
+    offsets ``ks`` (px at scale 1), the plateau windows' rows, a per-row priority that
+    prefers the crossing nearest the centre, and each profile's flat index of its first
+    sample (``base``)."""
+
+    k: int
+    k0: float
+    step: float
+    in_rows: slice
+    out_rows: slice
+    prio: _F32  # (1, k - 1, 1)
+    in_norm: np.float32
+    inv_step: np.float32
+    base: npt.NDArray[np.intp]  # (4, N): edge * k * N + profile
+    base1: npt.NDArray[np.intp]  # the same in (4, k - 1, N) arrays
+    j: FloatArray  # profile index along an edge, 0..N-1
+    near: npt.NDArray[np.intp]  # (3, 1, 1) row offsets read for the slope
+
+
+_GRIDS: dict[tuple[float, float, int], _Grid2] = {}
+
+
+def _grid(s: LeanSettings) -> _Grid2:
+    key = (s.profile_half_px, s.profile_step_px, s.samples_per_edge)
+    g = _GRIDS.get(key)
+    if g is None:
+        h, r, n = s.profile_step_px, s.profile_half_px, s.samples_per_edge
+        m = round(r / h)
+        ks = np.arange(-m, m + 1) * h
+        k = len(ks)
+        # "lean"'s windows: inside [-2.4, -1.4], the outside's darkest sample in [0.5, 2.4]
+        in_rows = slice(int(ks.searchsorted(-2.4, "left")), int(ks.searchsorted(-1.4, "right")))
+        out_rows = slice(int(ks.searchsorted(0.5, "left")), int(ks.searchsorted(2.4, "right")))
+        mid = 0.5 * (ks[:-1] + ks[1:])
+        prio = (2.0 * r - np.abs(mid)).astype(np.float32).reshape(1, k - 1, 1)
+        edge = np.arange(4)[:, None]
+        cols = np.arange(n)[None, :]
+        g = _Grid2(k, float(ks[0]), h, in_rows, out_rows, prio,
+                   np.float32(1.0 / (in_rows.stop - in_rows.start)), np.float32(1.0 / h),
+                   edge * k * n + cols, edge * (k - 1) * n + cols,
+                   np.arange(n, dtype=np.float64), np.array([-2, 0, 2]).reshape(3, 1, 1) * n)
+        _GRIDS[key] = g
+    return g
+
+
+def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSettings
+                      ) -> tuple[FloatArray, list[EdgeFit]] | None:
+    """Sub-pixel corners (4, 2) of the bright convex quadrilateral whose coarse corners
+    (clockwise on screen, within ~2 px) are ``corners``, and the four edges' fits; ``None``
+    when an edge is too short or has too few measured profiles (under ``max(4, 30 %)``).
+    The same contract and edge frames as :func:`~companion.perception.edges_lean.
+    refine_quad_lean`."""
+    g = _grid(s)
+    c = np.asarray(corners, dtype=np.float64).tolist()
+    margin = 1.5 * s.profile_half_px + 1.0
+    frames = []
+    for i in range(4):
+        (ax, ay), (bx, by) = c[i], c[(i + 1) % 4]
+        dx, dy = bx - ax, by - ay
+        length = math.sqrt(dx * dx + dy * dy)
+        if length < 2.0 * margin + 4.0:
+            return None
+        tx, ty = dx / length, dy / length
+        frames.append((ax + margin * tx, ay + margin * ty, tx, ty,
+                       (length - 2.0 * margin) / (s.samples_per_edge - 1)))
+    u = g.j[None, :] * np.array([f[4] for f in frames])[:, None]  # (4, N) along each edge
+    e, ok, width = _pass(gray, frames, _ONES, g, s, True)
+    lines = _fit(u, e, ok, False)
+    if lines is None:
+        return None
+    # the edges' blur sets how far apart the next passes read the plateaus
+    scale = [min(max((0.5 + 0.9 * max(w, 1.0)) / 1.4, 1.0), 3.0) for w in width]
+    for _ in range(1, s.passes):
+        frames = [_on_line(f, ln) for f, ln in zip(frames, lines, strict=True)]
+        e, ok, _ = _pass(gray, frames, scale, g, s, False)
+        # every later pass's lines get the outlier pass: the last one's are the result, and
+        # the next pass is centred on the lines its outliers did not pull
+        fitted = _fit(u, e, ok, True)
+        if fitted is None:
+            return None
+        lines = fitted
+        if _converged(lines, u):  # the next pass would read the same samples
+            break
+    fits = [_edge_fit(f, ln) for f, ln in zip(frames, lines, strict=True)]
+    out = _intersections(fits)
+    return None if out is None else (out, fits)
+
+
+def _converged(new_lines: list[_Line], u: FloatArray) -> bool:
+    """Whether every edge's new line lies within ``_CONVERGED_PX`` of the line its pass was
+    centred on (the ``v = 0`` axis of the pass's frames) at the edge's first and last profile:
+    the next pass, centred on the new line, would then read where this one did."""
+    ends = u[:, -1].tolist()
+    for (cu, cv, cos, sin, *_), end in zip(new_lines, ends, strict=True):
+        if abs(cos) < 0.5:
+            return False
+        slope = sin / cos
+        if abs(cv - cu * slope) > _CONVERGED_PX or abs(cv + (end - cu) * slope) > _CONVERGED_PX:
+            return False
+    return True
+
+
+_ONES = [1.0, 1.0, 1.0, 1.0]
+
+
+def _pass(gray: npt.NDArray[np.uint8], frames: list[_Frame], scale: list[float], g: _Grid2,
+          s: LeanSettings, want_width: bool
+          ) -> tuple[FloatArray, npt.NDArray[np.bool_], list[float]]:
+    """One set of profiles, edge ``i`` sampled every ``step * scale[i]`` px (one
+    ``cv2.warpAffine`` per edge into a (k, N) slab: profile ``j`` is column ``j``). Per
+    profile: the crossing's offset ``e`` (px along the normal) and whether it was measured;
+    per edge (``want_width``): the median transition width (px; 1.0 without any)."""
+    n, k, h, k0 = s.samples_per_edge, g.k, g.step, g.k0
+    raw = np.empty((4, k, n), dtype=np.uint8)
+    for i, ((x0, y0, tx, ty, sp), sc) in enumerate(zip(frames, scale, strict=True)):
+        nx, ny = ty * sc, -tx * sc  # outward normal, scaled
+        m = np.array(((sp * tx, h * nx, x0 + k0 * nx), (sp * ty, h * ny, y0 + k0 * ny)))
+        cv2.warpAffine(gray, m, (n, k), dst=raw[i],
+                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                       borderMode=cv2.BORDER_REPLICATE)
+    prof = raw.astype(np.float32)
+    inside = np.add.reduce(prof[:, g.in_rows], axis=1) * g.in_norm  # (4, N)
+    outside = np.minimum.reduce(prof[:, g.out_rows], axis=1)
+    level = 0.5 * (inside + outside)
+    # a falling crossing between rows r and r + 1; the one nearest the centre
+    above = prof >= level[:, None, :]
+    idx = ((above[:, :-1] > above[:, 1:]) * g.prio).argmax(axis=1)  # (4, N)
+    at = idx * n + g.base
+    flat = prof.reshape(-1)
+    v0, v1 = flat[at], flat[at + n]
+    frac = (v0 - level) / np.maximum(v0 - v1, np.float32(1e-6))
+    contrast = inside - outside
+    # a crossing at idx (argmax's 0 without any is none: the test on its two samples)
+    ok = (v0 >= level) & (v1 < level) & (contrast >= s.min_contrast)
+    sc_arr = np.array(scale)[:, None]
+    e: FloatArray = (idx + frac) * (h * sc_arr) + k0 * sc_arr
+    if not want_width:
+        return e, ok, []
+    # transition width (px): contrast over the steepest slope at the crossing's rows
+    diffs = (prof[:, :-1] - prof[:, 1:]).reshape(-1)
+    near = np.clip(idx * n + g.near, 0, (k - 2) * n) + g.base1  # (3, 4, N)
+    slope = np.maximum.reduce(diffs[near], axis=0) * g.inv_step
+    width = np.where(ok, contrast / np.maximum(slope, 1e-6), np.inf)
+    return e, ok, _medians(width, ok.sum(axis=1)).tolist()
+
+
+__all__ = ["refine_quad_lean2"]
