@@ -17,10 +17,11 @@ class PerceptionConfig:
     frame between the ground's median and the brightest region's level (follows exposure and
     light changes); 1..254 = that fixed grey level. ``rectangle_level_fraction``: where the
     per-frame threshold sits between the ground's median (0) and the top's level (1).
-    ``rectangle_edges``: how the rectangle's sub-pixel edges are measured: "lean" (the default
-    since 2026-11-28: about half the CPU, tracking from the previous corners) or "profiles"
-    (the detector before; a log recorded without this key replays with it, see
-    ``companion.replay``)."""
+    ``rectangle_edges``: how the rectangle's sub-pixel edges are measured: "lean2" (the
+    default since 2026-11-28: "lean"'s measure with fewer numpy calls and about one pass a
+    tracked frame), "lean" (tracking from the previous corners, three passes) or "profiles"
+    (the detector before both; a log recorded without this key replays with it, see
+    ``companion.replay``; a log records the method it flew)."""
 
     rectangle_threshold: int = 0
     rectangle_level_fraction: float = 0.7

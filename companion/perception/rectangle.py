@@ -8,11 +8,12 @@ Pipeline: per-frame grey threshold (adaptive: between the frame's ground level a
 brightest region, see :func:`grey_levels`; or a fixed level) -> external contours -> convex
 hull -> polygon approximation to 4 vertices (coarse corners, about 1 px) -> plausibility of
 the coarse quad -> sub-pixel refinement by fitting lines to the four edges
-(``edges = "lean"``: :mod:`companion.perception.edges_lean`, the default; ``"profiles"``:
-:mod:`companion.perception.edges`, the detector of the logs recorded before 2026-11-28) ->
-plausibility of the refined quad. With ``"lean"`` and the previous frame's corners (``hint``)
-the corners are refined from those and the blob search is skipped (``_track``; the search
-runs when that fails). Measured on rendered
+(``edges = "lean2"``: :mod:`companion.perception.edges_lean2`, the default; ``"lean"``:
+:mod:`companion.perception.edges_lean`; ``"profiles"``: :mod:`companion.perception.edges`,
+the detector of the logs recorded before 2026-11-28) -> plausibility of the refined quad.
+With ``"lean"``/``"lean2"`` and the previous frame's corners (``hint``) the corners are
+refined from those and the blob search is skipped (``_track``; the search runs when that
+fails); ``"lean2"`` also starts from the previous frame's blur and motion. Measured on rendered
 scenes (tests/companion/test_perception.py, bench/perception.py): worst corner error 0.28 px
 over 458 random poses (1.5-5 m, tilt <= 0.3 rad), median 0.07 px; about 1.4 ms per
 1000 x 1000 frame (2026-11-23, fixed threshold). The adaptive threshold holds the target
@@ -124,8 +125,10 @@ class RectangleSettings:
 
 #: The sub-pixel edge methods (``RectangleSettings.edges``, ``[perception] rectangle_edges``):
 #: "profiles" (:mod:`companion.perception.edges`, the detector of every log recorded before
-#: 2026-11-28) and "lean" (:mod:`companion.perception.edges_lean`, with a histogram of fewer
-#: samples; about a third of the CPU, the same accuracy: docs/reference/perception.md).
+#: 2026-11-28), "lean" (:mod:`companion.perception.edges_lean`, with a histogram of fewer
+#: samples while tracking; about a third less CPU, the same accuracy) and "lean2"
+#: (:mod:`companion.perception.edges_lean2`: fewer numpy calls and, tracking, about one pass
+#: a frame instead of three; docs/reference/perception.md).
 EDGE_METHODS = ("profiles", "lean", "lean2")
 _TRACKING_METHODS = ("lean", "lean2")  # the methods that refine from the previous corners
 
@@ -167,6 +170,15 @@ class RectangleDetector(QuadDetectorBase):
         pts.setflags(write=False)
         self._target_points_m = pts
         self._edge_by_contrast: dict[float, EdgeSettings | LeanSettings] = {}
+        # "lean2": the blur scales of the last detection this detector returned (its next
+        # tracked refinement starts from them) and of the last refinement
+        self._blur_scale: list[float] | None = None
+        self._refined_scale: list[float] | None = None
+        # "lean2": how the corners moved in the last tracked detection returned (a tracked
+        # start is the hint moved as much again: a constant-velocity guess) and in the last
+        # tracking attempt
+        self._motion: FloatArray | None = None
+        self._tracked_motion: FloatArray | None = None
 
 
     def analyse(
@@ -201,25 +213,27 @@ class RectangleDetector(QuadDetectorBase):
         if hint is not None and s.edges in _TRACKING_METHODS:
             tracked = self._track(gray, hint, w, h, edge_settings)
             if tracked is not None:
+                self._blur_scale, self._motion = self._refined_scale, self._tracked_motion
                 return DetectionReport(tracked, (), "", 1)
         blobs = self._blobs(gray, threshold)
         if not blobs:
             return DetectionReport(None, (), "no bright region (target not in view)", 0)
         blobs.sort(key=lambda b: -b[0])
         rejections: list[Rejection] = []
-        accepted: list[Detection] = []
+        accepted: list[tuple[Detection, list[float] | None]] = []
         for area, contour in blobs[: s.max_candidates]:
             result = self._candidate(gray, contour, area, w, h, hint, edge_settings)
             if isinstance(result, Rejection):
                 rejections.append(result)
             else:
-                accepted.append(result)
+                accepted.append((result, self._refined_scale))
         if len(blobs) > s.max_candidates:
             rejections.append(Rejection(f"{len(blobs) - s.max_candidates} smaller blobs ignored"))
         if not accepted:
             reason = "; ".join(r.reason for r in rejections)
             return DetectionReport(None, tuple(rejections), reason, len(blobs))
-        best = max(accepted, key=lambda d: (d.quality > 0.5, d.area_px))
+        best, self._blur_scale = max(accepted, key=lambda d: (d[0].quality > 0.5, d[0].area_px))
+        self._motion = None
         return DetectionReport(best, tuple(rejections), "", len(blobs))
 
     # ------------------------------------------------------------------------------------------
@@ -250,8 +264,10 @@ class RectangleDetector(QuadDetectorBase):
 
     def _track(self, gray: npt.NDArray[np.uint8], hint: npt.ArrayLike, w: int, h: int,
                edge_settings: EdgeSettings | LeanSettings) -> Detection | None:
-        """``edges = "lean"`` while tracking: the previous frame's corners (``hint``) are the
-        coarse corners, so the bright-blob search (window, blur, contours, polygon) is skipped.
+        """``edges = "lean"``/``"lean2"`` while tracking: the previous frame's corners
+        (``hint``) are the coarse corners, so the bright-blob search (window, blur, contours,
+        polygon) is skipped ("lean2": moved as they moved in the last tracked detection, a
+        constant-velocity guess, and refined from that detection's blur scales).
         The target moves about a pixel a frame (p99 1.7 px on a paper flight); a start off by
         more than ``_TRACK_SHIFT_PX`` measures worse than the blob's coarse corners under
         heavy noise or blur (tests/companion/test_perception_edges.py). ``None`` (search the
@@ -259,9 +275,11 @@ class RectangleDetector(QuadDetectorBase):
         not measured, a corner
         moved more than ``_TRACK_SHIFT_PX``, or the result fails a check or has quality
         <= 0.5 (the blob search's preference)."""
-        start = np.asarray(hint, dtype=np.float64)
-        if start.shape != (4, 2) or not isinstance(edge_settings, LeanSettings):
+        self._tracked_motion = None
+        previous = np.asarray(hint, dtype=np.float64)
+        if previous.shape != (4, 2) or not isinstance(edge_settings, LeanSettings):
             return None
+        start = previous if self._motion is None else previous + self._motion
         # the hint passed every check in its own frame: here only its place in this image
         # (plain floats on 4 corners: numpy's per-call cost dominates)
         pts = start.tolist()
@@ -269,7 +287,7 @@ class RectangleDetector(QuadDetectorBase):
         if (signed_area(start) <= 0.0
                 or not all(m < x < w - 1 - m and m < y < h - 1 - m for x, y in pts)):
             return None
-        refined = self._refine(gray, start, edge_settings)
+        refined = self._refine(gray, start, edge_settings, self._blur_scale)
         if refined is None:
             return None
         corners, fits = refined
@@ -283,6 +301,8 @@ class RectangleDetector(QuadDetectorBase):
         e13 = math.hypot(x2 - x1, y2 - y1) + math.hypot(x0 - x3, y0 - y3)
         if (e02 <= e13) != (self.width_m <= self.length_m):
             corners = order_target_corners(corners, self.width_m <= self.length_m, start)
+        elif self.settings.edges == "lean2":
+            self._tracked_motion = corners - previous
         result = self._detection(corners, fits, w, h)
         if isinstance(result, Rejection) or result.quality <= 0.5:
             return None
@@ -330,14 +350,20 @@ class RectangleDetector(QuadDetectorBase):
         return self._detection(corners, fits, w, h)
 
     def _refine(self, gray: npt.NDArray[np.uint8], corners: FloatArray,
-                edge_settings: EdgeSettings | LeanSettings
+                edge_settings: EdgeSettings | LeanSettings, scale: list[float] | None = None
                 ) -> tuple[FloatArray, list[EdgeFit]] | None:
-        """The settings' edge method on coarse ``corners``."""
+        """The settings' edge method on coarse ``corners`` ("lean2": from the blur ``scale``
+        when given, and the measured one kept in ``_refined_scale``)."""
+        self._refined_scale = None
         if not isinstance(edge_settings, LeanSettings):
             return refine_quad(gray, corners, edge_settings)
-        if self.settings.edges == "lean2":
-            return refine_quad_lean2(gray, corners, edge_settings)
-        return refine_quad_lean(gray, corners, edge_settings)
+        if self.settings.edges != "lean2":
+            return refine_quad_lean(gray, corners, edge_settings)
+        refined = refine_quad_lean2(gray, corners, edge_settings, scale)
+        if refined is None:
+            return None
+        self._refined_scale = refined[2]
+        return refined[0], refined[1]
 
     def _detection(self, corners: FloatArray, fits: list[EdgeFit], w: int, h: int
                    ) -> Detection | Rejection:
