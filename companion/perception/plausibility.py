@@ -7,8 +7,10 @@ the polygon runs *clockwise on screen* (top-left, top-right, bottom-right, botto
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -190,6 +192,29 @@ def touches_border(points: npt.ArrayLike, width: int, height: int, margin_px: fl
         or np.any(p[:, 0] >= width - 1 - lo)
         or np.any(p[:, 1] >= height - 1 - lo)
     )
+
+
+def box_touches_border(box: Sequence[int], width: int, height: int,
+                        margin_px: float) -> bool:
+    """:func:`touches_border` of a contour from its bounding
+    box ``(x, y, w, h)`` (``cv2.boundingRect``: integer points, so its extremes are the
+    points' own minima and maxima)."""
+    x, y, bw, bh = box
+    lo = margin_px
+    return (x <= lo or y <= lo or x + bw - 1 >= width - 1 - lo
+            or y + bh - 1 >= height - 1 - lo)
+
+
+def approx_quad(contour: npt.NDArray[np.int32]) -> FloatArray | None:
+    """Four vertices approximating a blob's convex hull, or ``None``."""
+    hull = cv2.convexHull(contour)
+    peri = cv2.arcLength(hull, True)
+    # the smallest tolerance that yields 4 vertices keeps them closest to the true corners
+    for frac in (0.005, 0.01, 0.015, 0.02, 0.03, 0.04, 0.05, 0.07):
+        poly = cv2.approxPolyDP(hull, frac * peri, True)
+        if len(poly) == 4:
+            return poly.reshape(4, 2).astype(np.float64)
+    return None
 
 
 def check_quad(corners: npt.ArrayLike, width: int, height: int, limits: QuadLimits) -> str | None:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -47,6 +46,8 @@ from companion.perception.edges_lean import LeanSettings, refine_quad_lean
 from companion.perception.edges_lean2 import refine_quad_lean2
 from companion.perception.plausibility import (
     QuadLimits,
+    approx_quad,
+    box_touches_border,
     check_quad,
     order_target_corners,
     signed_area,
@@ -179,6 +180,9 @@ class RectangleDetector(QuadDetectorBase):
         # tracking attempt
         self._motion: FloatArray | None = None
         self._tracked_motion: FloatArray | None = None
+        # the last adaptive grey levels computed and for how many frames they were reused
+        self._held_levels: tuple[int, float] | None = None
+        self._held_age = 0
 
 
     def analyse(
@@ -187,34 +191,27 @@ class RectangleDetector(QuadDetectorBase):
         gray = to_gray(image)
         h, w = gray.shape
         s = self.settings
-        edge_settings = self._edge_settings
-        if s.threshold is None:
-            # tracking, the searched image is the region around the target (a ninth of it or
-            # more): a quarter of the samples still hold its level; a whole frame keeps them
-            # all (a small far target covers a few hundred of its pixels)
-            tracking = hint is not None and s.edges in _TRACKING_METHODS
-            levels = grey_levels(gray, s, _HIST_SAMPLES_TRACK if tracking else _HIST_SAMPLES)
-            if isinstance(levels, str):
-                return DetectionReport(
-                    None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
-            threshold, contrast = levels
-            # one settings object per level contrast (an integer number of grey levels: a few
-            # hundred at most), not a dataclasses.replace with its validation every frame
-            cached = self._edge_by_contrast.get(contrast)
-            if cached is None:
-                cached = dataclasses.replace(
-                    edge_settings,
-                    min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
-                                     0.5 * s.min_level_contrast))
-                self._edge_by_contrast[contrast] = cached
-            edge_settings = cached
-        else:
-            threshold = s.threshold
-        if hint is not None and s.edges in _TRACKING_METHODS:
+        tracking = hint is not None and s.edges in _TRACKING_METHODS
+        # "lean2" tracking reuses the grey levels of up to _HOLD_LEVELS_FRAMES frames before
+        # (the histogram was a fifth of a tracked frame's CPU); a blob search has its own
+        hold = (tracking and s.edges == "lean2" and self._held_levels is not None
+                and self._held_age < _HOLD_LEVELS_FRAMES)
+        levels = self._levels(gray, tracking, hold)
+        if isinstance(levels, str):
+            return DetectionReport(
+                None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
+        threshold, edge_settings = levels
+        if hint is not None and tracking:
             tracked = self._track(gray, hint, w, h, edge_settings)
             if tracked is not None:
                 self._blur_scale, self._motion = self._refined_scale, self._tracked_motion
                 return DetectionReport(tracked, (), "", 1)
+            if hold:  # the blob search with this frame's own levels
+                levels = self._levels(gray, tracking, False)
+                if isinstance(levels, str):
+                    return DetectionReport(None, (), "no bright region (nothing stands out of"
+                                           f" the ground: {levels})", 0)
+                threshold, edge_settings = levels
         blobs = self._blobs(gray, threshold)
         if not blobs:
             return DetectionReport(None, (), "no bright region (target not in view)", 0)
@@ -237,6 +234,38 @@ class RectangleDetector(QuadDetectorBase):
         return DetectionReport(best, tuple(rejections), "", len(blobs))
 
     # ------------------------------------------------------------------------------------------
+
+    def _levels(self, gray: npt.NDArray[np.uint8], tracking: bool, hold: bool
+                ) -> tuple[int, EdgeSettings | LeanSettings] | str:
+        """The grey threshold and the edge settings of this frame (the fixed threshold, or the
+        adaptive levels: this frame's, or with ``hold`` the last ones computed), or why the
+        frame has no bright region (a message)."""
+        s = self.settings
+        if s.threshold is not None:
+            return s.threshold, self._edge_settings
+        if hold and self._held_levels is not None:
+            self._held_age += 1
+            threshold, contrast = self._held_levels
+        else:
+            # tracking, the searched image is the region around the target (a ninth of it or
+            # more): a quarter of the samples still hold its level; a whole frame keeps them
+            # all (a small far target covers a few hundred of its pixels)
+            levels = grey_levels(gray, s, _HIST_SAMPLES_TRACK if tracking else _HIST_SAMPLES)
+            if isinstance(levels, str):
+                self._held_levels = None
+                return levels
+            self._held_levels, self._held_age = levels, 0
+            threshold, contrast = levels
+        # one settings object per level contrast (an integer number of grey levels: a few
+        # hundred at most), not a dataclasses.replace with its validation every frame
+        cached = self._edge_by_contrast.get(contrast)
+        if cached is None:
+            cached = dataclasses.replace(
+                self._edge_settings,
+                min_contrast=max(s.min_contrast * contrast / _NOMINAL_CONTRAST,
+                                 0.5 * s.min_level_contrast))
+            self._edge_by_contrast[contrast] = cached
+        return threshold, cached
 
     def _blobs(self, gray: npt.NDArray[np.uint8], threshold: int
                ) -> list[tuple[float, npt.NDArray[np.int32]]]:
@@ -322,9 +351,9 @@ class RectangleDetector(QuadDetectorBase):
         lim = self.limits
         if area < lim.min_area_px:
             return Rejection(f"too small: blob area {area:.0f} px^2 < {lim.min_area_px:.0f}")
-        if _box_touches_border(cv2.boundingRect(contour), w, h, lim.border_margin_px):
+        if box_touches_border(cv2.boundingRect(contour), w, h, lim.border_margin_px):
             return Rejection("touches image border: partially visible")
-        quad = _approx_quad(contour)
+        quad = approx_quad(contour)
         if quad is None:
             return Rejection("not a quadrilateral")
         quad_area = abs(signed_area(quad))
@@ -381,6 +410,7 @@ class RectangleDetector(QuadDetectorBase):
         return Detection(corners, quality, abs(signed_area(corners)), None, flags)
 
 
+_HOLD_LEVELS_FRAMES = 7  # "lean2" tracking: grey levels reused at most this many frames
 _TRACK_SHIFT_PX = 1.5  # a tracked corner moving farther: search the blobs instead
 _NOMINAL_CONTRAST = 140.0  # the top above the ground's median at the nominal exposure
 _HIST_SAMPLES = 65_536  # the histogram samples every n-th row and column beyond this many px
@@ -454,29 +484,6 @@ def _bright_window(gray: npt.NDArray[np.uint8], threshold: int, radius: int
     pad = 2 * radius
     rows, cols = gray.shape[:2]
     return max(x - pad, 0), max(y - pad, 0), min(x + w + pad, cols), min(y + h + pad, rows)
-
-
-def _box_touches_border(box: Sequence[int], width: int, height: int,
-                        margin_px: float) -> bool:
-    """:func:`~companion.perception.plausibility.touches_border` of a contour from its bounding
-    box ``(x, y, w, h)`` (``cv2.boundingRect``: integer points, so its extremes are the
-    points' own minima and maxima)."""
-    x, y, bw, bh = box
-    lo = margin_px
-    return (x <= lo or y <= lo or x + bw - 1 >= width - 1 - lo
-            or y + bh - 1 >= height - 1 - lo)
-
-
-def _approx_quad(contour: npt.NDArray[np.int32]) -> FloatArray | None:
-    """Four vertices approximating a blob's convex hull, or ``None``."""
-    hull = cv2.convexHull(contour)
-    peri = cv2.arcLength(hull, True)
-    # the smallest tolerance that yields 4 vertices keeps them closest to the true corners
-    for frac in (0.005, 0.01, 0.015, 0.02, 0.03, 0.04, 0.05, 0.07):
-        poly = cv2.approxPolyDP(hull, frac * peri, True)
-        if len(poly) == 4:
-            return poly.reshape(4, 2).astype(np.float64)
-    return None
 
 
 __all__ = ["RectangleDetector", "RectangleSettings", "grey_levels"]
