@@ -9,19 +9,20 @@ any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one
     python bench/perception.py --cases [--poses 200] [--reps 3] [--where roi,frame] [--json]
 
 ``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``:
-"profiles", the detector before 2026-11-28, and "lean") on the same frames, interleaved: CPU
-per frame (``time.process_time``, single thread, each frame ``--reps`` times) and the worst
-corner error per frame (median / p95 / max px) for the clean poses and the degraded cases
-(noise, blur, exposure gain) the tests bound, on the region of interest a flight searches (the
-corners' box grown by its size on every side; ``--where frame`` or ``roi,frame`` for the
-whole frame too). A search without a previous detection: "lean"'s tracking is not in it
+"profiles", the detector before 2026-11-28, "lean" and "lean2") on the same frames,
+interleaved: CPU per frame (``time.process_time``, single thread, each frame ``--reps`` times)
+and the worst corner error per frame (median / p95 / max px) for the clean poses and the
+degraded cases (noise, blur, exposure gain) the tests bound, on the region of interest a flight
+searches (the corners' box grown by its size on every side; ``--where frame`` or ``roi,frame``
+for the whole frame too). A search without a previous detection: the tracking is not in it
 (``--flight`` has it).
 
 ``--flight`` times ``Perception.process`` on a flight log's own frames in order, with the
 region-of-interest tracking the live process uses (the in-flight case), for each edge method
-(``[perception] rectangle_edges``) interleaved frame by frame: wall per frame and the mean CPU
-(thread time) per frame, which the machine's load inflates far less, and each frame's worst
-corner error against the emulator's projected corners (``/truth``) where the log has them.
+(``[perception] rectangle_edges``) interleaved frame by frame: wall per frame and the CPU
+(thread time) per frame (mean, median, p95), which the machine's load inflates far less,
+and each frame's worst corner error against the emulator's projected corners (``/truth``)
+where the log has them.
 """
 
 from __future__ import annotations
@@ -252,12 +253,12 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
         for m in EDGE_METHODS}
     times: dict[str, list[float]] = {m: [] for m in runs}
     found: dict[str, list[Any]] = {m: [] for m in runs}
-    cpu = {m: 0.0 for m in runs}
+    cpu: dict[str, list[float]] = {m: [] for m in runs}
     for img in frames:
         for m, perception in runs.items():
             c0 = time.thread_time()
             res, dt = _timed(perception.process, img)
-            cpu[m] += time.thread_time() - c0
+            cpu[m].append(1e3 * (time.thread_time() - c0))
             times[m].append(dt)
             found[m].append(res.corners_px)
     out: dict[str, Any] = {"frames": len(frames), "loadavg_1min": os.getloadavg()[0]}
@@ -269,7 +270,8 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
         r: dict[str, Any] = {
             "detected": sum(c is not None for c in found[m]), "roi_hits": perception.roi_hits,
             "perception_process": _stats(times[m]),
-            "cpu_ms_per_frame": 1e3 * cpu[m] / max(len(frames), 1)}
+            "cpu_ms_per_frame": float(np.mean(cpu[m])) if cpu[m] else math.nan,
+            "cpu_ms": _stats(cpu[m]) if cpu[m] else {}}
         if errs:
             r["corner_err_px"] = {"frames": len(errs), "median": float(np.median(errs)),
                                   "p95": float(np.percentile(errs, 95)),
@@ -287,9 +289,11 @@ def _print_flight(path: Path, out: dict[str, Any], methods: list[str]) -> None:
     for m in methods:
         r = out[m]
         s = r["perception_process"]
+        c = r["cpu_ms"]
         print(f"  edges = {m!r}: {r['detected']} detected, {r['roi_hits']} in the region of "
-              f"interest; CPU {r['cpu_ms_per_frame']:.2f} ms per frame (thread time); wall "
-              f"median {s['median_ms']:.2f} ms, p95 {s['p95_ms']:.2f} (grows with the load)")
+              f"interest; CPU {r['cpu_ms_per_frame']:.2f} ms per frame (thread time; median "
+              f"{c['median_ms']:.2f}, p95 {c['p95_ms']:.2f}); wall median {s['median_ms']:.2f} "
+              f"ms, p95 {s['p95_ms']:.2f} (grows with the load)")
         if "corner_err_px" in r:
             e = r["corner_err_px"]
             print(f"    worst corner vs the projected truth: median {e['median']:.4f} px, p95 "
