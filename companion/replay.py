@@ -402,6 +402,19 @@ def _decode(parser: Any, raw: bytes) -> Any:
     return None
 
 
+def _quat_diff(q_rec: Any, q_new: Any) -> float:
+    """Largest component difference of two quaternions, up to sign (q and -q are one
+    attitude); plain floats: numpy's per-call overhead was most of a step's comparison."""
+    a = [float(v) for v in q_rec]
+    b = [float(v) for v in q_new]
+    if len(a) != 4 or len(b) != 4:
+        raise ReplayError(f"a quaternion of {len(a)} and one of {len(b)} components")
+    if not all(map(math.isfinite, a + b)):
+        return math.inf  # a non-finite command is never "identical"
+    return min(max(abs(x - y) for x, y in zip(a, b, strict=True)),
+               max(abs(x + y) for x, y in zip(a, b, strict=True)))
+
+
 def _compare(res: ReplayResult, rec_step: dict[str, Any], out: Any, t_s: float) -> None:
     rec_sp = rec_step.get("setpoint")
     new_sp = out.setpoint
@@ -423,9 +436,7 @@ def _compare(res: ReplayResult, rec_step: dict[str, Any], out: Any, t_s: float) 
         res.commands_changed += 1
         res.first_difference_t_s = res.first_difference_t_s or t_s
         return
-    q_rec = np.asarray(rec_sp["q_wxyz"], dtype=float)
-    q_new = np.asarray(new_sp.q_wxyz, dtype=float)
-    dq = float(min(np.max(np.abs(q_rec - q_new)), np.max(np.abs(q_rec + q_new))))
+    dq = _quat_diff(rec_sp["q_wxyz"], new_sp.q_wxyz)
     dt = abs(float(rec_sp["thrust"]) - float(new_sp.thrust_norm))
     if dq > 1e-6 or dt > 1e-6:
         res.commands_changed += 1
