@@ -164,28 +164,30 @@ def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
 
 
 def _perception_stage(log_path: Path, cfg: Config, mode: str, workers: int,
-                      perceived: list[Perceived] | None) -> Iterator[Perceived] | None:
+                      perceived: list[Perceived] | None
+                      ) -> tuple[Iterator[Perceived] | None, Callable[[], None]]:
+    """The perception results in step order (None: from the recorded detections) and what
+    ends the stage (the worker process, if one was started: it is, at once)."""
     if mode == "detections":
-        return None
+        return None, lambda: None
     if perceived:
-        return iter(perceived)
+        return iter(perceived), lambda: None
+    close: Callable[[], None] = lambda: None  # noqa: E731
     if workers > 0:
         worker = PerceptionWorker(log_path, cfg)
-
-        def gen() -> Iterator[Perceived]:
-            with worker:
-                yield from worker
-        it: Iterable[Perceived] = gen()
+        it: Iterable[Perceived] = worker
+        close = worker.close
     else:
         it = perceive_log(log_path, cfg)
+        close = getattr(it, "close", close)
     if perceived is None:
-        return iter(it)
+        return iter(it), close
 
     def keep() -> Iterator[Perceived]:
         for p in it:
             perceived.append(p)
             yield p
-    return keep()
+    return keep(), close
 
 
 def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Path | None,
@@ -200,26 +202,26 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     cfg = _in_process_solves(replay_config(reader, config, list(overrides or [])))
     mode = "detections" if from_detections else _input_mode(reader, log_path, counts)
     res = _new_result(reader, log_path, cfg, mode)
-    # the controller first (as the live process builds it), then
-    rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
-    # the perception worker is forked before this process starts any thread (the writer's)
-    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
+    # The perception worker first: forked before this process starts any thread (the
+    # writer's), its start-up (reading the log, the first frames) overlaps the controller's
+    # build on the other core; the first step waits for both.
+    stage, close_stage = _perception_stage(log_path, cfg, mode, workers, perceived)
     writer = None
-    if out_path is not None:
-        writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
-        writer.open()
-        writer.log_config(0, "", dict(cfg.raw), cfg.source)
-    rp.stage, rp.writer = stage, writer
-    topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
-    if writer is not None:
-        topics.append(TOPIC_TRUTH)
     try:
+        rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
+        if out_path is not None:
+            writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
+            writer.open()
+            writer.log_config(0, "", dict(cfg.raw), cfg.source)
+        rp.stage, rp.writer = stage, writer
+        topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
+        if writer is not None:
+            topics.append(TOPIC_TRUTH)
         rp.feed(reader, topics)
     except ReplayInputError as exc:
         raise ReplayError(str(exc)) from exc
     finally:
-        if stage is not None and hasattr(stage, "close"):
-            stage.close()
+        close_stage()
         if writer is not None:
             writer.close()
     res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
