@@ -163,8 +163,10 @@ class LoggingConfig:
     # whole) or "none" (replay then needs an old log's full frames, or --from-detections)
     perception_input: str = "crop"
     # The preview for people on /camera/image (JPEG): at most this many frames per second of
-    # camera time (0: none), scaled by ``preview_scale``, JPEG quality ``preview_jpeg_quality``
-    preview_rate_hz: float = field(default=5.0, metadata=checked(nonneg))
+    # camera time (0: none), scaled by ``preview_scale``, JPEG quality ``preview_jpeg_quality``.
+    # 2 Hz: a preview costs the writer thread ~0.6-0.9 ms (downscale + JPEG of 500 x 500 px),
+    # ~45 us a step at 20 Hz instead of ~0.2 ms at 5 Hz (bench/log_kinds.py)
+    preview_rate_hz: float = field(default=2.0, metadata=checked(nonneg))
     preview_scale: float = 0.5
     preview_jpeg_quality: int = 75
     # Log times: "receipt" (the companion's monotonic clock; a real vehicle) or "source" (the

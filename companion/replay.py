@@ -164,28 +164,30 @@ def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
 
 
 def _perception_stage(log_path: Path, cfg: Config, mode: str, workers: int,
-                      perceived: list[Perceived] | None) -> Iterator[Perceived] | None:
+                      perceived: list[Perceived] | None
+                      ) -> tuple[Iterator[Perceived] | None, Callable[[], None]]:
+    """The perception results in step order (None: from the recorded detections) and what
+    ends the stage (the worker process, if one was started: it is, at once)."""
     if mode == "detections":
-        return None
+        return None, lambda: None
     if perceived:
-        return iter(perceived)
+        return iter(perceived), lambda: None
+    close: Callable[[], None] = lambda: None  # noqa: E731
     if workers > 0:
         worker = PerceptionWorker(log_path, cfg)
-
-        def gen() -> Iterator[Perceived]:
-            with worker:
-                yield from worker
-        it: Iterable[Perceived] = gen()
+        it: Iterable[Perceived] = worker
+        close = worker.close
     else:
         it = perceive_log(log_path, cfg)
+        close = getattr(it, "close", close)
     if perceived is None:
-        return iter(it)
+        return iter(it), close
 
     def keep() -> Iterator[Perceived]:
         for p in it:
             perceived.append(p)
             yield p
-    return keep()
+    return keep(), close
 
 
 def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Path | None,
@@ -200,26 +202,26 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     cfg = _in_process_solves(replay_config(reader, config, list(overrides or [])))
     mode = "detections" if from_detections else _input_mode(reader, log_path, counts)
     res = _new_result(reader, log_path, cfg, mode)
-    # the controller first (as the live process builds it), then
-    rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
-    # the perception worker is forked before this process starts any thread (the writer's)
-    stage = _perception_stage(log_path, cfg, mode, workers, perceived)
+    # The perception worker first: forked before this process starts any thread (the
+    # writer's), its start-up (reading the log, the first frames) overlaps the controller's
+    # build on the other core; the first step waits for both.
+    stage, close_stage = _perception_stage(log_path, cfg, mode, workers, perceived)
     writer = None
-    if out_path is not None:
-        writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
-        writer.open()
-        writer.log_config(0, "", dict(cfg.raw), cfg.source)
-    rp.stage, rp.writer = stage, writer
-    topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
-    if writer is not None:
-        topics.append(TOPIC_TRUTH)
     try:
+        rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
+        if out_path is not None:
+            writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
+            writer.open()
+            writer.log_config(0, "", dict(cfg.raw), cfg.source)
+        rp.stage, rp.writer = stage, writer
+        topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
+        if writer is not None:
+            topics.append(TOPIC_TRUTH)
         rp.feed(reader, topics)
     except ReplayInputError as exc:
         raise ReplayError(str(exc)) from exc
     finally:
-        if stage is not None and hasattr(stage, "close"):
-            stage.close()
+        close_stage()
         if writer is not None:
             writer.close()
     res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
@@ -402,6 +404,19 @@ def _decode(parser: Any, raw: bytes) -> Any:
     return None
 
 
+def _quat_diff(q_rec: Any, q_new: Any) -> float:
+    """Largest component difference of two quaternions, up to sign (q and -q are one
+    attitude); plain floats: numpy's per-call overhead was most of a step's comparison."""
+    a = [float(v) for v in q_rec]
+    b = [float(v) for v in q_new]
+    if len(a) != 4 or len(b) != 4:
+        raise ReplayError(f"a quaternion of {len(a)} and one of {len(b)} components")
+    if not all(map(math.isfinite, a + b)):
+        return math.inf  # a non-finite command is never "identical"
+    return min(max(abs(x - y) for x, y in zip(a, b, strict=True)),
+               max(abs(x + y) for x, y in zip(a, b, strict=True)))
+
+
 def _compare(res: ReplayResult, rec_step: dict[str, Any], out: Any, t_s: float) -> None:
     rec_sp = rec_step.get("setpoint")
     new_sp = out.setpoint
@@ -423,9 +438,7 @@ def _compare(res: ReplayResult, rec_step: dict[str, Any], out: Any, t_s: float) 
         res.commands_changed += 1
         res.first_difference_t_s = res.first_difference_t_s or t_s
         return
-    q_rec = np.asarray(rec_sp["q_wxyz"], dtype=float)
-    q_new = np.asarray(new_sp.q_wxyz, dtype=float)
-    dq = float(min(np.max(np.abs(q_rec - q_new)), np.max(np.abs(q_rec + q_new))))
+    dq = _quat_diff(rec_sp["q_wxyz"], new_sp.q_wxyz)
     dt = abs(float(rec_sp["thrust"]) - float(new_sp.thrust_norm))
     if dq > 1e-6 or dt > 1e-6:
         res.commands_changed += 1

@@ -41,6 +41,7 @@ log = logging.getLogger(__name__)
 
 LOOKAHEAD = 3  # frames decoded ahead of the step that uses them
 _BATCH = 64  # results per message from the worker process
+_FIRST_BATCH = 2  # ... but the first message, which the replay's first step waits for
 
 
 class ReplayInputError(CompanionError):
@@ -228,11 +229,12 @@ def _worker_main(conn: Any, path: str, raw_cfg: dict[str, Any], source: str) -> 
     try:
         cfg = config_from_dict(raw_cfg, source=source)
         batch: list[Perceived] = []
+        size = _FIRST_BATCH  # the first results at once: the replay's first step waits for them
         for p in perceive_log(Path(path), cfg):
             batch.append(p)
-            if len(batch) >= _BATCH:
+            if len(batch) >= size:
                 conn.send(("ok", batch))
-                batch = []
+                batch, size = [], _BATCH
         conn.send(("ok", batch))
         conn.send(("done", None))
     except CompanionError as exc:

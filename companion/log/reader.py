@@ -133,6 +133,8 @@ class _ChunkRef:
     offset: int  # of the chunk record's opcode byte
     start_ns: int
     end_ns: int
+    #: ids of the channels with messages in the chunk (its index); None: not known, read it
+    channels: frozenset[int] | None = None
 
 
 class LogReader:
@@ -195,7 +197,8 @@ class LogReader:
             self._schemas.update(summary.schemas)
             self._channels.update(summary.channels)
             refs = [
-                _ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time)
+                _ChunkRef(ci.chunk_start_offset, ci.message_start_time, ci.message_end_time,
+                          frozenset(ci.message_index_offsets) or None)
                 for ci in summary.chunk_indexes
             ]
             stats = summary.statistics
@@ -312,7 +315,8 @@ class LogReader:
                     if msgs:
                         start = min(m.log_time for m in msgs)
                         stop = max(m.log_time for m in msgs)
-                        self._chunks.append(_ChunkRef(pos, start, stop))
+                        self._chunks.append(_ChunkRef(pos, start, stop,
+                                                      frozenset(m.channel_id for m in msgs)))
                     self._tally(msgs, counts)
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
                 body = self._f.read(length)
@@ -390,6 +394,8 @@ class LogReader:
             cid for cid, ch in self._channels.items() if ch.topic in wanted)
         heap: list[tuple[int, int, int, Any]] = []
         for ref in self._chunks:
+            if ids is not None and ref.channels is not None and ref.channels.isdisjoint(ids):
+                continue  # none of the topics in it (its index says): never decompressed
             if end_ns is not None and ref.start_ns >= end_ns:
                 continue
             if start_ns is not None and ref.end_ns < start_ns:

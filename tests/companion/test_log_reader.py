@@ -298,3 +298,34 @@ def test_reading_some_topics_gives_the_same_messages_as_filtering_all(
                         for m in r.messages(topics=topics, decode=False)]
                 assert some == [m for m in everything if m[0] in topics]
         assert {t for t, _, _ in everything} == {"/a", "/b"}
+
+
+def test_a_topic_reads_only_the_chunks_holding_it(tmp_path: Path) -> None:
+    """A topic logged once at the start (``/config``) is read from its chunk alone: a damaged
+    chunk without it is never decompressed (no corrupt chunk counted), while reading every
+    topic finds the damage; so in a salvaged (summary-less) file."""
+    path = tmp_path / "once.mcap"
+    rng = np.random.default_rng(5)
+    with McapLogger(path, chunk_size=4096, flush_interval_s=10.0, queue_size=N + 10) as lg:
+        lg.log("/once", 0, {"first": True}, schema=sch.JSON)
+        for i in range(1, N):
+            lg.log("/a", 1_000_000 * i, {"i": i, "noise": rng.integers(0, 1 << 30, 8).tolist()},
+                   schema=sch.JSON)
+    table = _chunk_table(path)
+    assert len(table) > 4
+    data = bytearray(path.read_bytes())
+    k = len(table) // 2
+    data[(table[k - 1][0] + table[k][0]) // 2] ^= 0x40  # inside chunk k, which has no /once
+    flipped = tmp_path / "flipped.mcap"
+    flipped.write_bytes(bytes(data))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(bytes(data[: table[-2][0]]))
+    for p, salvaged in ((flipped, False), (cut, True)):
+        with LogReader(p, verify=False) as r:
+            assert [m.data for m in r.messages(topics=["/once"])] == [{"first": True}]
+            assert r.recovery.salvaged == salvaged
+            if not salvaged:  # a salvage pass has read (and counted) every chunk already
+                assert r.recovery.corrupt_chunks == 0
+            kept = table[:-1] if salvaged else table
+            assert len(list(r.messages(topics=["/a"]))) == sum(n for _, n in kept) - 1 - table[k][1]
+            assert r.recovery.corrupt_chunks == 1
