@@ -93,6 +93,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--rti-only", action="store_true",
                     help="only the RTI loops and the full NLP's paper loop")
+    ap.add_argument("--log", type=Path, default=None,
+                    help="instead: the RTI step's parts on this flight log's sequence of "
+                         "solves (bench/solver_parts.py)")
     return ap.parse_args(argv)
 
 
@@ -199,6 +202,10 @@ def _print(out: dict[str, Any], horizon: int, steps: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.log is not None:
+        from solver_parts import measure, report  # bench/ is on the path as the script's dir
+        report(measure(args.log), os.getloadavg()[0])
+        return 0
     cfg = load_config()
     out = _result(cfg, _measure(args, cfg))
     if args.json:

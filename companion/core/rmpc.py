@@ -188,7 +188,7 @@ class Rmpc:
             raise RmpcParameterError(f"target: need a TargetMotion with {self.horizon} rows")
         par = np.append(target.packed(), e0[3])
         self._s4_ref = float(e0[3])
-        eta_g, u_g = self._guess(e0, target)
+        u_g, eta_g = self._guess_inputs(e0, target)
         certificate = self._infeasibility_certificate(e0, target)
         note, rti_iters, rti_time = "", 0, 0.0
         if self._rti is not None and certificate is None and not self.force_nlp:
@@ -196,6 +196,8 @@ class Rmpc:
             if isinstance(out, RmpcResult):
                 return out
             note, rti_iters, rti_time = out
+        if eta_g is None:  # the RTI reads only the inputs: the states for the NLP's guess
+            eta_g = self._guess_states(e0, target, u_g)
         if self.backend is not None:
             self.backend.start_step()
         lay = self._hard.layout
@@ -375,20 +377,34 @@ class Rmpc:
             u = np.zeros((big_n, NU))
         return eta, u
 
-    def _guess(self, eta0: np.ndarray, target: TargetMotion) -> tuple[np.ndarray, np.ndarray]:
-        """Previous solution shifted by one stage (last stage: terminal law), else a rollout."""
+    def _guess_inputs(self, eta0: np.ndarray, target: TargetMotion
+                      ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The warm start's inputs: the previous plan's shifted by one stage (the last stage: the
+        terminal law), else the terminal law's rollout's; and its states when they came with
+        them (the rollout; None: :meth:`_guess_states` gives them, only a step that solves
+        the NLP needs them)."""
         if self._prev is None:
-            return self._rollout(eta0, target)
-        eta_p, u_p = self._prev
+            eta, u = self._rollout(eta0, target)
+            return u, eta
+        u_p = self._prev[1]
+        big_n = self.horizon
+        u = np.empty_like(u_p)
+        u[: big_n - 1] = u_p[1:]
+        u[big_n - 1] = self._law(self._prev[0][big_n], target, big_n - 1)
+        return u, None
+
+    def _guess_states(self, eta0: np.ndarray, target: TargetMotion,
+                      u: np.ndarray) -> np.ndarray:
+        """The warm start's states (the previous plan's, shifted; the last stage stepped
+        with the terminal law's input ``u[N-1]``)."""
+        assert self._prev is not None
+        eta_p = self._prev[0]
         big_n = self.horizon
         eta = np.empty_like(eta_p)
-        u = np.empty_like(u_p)
         eta[0] = eta0
         eta[1:big_n] = eta_p[2:]
-        u[: big_n - 1] = u_p[1:]
-        u[big_n - 1] = self._law(eta_p[big_n], target, big_n - 1)
         eta[big_n] = self._step(eta_p[big_n], u[big_n - 1], target, big_n - 1)
-        return eta, u
+        return eta
 
     @staticmethod
     def _pack(lay: Layout, eta: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -52,49 +52,80 @@ from companion.core.terminal import TerminalDesign
 
 
 def lin_function(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> ca.Function:
-    """``rti_lin``, condensed from stage Jacobians (module docstring)."""
+    """``rti_lin``, condensed from stage Jacobians (module docstring): ``S(n) = dx(n)/d(u(0),
+    ..., u(n-1))`` (7 x 4 n) is one matrix, ``S(n+1) = [A(n) S(n), B(n)]``, so each stage
+    adds a handful of operations to the function, not one per earlier stage."""
     big_n = rmpc.horizon
     stage = _StageFunctions(rmpc, camera, terminal)
     u_all, eta0 = ca.MX.sym("U", NU * big_n), ca.MX.sym("eta0", NX)
     par = ca.MX.sym("p", NP_STAGE * big_n + 1)
     x = eta0
-    sens: list[ca.MX] = []  # dx(n)/du(k), k < n
-    rv: list[ca.MX] = []
-    jr: list[ca.MX] = []
+    sens = ca.MX(NX, 0)  # S(n)
+    stages: list[list[ca.MX]] = []  # (r, A, B, R_x, R_u, S(n)) of each stage
     gv: list[ca.MX] = []
     jg: list[ca.MX] = []
     xv: list[ca.MX] = []
     jx: list[ca.MX] = []
 
     def blocks(j_x: ca.MX, j_u: ca.MX | None, n: int, rows: int) -> ca.MX:
-        """A row block of the condensed Jacobian: ``J_x dx(n)/du(k)`` for k < n, ``J_u``
-        at k = n, zeros after."""
-        out = [ca.mtimes(j_x, s_k) for s_k in sens] + ([j_u] if j_u is not None else [])
-        return ca.horzcat(*out, *[ca.MX(rows, NU)] * (big_n - len(out)))
+        """A row block of the condensed Jacobian: ``J_x S(n)``, ``J_u`` at stage n, zeros
+        after."""
+        out = ([ca.mtimes(j_x, sens)] if n else []) + ([j_u] if j_u is not None else [])
+        done = n + (j_u is not None)
+        return ca.horzcat(*out, ca.MX(rows, NU * (big_n - done)))
 
     for n in range(big_n):
         x_next, r, g, a, b, r_x, r_u, g_x, g_u = stage.function(n)(
             x, u_all[NU * n: NU * (n + 1)], par[NP_STAGE * n: NP_STAGE * (n + 1)],
             par[NP_STAGE * big_n])
-        rv.append(r)
-        jr.append(blocks(r_x, r_u, n, r.shape[0]))
+        stages.append([r, a, b, r_x, r_u, sens])
         if g.shape[0]:
             gv.append(g)
             jg.append(blocks(g_x, g_u, n, g.shape[0]))
-        sens = [ca.mtimes(a, s_k) for s_k in sens] + [b]
+        sens = ca.horzcat(ca.mtimes(a, sens), b) if n else b
         x = x_next
         xv.append(x)
-        jx.append(ca.horzcat(*sens, *[ca.MX(NX, NU)] * (big_n - len(sens))))
+        jx.append(ca.horzcat(sens, ca.MX(NX, NU * (big_n - n - 1))))
     r_n, g_n, r_nx, g_nx = stage.terminal(x)
-    rv.append(r_n)
-    jr.append(blocks(r_nx, None, big_n, r_n.shape[0]))
     gv.append(g_n)
     jg.append(blocks(g_nx, None, big_n, g_n.shape[0]))
-    j_r, r_all = ca.vertcat(*jr), ca.vertcat(*rv)
+    hess, grad = _gauss_newton(stages, r_n, r_nx)
     j_c = ca.vertcat(*jx, *jg)
-    return ca.Function("rti_lin", [u_all, eta0, par],
-                       [ca.densify(2.0 * ca.mtimes(j_r.T, j_r)), 2.0 * ca.mtimes(j_r.T, r_all),
-                        ca.vertcat(*xv, *gv), ca.densify(j_c.T)])
+    graph = ca.Function("rti_lin", [u_all, eta0, par],
+                        [ca.densify(hess), grad, ca.vertcat(*xv, *gv), ca.densify(j_c.T)])
+    # as scalar code: the graph's ~1000 sparse matrix products cost ~150 us as library
+    # calls, the ~66 k scalar operations they expand to ~30-60 us (~1.1 MB of machine code)
+    scalar = graph.expand()
+    return ca.Function("rti_lin", scalar.sx_in(), scalar.call(scalar.sx_in()), {"cse": True})
+
+
+def _gauss_newton(stages: list[list[ca.MX]], r_n: ca.MX, r_nx: ca.MX) -> tuple[ca.MX, ca.MX]:
+    """``H = 2 J_r' J_r`` and ``g = 2 J_r' r`` of the condensed residuals without forming
+    ``J_r`` (O(N^2) small blocks instead of the (11 N + 7) x 4 N product): with ``P(N) =
+    R_N' R_N``, ``P(k) = R_x(k)' R_x(k) + A(k)' P(k+1) A(k)`` (the cost-to-go's curvature in
+    ``x(k)``) and ``l(N) = R_N' r_N``, ``l(k) = R_x(k)' r(k) + A(k)' l(k+1)``, stage k's blocks
+    are ``H(k,k) = R_u' R_u + B' P(k+1) B``, ``H(0..k-1, k) = S(k)' (R_x' R_u + A' P(k+1) B)``
+    (mirrored below the diagonal) and ``g(k) = R_u' r(k) + B' l(k+1)`` (stage k's matrices)."""
+    big_n = len(stages)
+    p_next = ca.mtimes(r_nx.T, r_nx)
+    l_next = ca.mtimes(r_nx.T, r_n)
+    diag: list[ca.MX] = [ca.MX()] * big_n
+    upper: list[ca.MX] = [ca.MX()] * big_n  # column k of the strictly upper triangle
+    g: list[ca.MX] = [ca.MX()] * big_n
+    for k in range(big_n - 1, -1, -1):
+        r, a, b, r_x, r_u, s_k = stages[k]
+        pb = ca.mtimes(p_next, b)
+        diag[k] = ca.mtimes(r_u.T, r_u) + ca.mtimes(b.T, pb)
+        g[k] = ca.mtimes(r_u.T, r) + ca.mtimes(b.T, l_next)
+        column = [ca.MX(NU * (big_n - k), NU)]
+        if k:
+            w = ca.mtimes(r_x.T, r_u) + ca.mtimes(a.T, pb)
+            column.insert(0, ca.mtimes(s_k.T, w))
+            p_next = ca.mtimes(r_x.T, r_x) + ca.mtimes(a.T, ca.mtimes(p_next, a))
+            l_next = ca.mtimes(r_x.T, r) + ca.mtimes(a.T, l_next)
+        upper[k] = ca.vertcat(*column)
+    strict = ca.horzcat(*upper)
+    return 2.0 * (strict + strict.T + ca.diagcat(*diag)), 2.0 * ca.vertcat(*g)
 
 
 class _StageFunctions:

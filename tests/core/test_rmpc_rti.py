@@ -257,3 +257,41 @@ def test_the_condensed_linearisation_is_the_rollouts(rti) -> None:  # type: igno
     h = hess.reshape(solver.n_u, solver.n_u)
     np.testing.assert_allclose(h, h.T, rtol=0, atol=1e-15)
     assert np.min(np.linalg.eigvalsh(h)) > 0
+
+
+def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti) -> None:  # type: ignore[no-untyped-def]
+    """rti_lin's H and g (a backward recursion over stage blocks, as scalar code) are 2 J_r' J_r
+    and 2 J_r' r of the residuals of the whole rollout differentiated as one expression (no
+    condensing), and g is the gradient of the NLP's cost (central differences of rti_val's
+    cost)."""
+    import casadi as ca
+
+    from companion.core.rmpc_problem import NP_STAGE, NU
+    from companion.core.rmpc_rti_gen import _StageFunctions
+
+    solver, eta0, par, u, lo, hi = _paper_step(rti)
+    hess, grad = (a.copy() for a in solver._lin(u, eta0, par)[:2])
+    big_n = cfg.rmpc.horizon
+    stage = _StageFunctions(cfg.rmpc, cfg.camera, design)
+    u_s, x = ca.SX.sym("U", NU * big_n), ca.SX(eta0)
+    res = []
+    for n in range(big_n):
+        out = stage.function(n)(x, u_s[NU * n: NU * (n + 1)],
+                                par[NP_STAGE * n: NP_STAGE * (n + 1)], par[-1])
+        res.append(out[1])
+        x = out[0]
+    res.append(ca.mtimes(np.linalg.cholesky(np.asarray(design.p, dtype=float)).T, x))
+    r_all = ca.vertcat(*res)
+    j_r = ca.Function("j", [u_s], [ca.jacobian(r_all, u_s), r_all])
+    jr, r = (np.asarray(v, dtype=float) for v in j_r(u))
+    np.testing.assert_allclose(hess.reshape(solver.n_u, solver.n_u), 2 * jr.T @ jr,
+                               rtol=1e-10, atol=1e-10 * np.max(np.abs(hess)))
+    np.testing.assert_allclose(grad, 2 * jr.T @ r.ravel(), rtol=1e-10,
+                               atol=1e-10 * np.max(np.abs(grad)))
+    step = 1e-6
+    for k in range(0, solver.n_u, 7):
+        du = np.zeros(solver.n_u)
+        du[k] = step
+        f_plus = float(solver._val(u + du, eta0, par, lo, hi)[1][0])
+        f_minus = float(solver._val(u - du, eta0, par, lo, hi)[1][0])
+        assert abs((f_plus - f_minus) / (2 * step) - grad[k]) <= 1e-6 * max(1.0, abs(grad[k]))
