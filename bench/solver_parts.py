@@ -29,8 +29,8 @@ Call = tuple[str, Any]
 
 def capture(log: Path) -> tuple[list[Call], Any, dict[str, Any]]:
     """The solve/reset calls of a replay of ``log``, its config and the replay's summary."""
-    from companion.replay import replay, replay_config  # the replay's imports: only here
     from companion.log.reader import LogReader
+    from companion.replay import replay, replay_config  # the replay's imports: only here
 
     calls: list[Call] = []
     solve, reset = rmpc_mod.Rmpc.solve, rmpc_mod.Rmpc.reset
