@@ -295,3 +295,25 @@ def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti) ->
         f_plus = float(solver._val(u + du, eta0, par, lo, hi)[1][0])
         f_minus = float(solver._val(u - du, eta0, par, lo, hi)[1][0])
         assert abs((f_plus - f_minus) / (2 * step) - grad[k]) <= 1e-6 * max(1.0, abs(grad[k]))
+
+
+@pytest.mark.parametrize("motion", ["planned_yaw", "nominal"])
+def test_the_warm_starts_law_and_parameters_are_the_generic_ones(cfg, design, motion) -> None:  # type: ignore[no-untyped-def]
+    """The RTI step's own copies of the terminal law (Rmpc._law_numbers) and of the parameter
+    vector (Rmpc._parameters) give the generic functions' numbers bit for bit, so the warm
+    start and the commands do not move."""
+    from companion.core.rmpc import TargetMotion
+
+    mpc = Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp", target_motion=motion, jit=False),
+               cfg.camera, design)  # (not compiled: only the numpy side is used)
+    rng = np.random.default_rng(7)
+    big_n = cfg.rmpc.horizon
+    for _ in range(200):
+        target = TargetMotion(rng.normal(size=(big_n, 2)), rng.normal(size=(big_n, 2)),
+                              rng.normal(size=big_n) * 0.3, rng.normal(size=(big_n, 3)) * 0.1)
+        eta = rng.normal(size=7) * [0.3, 0.3, 0.2, 0.5, 1.0, 1.0, 0.5]
+        mpc._s4_ref = float(rng.normal())
+        n = int(rng.integers(big_n))
+        assert np.array_equal(mpc._law_numbers(eta, target, n), mpc._law(eta, target, n))
+        assert np.array_equal(mpc._parameters(eta, target),
+                              np.append(target.packed(), eta[3]))
