@@ -96,6 +96,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--log", type=Path, default=None,
                     help="instead: the RTI step's parts on this flight log's sequence of "
                          "solves (bench/solver_parts.py)")
+    ap.add_argument("--evict-mb", type=float, default=32.0,
+                    help="with --log: MB written between two solves (0: warm caches)")
     return ap.parse_args(argv)
 
 
@@ -203,8 +205,9 @@ def _print(out: dict[str, Any], horizon: int, steps: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.log is not None:
-        from solver_parts import measure, report  # bench/ is on the path as the script's dir
-        report(measure(args.log), os.getloadavg()[0])
+        import solver_parts as sp  # bench/ is on the path as the script's dir
+        sp.report_in_flight(sp.in_flight(args.log), os.getloadavg()[0])
+        sp.report(sp.measure(args.log, args.evict_mb), os.getloadavg()[0])
         return 0
     cfg = load_config()
     out = _result(cfg, _measure(args, cfg))

@@ -25,6 +25,7 @@ from companion.core.design import design_terminal
 from companion.core.rmpc import Rmpc
 
 Call = tuple[str, Any]
+_EVICT = np.zeros(0)
 
 
 def capture(log: Path) -> tuple[list[Call], Any, dict[str, Any]]:
@@ -86,8 +87,9 @@ def _instrument(mpc: Rmpc, t: _Timers) -> None:
     rti: Any = mpc._rti
     m: Any = mpc
     m.solve = t.wrap(mpc.solve, "Rmpc wrapper")
-    m._guess_inputs = t.wrap(mpc._guess_inputs, "guess")
-    m._guess_states = t.wrap(mpc._guess_states, "guess")
+    for attr in ("_guess", "_guess_inputs", "_guess_states"):  # (older trees: _guess)
+        if hasattr(mpc, attr):
+            setattr(m, attr, t.wrap(getattr(mpc, attr), "guess"))
     m._infeasibility_certificate = t.wrap(mpc._infeasibility_certificate, "certificate")
     m._state_box = t.wrap(mpc._state_box, "state box")
     rti.step = t.wrap(rti.step, "step glue")
@@ -106,6 +108,8 @@ def _play(mpc: Rmpc, calls: list[Call], after: Callable[[], None] | None = None
         if kind == "reset":
             mpc.reset()
             continue
+        if _EVICT.size:  # a flight's step in between: its data evicts the solver's code
+            np.add(_EVICT, 1.0, out=_EVICT)
         c0, t0 = time.thread_time(), time.perf_counter()
         r = mpc.solve(*arg)
         times.append((time.perf_counter() - t0, time.thread_time() - c0))
@@ -115,9 +119,14 @@ def _play(mpc: Rmpc, calls: list[Call], after: Callable[[], None] | None = None
     return times, results
 
 
-def measure(log: Path) -> dict[str, Any]:
+def measure(log: Path, evict_mb: float = 32.0) -> dict[str, Any]:
     """The plain and the per-part figures of the RTI steps of ``log``'s sequence (module
-    docstring). Only the steps whose plan the RTI flew (no full NLP) are counted."""
+    docstring). Only the steps whose plan the RTI flew (no full NLP) are counted.
+    ``evict_mb``: an array of that size written between two solves (a flight's step in
+    between evicts the caches: the solve's code and data are fetched from memory again, as
+    in flight; 0: back-to-back solves, warm caches)."""
+    global _EVICT
+    _EVICT = np.zeros(int(evict_mb * 1e6 / 8))
     calls, cfg, summary = capture(log)
     design = design_terminal(cfg.rmpc, cfg.camera)
     mpc = Rmpc(cfg.rmpc, cfg.camera, design, clock=time.perf_counter)
@@ -136,7 +145,7 @@ def measure(log: Path) -> dict[str, Any]:
     _, results_i = _play(mpc, calls, close_step)
     parts = {p: np.array([s.get(p, 0.0) for s in timers.steps])[rti] * 1e6 for p in PARTS}
     same = all(np.array_equal(a.u0, b.u0) for a, b in zip(results, results_i, strict=True))
-    return {"log": str(log), "replay": summary, "solves": len(results),
+    return {"log": str(log), "replay": summary, "evict_mb": evict_mb, "solves": len(results),
             "rti_steps": int(rti.sum()), "nlp_steps": int((~rti).sum()),
             "wall_us": wall, "cpu_us": cpu, "parts_us": parts, "deterministic": same}
 
@@ -146,7 +155,8 @@ def report(m: dict[str, Any], load: float) -> None:
     def q(a: np.ndarray) -> str:
         return f"{np.median(a):>8.1f}{np.percentile(a, 95):>8.1f}{np.mean(a):>8.1f}"
     rep = m["replay"]
-    print(f"RTI step parts on {m['log']} (load avg {load:.2f}): {m['solves']} solves, "
+    print(f"RTI step parts on {m['log']} (load avg {load:.2f}; {m['evict_mb']:g} MB written "
+          f"between two solves): {m['solves']} solves, "
           f"{m['rti_steps']} flew the RTI, {m['nlp_steps']} the full NLP; replay "
           f"{rep['commands_compared']} commands, max |dq| {rep['max_quat_diff']:.2g}; "
           f"instrumented run same u0: {m['deterministic']}")
@@ -157,3 +167,53 @@ def report(m: dict[str, Any], load: float) -> None:
         print(f"  {p:<24}{q(a)}")
     s = sum(m["parts_us"].values())
     print(f"{'  sum of parts (timed)':<26}{q(s)}")
+
+
+def in_flight(log: Path) -> dict[str, Any]:
+    """The parts of the RTI steps of a replay of ``log`` itself (perception in its child
+    process, the pipeline around each solve, as in flight: the caches as a flight's step
+    leaves them), timed by the same wrappers, on the controller the replay builds."""
+    from companion.replay import replay  # the replay's imports: only here
+
+    timers = _Timers()
+    init, solve = rmpc_mod.Rmpc.__init__, rmpc_mod.Rmpc.solve
+    flown: list[bool] = []
+
+    def rec_init(self: Rmpc, *a: Any, **k: Any) -> None:
+        init(self, *a, **k)
+        if self._rti is not None:
+            _instrument(self, timers)
+
+    def rec_solve(self: Rmpc, eta0: Any, target: Any) -> Any:
+        r = solve(self, eta0, target)
+        flown.append(r.status.startswith("rti:") and "nlp: " not in r.status)
+        timers.steps.append(timers.step)
+        timers.step = {}
+        return r
+
+    rmpc_mod.Rmpc.__init__, rmpc_mod.Rmpc.solve = rec_init, rec_solve  # type: ignore[method-assign]
+    try:
+        summary = replay(log, None, workers=1).summary()
+    finally:
+        rmpc_mod.Rmpc.__init__, rmpc_mod.Rmpc.solve = init, solve  # type: ignore[method-assign]
+    rti = np.array(flown)
+    parts = {p: np.array([s.get(p, 0.0) for s in timers.steps])[rti] * 1e6 for p in PARTS}
+    return {"replay": summary, "rti_steps": int(rti.sum()), "nlp_steps": int((~rti).sum()),
+            "parts_us": parts}
+
+
+def report_in_flight(m: dict[str, Any], load: float) -> None:
+    """The table of :func:`in_flight`'s figures (us of thread CPU)."""
+    rep = m["replay"]
+    print(f"in the replay itself (load avg {load:.2f}): {m['rti_steps']} RTI steps, "
+          f"{m['nlp_steps']} full NLP; solve time (wall, RTI + NLP) median "
+          f"{rep['solve_ms_median']:.3f} ms; max |dq| {rep['max_quat_diff']:.2g}")
+    print(f"{'us per RTI step (CPU)':<26}{'median':>8}{'p95':>8}{'mean':>8}")
+    for p, a in m["parts_us"].items():
+        print(f"  {p:<24}{np.median(a):>8.1f}{np.percentile(a, 95):>8.1f}{np.mean(a):>8.1f}")
+    s = sum(m["parts_us"].values())
+    print(f"{'  sum of parts':<26}{np.median(s):>8.1f}{np.percentile(s, 95):>8.1f}"
+          f"{np.mean(s):>8.1f}")
+    step = sum(m["parts_us"][p] for p in PARTS[4:])
+    print(f"{'  of which RtiSolver.step':<26}{np.median(step):>8.1f}"
+          f"{np.percentile(step, 95):>8.1f}{np.mean(step):>8.1f}")

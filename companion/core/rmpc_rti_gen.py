@@ -17,13 +17,15 @@ builds the functions: editing the RTI's Python step does not recompile them.
 ``rti_lin`` is **condensed from stage Jacobians** (:func:`lin_function`): one small
 function per kind of stage (the dynamics, the residuals and the stage's path rows of
 :func:`companion.core.rmpc_problem._path_items`, the code ``build_nlp`` builds its rows
-with, and their Jacobians in ``(x, u)``), called once per stage, and the products
-``dx(n)/du(k) = A(n-1) ... A(k+1) B(k)`` of 7 x 7 and 7 x 4 blocks. Its C code is ~0.3 MB
-instead of the ~3 MB of the whole rollout differentiated as one expression: measured, the
-in-flight cost of the linearisation is its code's size (each step finds it evicted from the
-caches), not its operation count (docs/reference/solver.md, "Measured"). ``rti_val``
-evaluates the rows the other way (the NLP's ``g``), so the two cannot drift apart unseen
-(tests/core/test_rmpc_rti.py compares them).
+with, and their Jacobians in ``(x, u)``), called once per stage; the sensitivities
+``dx(n)/du(k) = A(n-1) ... A(k+1) B(k)`` as one 7 x 4n matrix per stage; ``H`` and ``g`` by a
+backward recursion over the stages (:func:`_gauss_newton`, O(N^2) 4 x 4 blocks, ``J_r`` never
+formed). The whole function is expanded into scalar code (~66 k operations, a ~1.1 MB
+library): as a graph of CasADi's generic sparse kernels the same arithmetic costs ~3x more
+with warm caches; in flight (cold caches) the two are closer (docs/reference/solver.md,
+"Measured"). ``rti_val`` evaluates the rows the other way (the NLP's ``g``), so the two
+cannot drift apart unseen (tests/core/test_rmpc_rti.py compares them, and ``H``, ``g`` with
+those of the whole rollout differentiated as one expression).
 
 Two libraries (``rmpc_rti_lin_*``, ``rmpc_rti_val_*``): each is found by its generated
 source's hash, so a change to one does not recompile the other.
