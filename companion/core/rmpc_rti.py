@@ -122,6 +122,8 @@ class RtiSolver:
             # the functions are derived from the hard NLP by rmpc_rti_gen's code: a library
             # built before is found by those two alone, without deriving them again
             code = hashlib.sha256(Path(rmpc_rti_gen.__file__).read_bytes()).hexdigest()
+            if rmpc.rti_linearisation != "graph":  # (the same NLP: the form is in the key)
+                code += f":{rmpc.rti_linearisation}"
             key = problem_key(nlp, "rti", code)
             self.compiled = (
                 compiled_functions(lambda: [rmpc_rti_gen.lin_function(rmpc, camera, terminal)],

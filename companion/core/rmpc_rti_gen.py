@@ -17,15 +17,20 @@ builds the functions: editing the RTI's Python step does not recompile them.
 ``rti_lin`` is **condensed from stage Jacobians** (:func:`lin_function`): one small
 function per kind of stage (the dynamics, the residuals and the stage's path rows of
 :func:`companion.core.rmpc_problem._path_items`, the code ``build_nlp`` builds its rows
-with, and their Jacobians in ``(x, u)``), called once per stage; the sensitivities
-``dx(n)/du(k) = A(n-1) ... A(k+1) B(k)`` as one 7 x 4n matrix per stage; ``H`` and ``g`` by a
-backward recursion over the stages (:func:`_gauss_newton`, O(N^2) 4 x 4 blocks, ``J_r`` never
-formed). The whole function is expanded into scalar code (~66 k operations, a ~1.1 MB
-library): as a graph of CasADi's generic sparse kernels the same arithmetic costs ~3x more
-with warm caches; in flight (cold caches) the two are closer (docs/reference/solver.md,
-"Measured"). ``rti_val`` evaluates the rows the other way (the NLP's ``g``), so the two
-cannot drift apart unseen (tests/core/test_rmpc_rti.py compares them, and ``H``, ``g`` with
-those of the whole rollout differentiated as one expression).
+with, and their Jacobians in ``(x, u)``), called once per stage, and the products
+``dx(n)/du(k) = A(n-1) ... A(k+1) B(k)`` of 7 x 7 and 7 x 4 blocks. Its C code is ~0.3 MB
+instead of the ~3 MB of the whole rollout differentiated as one expression: measured, the
+in-flight cost of the linearisation is its code's size (each step finds it evicted from the
+caches), not its operation count (docs/reference/solver.md, "Measured").
+
+``rmpc.rti_linearisation = "scalar"`` (:func:`_scalar_lin_function`): the same numbers to
+~1e-15, ``H`` and ``g`` by a backward recursion over the stages (:func:`_gauss_newton`,
+O(N^2) 4 x 4 blocks, ``J_r`` never formed) and the whole function expanded into scalar code
+(~66 k operations, a ~1.1 MB library, ~73 s of CPU to compile): 3x faster with warm caches,
+within the run-to-run spread of the default in flight (cold caches); docs/reference/solver.md,
+"Measured". ``rti_val`` evaluates the rows the other way (the NLP's ``g``), so the two cannot
+drift apart unseen (tests/core/test_rmpc_rti.py compares them, and ``H``, ``g`` of both forms
+with those of the whole rollout differentiated as one expression).
 
 Two libraries (``rmpc_rti_lin_*``, ``rmpc_rti_val_*``): each is found by its generated
 source's hash, so a change to one does not recompile the other.
@@ -54,9 +59,59 @@ from companion.core.terminal import TerminalDesign
 
 
 def lin_function(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> ca.Function:
-    """``rti_lin``, condensed from stage Jacobians (module docstring): ``S(n) = dx(n)/d(u(0),
-    ..., u(n-1))`` (7 x 4 n) is one matrix, ``S(n+1) = [A(n) S(n), B(n)]``, so each stage
-    adds a handful of operations to the function, not one per earlier stage."""
+    """``rti_lin``, condensed from stage Jacobians (module docstring); its scalar form with
+    ``rmpc.rti_linearisation = "scalar"``."""
+    if rmpc.rti_linearisation == "scalar":
+        return _scalar_lin_function(rmpc, camera, terminal)
+    big_n = rmpc.horizon
+    stage = _StageFunctions(rmpc, camera, terminal)
+    u_all, eta0 = ca.MX.sym("U", NU * big_n), ca.MX.sym("eta0", NX)
+    par = ca.MX.sym("p", NP_STAGE * big_n + 1)
+    x = eta0
+    sens: list[ca.MX] = []  # dx(n)/du(k), k < n
+    rv: list[ca.MX] = []
+    jr: list[ca.MX] = []
+    gv: list[ca.MX] = []
+    jg: list[ca.MX] = []
+    xv: list[ca.MX] = []
+    jx: list[ca.MX] = []
+
+    def blocks(j_x: ca.MX, j_u: ca.MX | None, n: int, rows: int) -> ca.MX:
+        """A row block of the condensed Jacobian: ``J_x dx(n)/du(k)`` for k < n, ``J_u``
+        at k = n, zeros after."""
+        out = [ca.mtimes(j_x, s_k) for s_k in sens] + ([j_u] if j_u is not None else [])
+        return ca.horzcat(*out, *[ca.MX(rows, NU)] * (big_n - len(out)))
+
+    for n in range(big_n):
+        x_next, r, g, a, b, r_x, r_u, g_x, g_u = stage.function(n)(
+            x, u_all[NU * n: NU * (n + 1)], par[NP_STAGE * n: NP_STAGE * (n + 1)],
+            par[NP_STAGE * big_n])
+        rv.append(r)
+        jr.append(blocks(r_x, r_u, n, r.shape[0]))
+        if g.shape[0]:
+            gv.append(g)
+            jg.append(blocks(g_x, g_u, n, g.shape[0]))
+        sens = [ca.mtimes(a, s_k) for s_k in sens] + [b]
+        x = x_next
+        xv.append(x)
+        jx.append(ca.horzcat(*sens, *[ca.MX(NX, NU)] * (big_n - len(sens))))
+    r_n, g_n, r_nx, g_nx = stage.terminal(x)
+    rv.append(r_n)
+    jr.append(blocks(r_nx, None, big_n, r_n.shape[0]))
+    gv.append(g_n)
+    jg.append(blocks(g_nx, None, big_n, g_n.shape[0]))
+    j_r, r_all = ca.vertcat(*jr), ca.vertcat(*rv)
+    j_c = ca.vertcat(*jx, *jg)
+    return ca.Function("rti_lin", [u_all, eta0, par],
+                       [ca.densify(2.0 * ca.mtimes(j_r.T, j_r)), 2.0 * ca.mtimes(j_r.T, r_all),
+                        ca.vertcat(*xv, *gv), ca.densify(j_c.T)])
+
+
+def _scalar_lin_function(rmpc: RmpcParams, camera: CameraParams,
+                         terminal: TerminalDesign) -> ca.Function:
+    """``rti_lin`` with ``rmpc.rti_linearisation = "scalar"`` (module docstring):
+    ``S(n) = dx(n)/d(u(0), ..., u(n-1))`` (7 x 4 n) is one matrix, ``S(n+1) = [A(n) S(n),
+    B(n)]``; H and g by :func:`_gauss_newton`; the graph then expanded into scalar code."""
     big_n = rmpc.horizon
     stage = _StageFunctions(rmpc, camera, terminal)
     u_all, eta0 = ca.MX.sym("U", NU * big_n), ca.MX.sym("eta0", NX)
