@@ -15,6 +15,13 @@ linearisation + QP + check) is reported alongside as ``internal_*``.
 
 ``--rti-only`` runs only the real-time iteration's loops (and the paper loop of the full NLP
 they are compared with), skipping the edge and IPOPT loops of the full NLP.
+
+    python bench/solver.py --log FLIGHT.mcap [--evict-mb 32]
+
+instead prints where an RTI step's CPU time goes (guess, certificate, state box, compiled
+linearisation, DAQP, numpy glue, compiled check, the rest of ``Rmpc.solve``), in a replay of
+the flight itself (in-flight caches) and on the flight's sequence of solves repeated back to
+back (warm caches, or with ``--evict-mb`` written between two solves): bench/solver_parts.py.
 """
 
 from __future__ import annotations
