@@ -16,7 +16,7 @@ linearisation + QP + check) is reported alongside as ``internal_*``.
 ``--rti-only`` runs only the real-time iteration's loops (and the paper loop of the full NLP
 they are compared with), skipping the edge and IPOPT loops of the full NLP.
 
-    python bench/solver.py --log FLIGHT.mcap [--evict-mb 32]
+    python bench/solver.py --log FLIGHT.mcap [--evict-mb 0]
 
 instead prints where an RTI step's CPU time goes (guess, certificate, state box, compiled
 linearisation, DAQP, numpy glue, compiled check, the rest of ``Rmpc.solve``), in a replay of
@@ -103,8 +103,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--log", type=Path, default=None,
                     help="instead: the RTI step's parts on this flight log's sequence of "
                          "solves (bench/solver_parts.py)")
-    ap.add_argument("--evict-mb", type=float, default=32.0,
-                    help="with --log: MB written between two solves (0: warm caches)")
+    ap.add_argument("--evict-mb", type=float, default=0.0,
+                    help="with --log: MB written between two solves (default 0: warm caches)")
     return ap.parse_args(argv)
 
 

@@ -119,7 +119,7 @@ def _play(mpc: Rmpc, calls: list[Call], after: Callable[[], None] | None = None
     return times, results
 
 
-def measure(log: Path, evict_mb: float = 32.0) -> dict[str, Any]:
+def measure(log: Path, evict_mb: float = 0.0) -> dict[str, Any]:
     """The plain and the per-part figures of the RTI steps of ``log``'s sequence (module
     docstring). Only the steps whose plan the RTI flew (no full NLP) are counted.
     ``evict_mb``: an array of that size written between two solves (a flight's step in
