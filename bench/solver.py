@@ -15,6 +15,13 @@ linearisation + QP + check) is reported alongside as ``internal_*``.
 
 ``--rti-only`` runs only the real-time iteration's loops (and the paper loop of the full NLP
 they are compared with), skipping the edge and IPOPT loops of the full NLP.
+
+    python bench/solver.py --log FLIGHT.mcap [--evict-mb 0]
+
+instead prints where an RTI step's CPU time goes (guess, certificate, state box, compiled
+linearisation, DAQP, numpy glue, compiled check, the rest of ``Rmpc.solve``), in a replay of
+the flight itself (in-flight caches) and on the flight's sequence of solves repeated back to
+back (warm caches, or with ``--evict-mb`` written between two solves): bench/solver_parts.py.
 """
 
 from __future__ import annotations
@@ -93,6 +100,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--rti-only", action="store_true",
                     help="only the RTI loops and the full NLP's paper loop")
+    ap.add_argument("--log", type=Path, default=None,
+                    help="instead: the RTI step's parts on this flight log's sequence of "
+                         "solves (bench/solver_parts.py)")
+    ap.add_argument("--evict-mb", type=float, default=0.0,
+                    help="with --log: MB written between two solves (default 0: warm caches)")
     return ap.parse_args(argv)
 
 
@@ -199,6 +211,11 @@ def _print(out: dict[str, Any], horizon: int, steps: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.log is not None:
+        import solver_parts as sp  # bench/ is on the path as the script's dir
+        sp.report_in_flight(sp.in_flight(args.log), os.getloadavg()[0])
+        sp.report(sp.measure(args.log, args.evict_mb), os.getloadavg()[0])
+        return 0
     cfg = load_config()
     out = _result(cfg, _measure(args, cfg))
     if args.json:

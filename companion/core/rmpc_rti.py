@@ -122,6 +122,8 @@ class RtiSolver:
             # the functions are derived from the hard NLP by rmpc_rti_gen's code: a library
             # built before is found by those two alone, without deriving them again
             code = hashlib.sha256(Path(rmpc_rti_gen.__file__).read_bytes()).hexdigest()
+            if rmpc.rti_linearisation != "graph":  # (the same NLP: the form is in the key)
+                code += f":{rmpc.rti_linearisation}"
             key = problem_key(nlp, "rti", code)
             self.compiled = (
                 compiled_functions(lambda: [rmpc_rti_gen.lin_function(rmpc, camera, terminal)],
@@ -156,7 +158,6 @@ class RtiSolver:
         n_p = upper.size
         self._up, self._lo = np.zeros(n_u + n_p), np.full(n_u + n_p, -DAQP_INF)
         self._sense = np.zeros(n_u + n_p, dtype=np.int32)
-        self._u = np.zeros(n_u)
         self._no_box = np.zeros(n_s)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
@@ -255,8 +256,7 @@ class RtiSolver:
         that lies in the smaller one is the smaller one's minimiser."""
         self.calls += 1
         n_u = self.n_u
-        self._u[:] = u
-        self._lin(self._u, eta0, par)
+        self._lin(u, eta0, par)  # (copied into the function's own argument buffer)
         up, lo = self._up, self._lo
         np.subtract(self.u_max, u, out=up[:n_u])
         np.subtract(-self.u_max, u, out=lo[:n_u])
@@ -267,7 +267,7 @@ class RtiSolver:
         if flag in DAQP_OPTIMAL:
             x_lin = self._j_state @ du
             x_lin += self._c_x
-            if bool(np.all(x_lin <= state_hi) and np.all(x_lin >= state_lo)):
+            if (x_lin <= state_hi).all() and (x_lin >= state_lo).all():
                 return du, flag, iters
         # a state row binds (or the smaller QP failed): the whole QP
         self.full_qps += 1

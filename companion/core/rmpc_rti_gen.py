@@ -21,9 +21,16 @@ with, and their Jacobians in ``(x, u)``), called once per stage, and the product
 ``dx(n)/du(k) = A(n-1) ... A(k+1) B(k)`` of 7 x 7 and 7 x 4 blocks. Its C code is ~0.3 MB
 instead of the ~3 MB of the whole rollout differentiated as one expression: measured, the
 in-flight cost of the linearisation is its code's size (each step finds it evicted from the
-caches), not its operation count (docs/reference/solver.md, "Measured"). ``rti_val``
-evaluates the rows the other way (the NLP's ``g``), so the two cannot drift apart unseen
-(tests/core/test_rmpc_rti.py compares them).
+caches), not its operation count (docs/reference/solver.md, "Measured").
+
+``rmpc.rti_linearisation = "scalar"`` (:func:`_scalar_lin_function`): the same numbers to
+~1e-15, ``H`` and ``g`` by a backward recursion over the stages (:func:`_gauss_newton`,
+O(N^2) 4 x 4 blocks, ``J_r`` never formed) and the whole function expanded into scalar code
+(~66 k operations, a ~1.1 MB library, ~73 s of CPU to compile): 3x faster with warm caches,
+within the run-to-run spread of the default in flight (cold caches); docs/reference/solver.md,
+"Measured". ``rti_val`` evaluates the rows the other way (the NLP's ``g``), so the two cannot
+drift apart unseen (tests/core/test_rmpc_rti.py compares them, and ``H``, ``g`` of both forms
+with those of the whole rollout differentiated as one expression).
 
 Two libraries (``rmpc_rti_lin_*``, ``rmpc_rti_val_*``): each is found by its generated
 source's hash, so a change to one does not recompile the other.
@@ -52,7 +59,10 @@ from companion.core.terminal import TerminalDesign
 
 
 def lin_function(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign) -> ca.Function:
-    """``rti_lin``, condensed from stage Jacobians (module docstring)."""
+    """``rti_lin``, condensed from stage Jacobians (module docstring); its scalar form with
+    ``rmpc.rti_linearisation = "scalar"``."""
+    if rmpc.rti_linearisation == "scalar":
+        return _scalar_lin_function(rmpc, camera, terminal)
     big_n = rmpc.horizon
     stage = _StageFunctions(rmpc, camera, terminal)
     u_all, eta0 = ca.MX.sym("U", NU * big_n), ca.MX.sym("eta0", NX)
@@ -95,6 +105,84 @@ def lin_function(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesig
     return ca.Function("rti_lin", [u_all, eta0, par],
                        [ca.densify(2.0 * ca.mtimes(j_r.T, j_r)), 2.0 * ca.mtimes(j_r.T, r_all),
                         ca.vertcat(*xv, *gv), ca.densify(j_c.T)])
+
+
+def _scalar_lin_function(rmpc: RmpcParams, camera: CameraParams,
+                         terminal: TerminalDesign) -> ca.Function:
+    """``rti_lin`` with ``rmpc.rti_linearisation = "scalar"`` (module docstring):
+    ``S(n) = dx(n)/d(u(0), ..., u(n-1))`` (7 x 4 n) is one matrix, ``S(n+1) = [A(n) S(n),
+    B(n)]``; H and g by :func:`_gauss_newton`; the graph then expanded into scalar code."""
+    big_n = rmpc.horizon
+    stage = _StageFunctions(rmpc, camera, terminal)
+    u_all, eta0 = ca.MX.sym("U", NU * big_n), ca.MX.sym("eta0", NX)
+    par = ca.MX.sym("p", NP_STAGE * big_n + 1)
+    x = eta0
+    sens = ca.MX(NX, 0)  # S(n)
+    stages: list[list[ca.MX]] = []  # (r, A, B, R_x, R_u, S(n)) of each stage
+    gv: list[ca.MX] = []
+    jg: list[ca.MX] = []
+    xv: list[ca.MX] = []
+    jx: list[ca.MX] = []
+
+    def blocks(j_x: ca.MX, j_u: ca.MX | None, n: int, rows: int) -> ca.MX:
+        """A row block of the condensed Jacobian: ``J_x S(n)``, ``J_u`` at stage n, zeros
+        after."""
+        out = ([ca.mtimes(j_x, sens)] if n else []) + ([j_u] if j_u is not None else [])
+        done = n + (j_u is not None)
+        return ca.horzcat(*out, ca.MX(rows, NU * (big_n - done)))
+
+    for n in range(big_n):
+        x_next, r, g, a, b, r_x, r_u, g_x, g_u = stage.function(n)(
+            x, u_all[NU * n: NU * (n + 1)], par[NP_STAGE * n: NP_STAGE * (n + 1)],
+            par[NP_STAGE * big_n])
+        stages.append([r, a, b, r_x, r_u, sens])
+        if g.shape[0]:
+            gv.append(g)
+            jg.append(blocks(g_x, g_u, n, g.shape[0]))
+        sens = ca.horzcat(ca.mtimes(a, sens), b) if n else b
+        x = x_next
+        xv.append(x)
+        jx.append(ca.horzcat(sens, ca.MX(NX, NU * (big_n - n - 1))))
+    r_n, g_n, r_nx, g_nx = stage.terminal(x)
+    gv.append(g_n)
+    jg.append(blocks(g_nx, None, big_n, g_n.shape[0]))
+    hess, grad = _gauss_newton(stages, r_n, r_nx)
+    j_c = ca.vertcat(*jx, *jg)
+    graph = ca.Function("rti_lin", [u_all, eta0, par],
+                        [ca.densify(hess), grad, ca.vertcat(*xv, *gv), ca.densify(j_c.T)])
+    # as scalar code: the graph's ~1000 sparse matrix products cost ~150 us as library
+    # calls, the ~66 k scalar operations they expand to ~30-60 us (~1.1 MB of machine code)
+    scalar = graph.expand()
+    return ca.Function("rti_lin", scalar.sx_in(), scalar.call(scalar.sx_in()), {"cse": True})
+
+
+def _gauss_newton(stages: list[list[ca.MX]], r_n: ca.MX, r_nx: ca.MX) -> tuple[ca.MX, ca.MX]:
+    """``H = 2 J_r' J_r`` and ``g = 2 J_r' r`` of the condensed residuals without forming
+    ``J_r`` (O(N^2) small blocks instead of the (11 N + 7) x 4 N product): with ``P(N) =
+    R_N' R_N``, ``P(k) = R_x(k)' R_x(k) + A(k)' P(k+1) A(k)`` (the cost-to-go's curvature in
+    ``x(k)``) and ``l(N) = R_N' r_N``, ``l(k) = R_x(k)' r(k) + A(k)' l(k+1)``, stage k's blocks
+    are ``H(k,k) = R_u' R_u + B' P(k+1) B``, ``H(0..k-1, k) = S(k)' (R_x' R_u + A' P(k+1) B)``
+    (mirrored below the diagonal) and ``g(k) = R_u' r(k) + B' l(k+1)`` (stage k's matrices)."""
+    big_n = len(stages)
+    p_next = ca.mtimes(r_nx.T, r_nx)
+    l_next = ca.mtimes(r_nx.T, r_n)
+    diag: list[ca.MX] = [ca.MX()] * big_n
+    upper: list[ca.MX] = [ca.MX()] * big_n  # column k of the strictly upper triangle
+    g: list[ca.MX] = [ca.MX()] * big_n
+    for k in range(big_n - 1, -1, -1):
+        r, a, b, r_x, r_u, s_k = stages[k]
+        pb = ca.mtimes(p_next, b)
+        diag[k] = ca.mtimes(r_u.T, r_u) + ca.mtimes(b.T, pb)
+        g[k] = ca.mtimes(r_u.T, r) + ca.mtimes(b.T, l_next)
+        column = [ca.MX(NU * (big_n - k), NU)]
+        if k:
+            w = ca.mtimes(r_x.T, r_u) + ca.mtimes(a.T, pb)
+            column.insert(0, ca.mtimes(s_k.T, w))
+            p_next = ca.mtimes(r_x.T, r_x) + ca.mtimes(a.T, ca.mtimes(p_next, a))
+            l_next = ca.mtimes(r_x.T, r) + ca.mtimes(a.T, l_next)
+        upper[k] = ca.vertcat(*column)
+    strict = ca.horzcat(*upper)
+    return 2.0 * (strict + strict.T + ca.diagcat(*diag)), 2.0 * ca.vertcat(*g)
 
 
 class _StageFunctions:

@@ -257,3 +257,68 @@ def test_the_condensed_linearisation_is_the_rollouts(rti) -> None:  # type: igno
     h = hess.reshape(solver.n_u, solver.n_u)
     np.testing.assert_allclose(h, h.T, rtol=0, atol=1e-15)
     assert np.min(np.linalg.eigvalsh(h)) > 0
+
+
+@pytest.mark.parametrize("form", ["graph", "scalar"])
+def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti, form) -> None:  # type: ignore[no-untyped-def]
+    """rti_lin's H and g (rmpc.rti_linearisation "graph": the condensed J_r's product;
+    "scalar": a backward recursion over stage blocks, as scalar code) are 2 J_r' J_r and
+    2 J_r' r of the residuals of the whole rollout differentiated as one expression (no
+    condensing), and g is the gradient of the NLP's cost (central differences of rti_val's
+    cost)."""
+    import casadi as ca
+
+    from companion.core.rmpc_problem import NP_STAGE, NU
+    from companion.core.rmpc_rti_gen import _StageFunctions
+
+    if form != "graph":  # (not compiled here: the same function, evaluated by CasADi)
+        rti = Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", rti_linearisation=form,
+                                       jit=False), cfg.camera, design)
+    solver, eta0, par, u, lo, hi = _paper_step(rti)
+    hess, grad = (a.copy() for a in solver._lin(u, eta0, par)[:2])
+    big_n = cfg.rmpc.horizon
+    stage = _StageFunctions(cfg.rmpc, cfg.camera, design)
+    u_s, x = ca.SX.sym("U", NU * big_n), ca.SX(eta0)
+    res = []
+    for n in range(big_n):
+        out = stage.function(n)(x, u_s[NU * n: NU * (n + 1)],
+                                par[NP_STAGE * n: NP_STAGE * (n + 1)], par[-1])
+        res.append(out[1])
+        x = out[0]
+    res.append(ca.mtimes(np.linalg.cholesky(np.asarray(design.p, dtype=float)).T, x))
+    r_all = ca.vertcat(*res)
+    j_r = ca.Function("j", [u_s], [ca.jacobian(r_all, u_s), r_all])
+    jr, r = (np.asarray(v, dtype=float) for v in j_r(u))
+    np.testing.assert_allclose(hess.reshape(solver.n_u, solver.n_u), 2 * jr.T @ jr,
+                               rtol=1e-10, atol=1e-10 * np.max(np.abs(hess)))
+    np.testing.assert_allclose(grad, 2 * jr.T @ r.ravel(), rtol=1e-10,
+                               atol=1e-10 * np.max(np.abs(grad)))
+    step = 1e-6
+    for k in range(0, solver.n_u, 7):
+        du = np.zeros(solver.n_u)
+        du[k] = step
+        f_plus = float(solver._val(u + du, eta0, par, lo, hi)[1][0])
+        f_minus = float(solver._val(u - du, eta0, par, lo, hi)[1][0])
+        assert abs((f_plus - f_minus) / (2 * step) - grad[k]) <= 1e-6 * max(1.0, abs(grad[k]))
+
+
+@pytest.mark.parametrize("motion", ["planned_yaw", "nominal"])
+def test_the_warm_starts_law_and_parameters_are_the_generic_ones(cfg, design, motion) -> None:  # type: ignore[no-untyped-def]
+    """The RTI step's own copies of the terminal law (Rmpc._law_numbers) and of the parameter
+    vector (Rmpc._parameters) give the generic functions' numbers bit for bit, so the warm
+    start and the commands do not move."""
+    from companion.core.rmpc import TargetMotion
+
+    mpc = Rmpc(dataclasses.replace(cfg.rmpc, solver="nlp", target_motion=motion, jit=False),
+               cfg.camera, design)  # (not compiled: only the numpy side is used)
+    rng = np.random.default_rng(7)
+    big_n = cfg.rmpc.horizon
+    for _ in range(200):
+        target = TargetMotion(rng.normal(size=(big_n, 2)), rng.normal(size=(big_n, 2)),
+                              rng.normal(size=big_n) * 0.3, rng.normal(size=(big_n, 3)) * 0.1)
+        eta = rng.normal(size=7) * [0.3, 0.3, 0.2, 0.5, 1.0, 1.0, 0.5]
+        mpc._s4_ref = float(rng.normal())
+        n = int(rng.integers(big_n))
+        assert np.array_equal(mpc._law_numbers(eta, target, n), mpc._law(eta, target, n))
+        assert np.array_equal(mpc._parameters(eta, target),
+                              np.append(target.packed(), eta[3]))
