@@ -15,7 +15,8 @@ collective thrust (the vehicle's true hover thrust keeps it in the air, e.g. 0.5
 ``config/realistic.toml``).
 
 ``--lockstep-timeout S``: the emulator's ``sim.lockstep_timeout_s`` (10 s by default with
-``--digest``).
+``--digest``). ``--cv-threads N``: the emulator's OpenCV threads (``sim-bridge --cv-threads``;
+1 by default, 0 = OpenCV's own pool; the frames are the same either way).
 
 ``--digest``: an identity check of the emulator's output. The client switches the vehicle to
 OFFBOARD and flies a slow attitude wave (so the vehicle and the view move), and prints one
