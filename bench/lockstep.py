@@ -15,7 +15,8 @@ collective thrust (the vehicle's true hover thrust keeps it in the air, e.g. 0.5
 ``config/realistic.toml``).
 
 ``--lockstep-timeout S``: the emulator's ``sim.lockstep_timeout_s`` (10 s by default with
-``--digest``).
+``--digest``). ``--cv-threads N``: the emulator's OpenCV threads (``sim-bridge --cv-threads``;
+1 by default, 0 = OpenCV's own pool; the frames are the same either way).
 
 ``--digest``: an identity check of the emulator's output. The client switches the vehicle to
 OFFBOARD and flies a slow attitude wave (so the vehicle and the view move), and prints one
@@ -119,6 +120,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="write the emulator's cProfile here (CPU time: load-independent)")
     ap.add_argument("--config", default=None, help="scenario TOML for the emulator")
     ap.add_argument("--thrust", type=float, default=0.5, help="the client's hover thrust")
+    ap.add_argument("--cv-threads", type=int, default=1,
+                    help="the emulator's OpenCV threads (sim-bridge --cv-threads; 0: its pool)")
     ap.add_argument("--digest", action="store_true",
                     help="fly an attitude wave in OFFBOARD and print the output's SHA-256")
     ap.add_argument("--lockstep-timeout", type=float, default=None,
@@ -155,7 +158,7 @@ def _emulator_cmd(args: argparse.Namespace, p_sim: int, p_comp: int, p_frame: in
             "--gcs-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
             "--agv-port", str(free_port(socket.SOCK_DGRAM)), "--frame-port", str(p_frame),
             "--truth-remote", f"127.0.0.1:{free_port(socket.SOCK_DGRAM)}",
-            "--log-level", "WARNING"]
+            "--log-level", "WARNING", "--cv-threads", str(args.cv_threads)]
 
 
 def _connect_frames(p_frame: int) -> socket.socket:

@@ -173,6 +173,9 @@ class SimBridge:
         # lockstep: frames delivered and not yet answered by a setpoint (one answer per frame)
         self.unanswered = 0
         self.delivered_this_step = 0
+        # the newest delivered frame's header stamp in ms: an answer stamped with it answers
+        # every frame delivered before it too (answered())
+        self.newest_stamp_ms: int | None = None
         # links whose setpoints are counted before the impairment (_on_raw_datagram)
         self.raw_counted: set[str] = set()
         self.steps = 0
@@ -262,16 +265,33 @@ class SimBridge:
         releases the step even if the network then drops, corrupts or delays it: the client
         has answered; what the network does to the answer is the experiment."""
         if self.lockstep and msgid_of(data) == SET_ATTITUDE_TARGET:
-            self.answered()
+            # time_boot_ms: the payload's first field (MAVLink 2 strips trailing zeros)
+            self.answered(int.from_bytes(data[10:10 + min(4, data[1])], "little"))
 
-    def answered(self) -> None:
+    def answered(self, time_boot_ms: int | None = None) -> None:
         """Lockstep: a setpoint answers one delivered frame; the step is released once every
         frame delivered in it has its answer. (Releasing on the first setpoint let the answer
         to a step's second frame, when latency jitter delivers two, release the NEXT step
-        before its frame was handled: the emulator then ran a frame ahead of its client.)"""
+        before its frame was handled: the emulator then ran a frame ahead of its client.)
+
+        A setpoint whose ``time_boot_ms`` is the newest delivered frame's stamp (its header's
+        ``t_us`` in ms, within half a step: two frames are captured a step apart or more)
+        answers all of them: a client that reads only the newest frame (the companion's
+        ``?frames=newest``) skips the older one of a step that delivered two, and releases the
+        step with its answer. Any other stamp counts as one answer, as before."""
+        if self.unanswered > 1 and time_boot_ms is not None and self._is_newest(time_boot_ms):
+            self.unanswered = 0
         self.unanswered = max(0, self.unanswered - 1)
         if self.unanswered == 0:
             self.setpoint_event.set()
+
+    def _is_newest(self, time_boot_ms: int) -> bool:
+        """Whether ``time_boot_ms`` is the newest delivered frame's stamp (+- half a step,
+        modulo the u32 wrap)."""
+        if self.newest_stamp_ms is None:
+            return False
+        d = (time_boot_ms - self.newest_stamp_ms + 2**31) % 2**32 - 2**31
+        return abs(d) < 500 * self.cfg.sim.step_dt_s
 
     def note_changes(self, t: float) -> None:
         """Log a change of the autopilot's mode or arming state."""
@@ -341,6 +361,7 @@ class SimBridge:
 
     async def deliver_frames(self, now_s: float) -> None:
         for seq, stamp_us, image in self.frame_line.pop_due(now_s):
+            self.newest_stamp_ms = (stamp_us // 1000) & 0xFFFFFFFF
             self._frames_delivered += 1
             self.delivered_this_step += 1
             self.unanswered += 1

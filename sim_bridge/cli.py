@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame-port", type=int, help="TCP port of the camera frame server")
     p.add_argument("--truth-remote", help="HOST:PORT for ground-truth JSON")
     p.add_argument("--log-level", default="INFO")
+    p.add_argument("--cv-threads", type=int, default=1,
+                   help="OpenCV threads for the render (default 1; 0: OpenCV's own pool). "
+                        "The frames are the same either way (docs/reference/emulator.md)")
     p.add_argument("--check-config", action="store_true",
                    help="validate the config (and --scenario) the way a run would, print a "
                         "summary and exit: 0 if valid, 2 with the offending key if not")
@@ -79,14 +82,16 @@ async def _run(sim: SimBridge, duration: float | None) -> None:
         log.info("stopped by signal")
 
 
-def _one_render_thread() -> None:
-    """OpenCV on the calling thread only (``cv2.setNumThreads(1)``): its pool splits each warp
-    and resize of a 1000 x 1000 frame across threads that spin between the calls (3.9 against
-    2.8 ms of CPU per render, load 6; docs/reference/emulator.md, "The step's cost"); every
-    pixel is computed the same either way."""
+def _render_threads(n: int) -> None:
+    """OpenCV's threads (``cv2.setNumThreads``; 1 by default: its pool splits each warp and
+    resize of a 1000 x 1000 frame across threads that spin between the calls, 3.9 against 2.8
+    ms of CPU per render, load 6; docs/reference/emulator.md, "The step's cost"). OpenCV
+    splits by rows and computes every pixel the same either way."""
     import cv2
 
-    cv2.setNumThreads(1)
+    if n < 0:
+        raise SimBridgeError(f"--cv-threads: must be >= 0, got {n}")
+    cv2.setNumThreads(n if n > 0 else -1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -108,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         from sim_bridge.app import SimBridge  # not needed (nor its imports) to check a config
 
-        _one_render_thread()
+        _render_threads(args.cv_threads)
 
         changes = {k: v for k, v in {
             "offboard_local_port": args.offboard_port, "offboard_remote": args.offboard_remote,

@@ -44,6 +44,11 @@ _MAX_FULL_KERNEL_PX = 11  # cv2.filter2D switches to a (16x slower) DFT above th
 _CV_FROM_CAM = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _within(points: list[list[float]], col_max: float, row_max: float) -> bool:
+    """Every ``(col, row)`` in ``[-0.5, col_max] x [-0.5, row_max]``."""
+    return all(-0.5 <= c <= col_max and -0.5 <= r <= row_max for c, r in points)
+
+
 def quat_to_matrix(q_wxyz: Sequence[float] | np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) of a quaternion (w, x, y, z), normalised first: bit for bit
     scipy's ``Rotation.from_quat([x, y, z, w]).as_matrix()`` (same operations in the same
@@ -268,18 +273,11 @@ class Camera:
         target_ideal = ideal[8:12] if self.pattern == "aruco" else ideal[0:4]
         target_z = z_cv[8:12] if self.pattern == "aruco" else z_cv[0:4]
         w, h = self.width_px, self.height_px
-        inside = bool(
-            np.all(target_z > NEAR_M)
-            and np.all(target_px[:, 0] >= -0.5)
-            and np.all(target_px[:, 0] <= w - 0.5)
-            and np.all(target_px[:, 1] >= -0.5)
-            and np.all(target_px[:, 1] <= h - 0.5)
-            # a distortion polynomial can fold far-off points back into the image
-            and np.all(target_ideal[:, 0] >= -0.5)
-            and np.all(target_ideal[:, 0] <= self.lens.rw - 0.5)
-            and np.all(target_ideal[:, 1] >= -0.5)
-            and np.all(target_ideal[:, 1] <= self.lens.rh - 0.5)
-        )
+        # a distortion polynomial can fold far-off points back into the image: the canvas
+        # pixels too (plain floats: nine numpy reductions cost ~0.2 ms a frame)
+        inside = (all(z > NEAR_M for z in target_z.tolist())
+                  and _within(target_px.tolist(), w - 0.5, h - 0.5)
+                  and _within(target_ideal.tolist(), self.lens.rw - 0.5, self.lens.rh - 0.5))
         in_image = inside and bool(top_faces_camera) and not occluded
 
         if self.blur_px > 0:

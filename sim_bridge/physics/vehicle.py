@@ -319,6 +319,16 @@ class _Outputs(NamedTuple):
     hover: float
 
 
+class _Held(NamedTuple):
+    """What the command held over a step fixes for each of its sub-steps."""
+
+    cmd: AttitudeCommand
+    alpha: float  # the attitude lag's factor per sub-step, 1 - exp(-dt / tau)
+    thrust: float  # clipped to 0..1, 0 with the motors off
+    roll_sp: float  # the tilt setpoint clipped to max_tilt_rad
+    pitch_sp: float
+
+
 class VehicleModel:
     """Fixed-step integrator. ``step(state, cmd, duration_s)`` advances by whole ``dt_s``
     sub-steps (``round(duration_s / dt_s)`` of them, at least one) with the command held."""
@@ -330,6 +340,14 @@ class VehicleModel:
         self.params = params
         self.disturbance = disturbance or Disturbance(DisturbanceParams())
         self.dt_s = dt_s
+        self._dist_last: Vec | None = None
+        self._dist_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def _dist_floats(self, dist: Vec) -> tuple[float, float, float]:
+        """``dist`` as floats; the disturbance returns the same array while it is constant."""
+        if dist is not self._dist_last:
+            self._dist_last, self._dist_xyz = dist, tuple(dist.tolist())
+        return self._dist_xyz
 
     def true_hover_thrust(self, t_s: float) -> float:
         """The thrust that hovers the vehicle at ``t_s`` (``hover_thrust`` over the battery's
@@ -350,15 +368,18 @@ class VehicleModel:
         """``round(duration_s / dt_s)`` sub-steps (at least one) with ``cmd`` held. The
         sub-steps run on plain floats and only the last one becomes a :class:`VehicleState`
         (a 20-fold saving of small numpy arrays per lockstep step); every operation is the one
-        the array form did, in the same order, so the result is the same to the bit."""
+        the array form did, in the same order, so the result is the same to the bit. What the
+        held command fixes (the clipped tilt setpoint, the thrust, the lag's factor) is worked
+        out once per step: the same numbers each sub-step computed before."""
         n = max(1, round(duration_s / self.dt_s))
         pos, vel = s.pos_ned_m, s.vel_ned_m_s
         x = _Substate(s.t_s, float(pos[0]), float(pos[1]), float(pos[2]), float(vel[0]),
                       float(vel[1]), float(vel[2]), s.roll_rad, s.pitch_rad, s.yaw_rad,
                       s.on_ground)
+        held = self._held(cmd)
         out: _Outputs | None = None
         for _ in range(n):
-            x, out = self._substep(x, cmd)
+            x, out = self._substep(x, held)
         assert out is not None
         return VehicleState(t_s=x.t_s, pos_ned_m=np.array([x.px, x.py, x.pz]),
                             vel_ned_m_s=np.array([x.vx, x.vy, x.vz]), roll_rad=x.roll,
@@ -368,27 +389,31 @@ class VehicleModel:
                             on_ground=x.on_ground, disturbance_ned_m_s2=out.dist,
                             hover_thrust_true=out.hover)
 
-    def _attitude_step(self, x: _Substate, cmd: AttitudeCommand, alpha: float
-                       ) -> tuple[float, float, float]:
-        """The attitude's change over one sub-step (first-order tracking, rate-limited)."""
+    def _held(self, cmd: AttitudeCommand) -> _Held:
+        """What ``cmd`` fixes for every sub-step of a step."""
         p, dt = self.params, self.dt_s
+        r_sp, p_sp = (clip_tilt(cmd.roll_rad, cmd.pitch_rad, p.max_tilt_rad) if cmd.motors_on
+                      else (0.0, 0.0))
+        return _Held(cmd, 1.0 - math.exp(-dt / p.attitude_tau_s),
+                     min(1.0, max(0.0, cmd.thrust_norm)) if cmd.motors_on else 0.0, r_sp, p_sp)
+
+    def _attitude_step(self, x: _Substate, h: _Held) -> tuple[float, float, float]:
+        """The attitude's change over one sub-step (first-order tracking, rate-limited)."""
+        p, dt, cmd, alpha = self.params, self.dt_s, h.cmd, h.alpha
         if not cmd.motors_on:
             return 0.0, 0.0, 0.0
-        r_sp, p_sp = clip_tilt(cmd.roll_rad, cmd.pitch_rad, p.max_tilt_rad)
         lim = p.max_tilt_rate_rad_s * dt
-        d_roll = _clamp(alpha * wrap_pi(r_sp - x.roll), lim)
-        d_pitch = _clamp(alpha * wrap_pi(p_sp - x.pitch), lim)
+        d_roll = _clamp(alpha * wrap_pi(h.roll_sp - x.roll), lim)
+        d_pitch = _clamp(alpha * wrap_pi(h.pitch_sp - x.pitch), lim)
         ylim = p.max_yaw_rate_rad_s * dt
         d_yaw = _clamp(alpha * wrap_pi(cmd.yaw_rad - x.yaw) + cmd.yaw_rate_ff_rad_s * dt, ylim)
         return d_roll, d_pitch, d_yaw
 
-    def _substep(self, x: _Substate, cmd: AttitudeCommand) -> tuple[_Substate, _Outputs]:
-        p, dt = self.params, self.dt_s
-        alpha = 1.0 - math.exp(-dt / p.attitude_tau_s)
-        thrust = min(1.0, max(0.0, cmd.thrust_norm)) if cmd.motors_on else 0.0
-        d_roll, d_pitch, d_yaw = self._attitude_step(x, cmd, alpha)
+    def _substep(self, x: _Substate, h: _Held) -> tuple[_Substate, _Outputs]:
+        p, dt, alpha, thrust = self.params, self.dt_s, h.alpha, h.thrust
+        d_roll, d_pitch, d_yaw = self._attitude_step(x, h)
         hover = self.true_hover_thrust(x.t_s)
-        if x.on_ground and (thrust <= hover or not cmd.motors_on):
+        if x.on_ground and (thrust <= hover or not h.cmd.motors_on):
             # resting on the ground: no tipping over below lift-off thrust
             d_roll, d_pitch = -x.roll * alpha, -x.pitch * alpha
         roll, pitch, yaw = x.roll + d_roll, x.pitch + d_pitch, wrap_pi(x.yaw + d_yaw)
@@ -396,16 +421,17 @@ class VehicleModel:
 
         t_next = x.t_s + dt
         dist = self.disturbance.accel_ned_m_s2(x.t_s)
+        dx, dy, dz = self._dist_floats(dist)
         # specific thrust R(roll, pitch, yaw) [0, 0, c]: R's third column times c
-        c = -p.g_m_s2 * thrust / self.true_hover_thrust(x.t_s)
+        c = -p.g_m_s2 * thrust / hover
         cr, sr = math.cos(roll), math.sin(roll)
         cp, sp = math.cos(pitch), math.sin(pitch)
         cy, sy = math.cos(yaw), math.sin(yaw)
         sx, sy_, sz = (cy * sp * cr + sy * sr) * c, (sy * sp * cr - cy * sr) * c, (cp * cr) * c
         drag = p.drag_per_s
-        ax = ((sx + 0.0) - drag * x.vx) + float(dist[0])
-        ay = ((sy_ + 0.0) - drag * x.vy) + float(dist[1])
-        az = ((sz + p.g_m_s2) - drag * x.vz) + float(dist[2])
+        ax = ((sx + 0.0) - drag * x.vx) + dx
+        ay = ((sy_ + 0.0) - drag * x.vy) + dy
+        az = ((sz + p.g_m_s2) - drag * x.vz) + dz
         vx, vy, vz = x.vx + ax * dt, x.vy + ay * dt, x.vz + az * dt
         px, py, pz = x.px + vx * dt, x.py + vy * dt, x.pz + vz * dt  # semi-implicit Euler
         on_ground = False

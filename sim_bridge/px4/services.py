@@ -78,7 +78,7 @@ class Services:
             thrust_norm=float(msg.thrust))
         self.sim.px4.on_attitude_target(t, sp)
         if link.name not in self.sim.raw_counted:
-            self.sim.answered()
+            self.sim.answered(int(msg.time_boot_ms))
         self.sim.note_changes(t)
 
     def _on_ping(self, link: MavUdpLink, msg: Any, addr: Address, t: float) -> None:

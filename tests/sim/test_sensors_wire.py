@@ -156,3 +156,39 @@ def test_ideal_levels_change_nothing() -> None:
     assert cfg.sim.camera_model == CameraModelConfig()
     assert cfg.sim.telemetry == TelemetryConfig()
     assert dataclasses.asdict(cfg.sim.camera_model)["level"] == "ideal"
+
+
+def test_lockstep_answer_to_the_newest_frame_releases_a_step_of_two(client: MavClient) -> None:
+    """Lockstep, latency 60 +- 15 ms: some steps deliver two frames. A client that reads only
+    the newest frame (the companion's ``?frames=newest``) answers it alone, stamped with its
+    capture time: that answer releases the step (no lockstep timeout), where counting answers
+    would wait out the timeout for the skipped frame."""
+    cm = CameraModelConfig(latency_ms=60.0, latency_jitter_ms=15.0)
+    cfg = make_config(time_mode="lockstep", lockstep_timeout_s=1.0, camera_model=cm,
+                      telemetry=TelemetryConfig(boot_offset_s=BOOT_OFFSET_S))
+    cfg = with_link(cfg, offboard_remote=f"127.0.0.1:{client.port}")
+    q = [1.0, 0.0, 0.0, 0.0]
+    batches: list[int] = []
+    with run_sim(cfg, duration_s=6.0) as rs:
+        client.target = ("127.0.0.1", rs.ports["offboard"])
+        cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=5.0)
+        try:
+            cam.settimeout(5.0)
+            while rs.thread.is_alive():
+                try:
+                    batch = [read_frame(cam)[0]]
+                    while select.select([cam], [], [], 0.03)[0]:
+                        batch.append(read_frame(cam)[0])
+                except (TimeoutError, ConnectionError):
+                    break
+                batches.append(len(batch))
+                newest_ms = batch[-1]["t_us"] // 1000
+                client.send(client.mav.set_attitude_target_encode(
+                    newest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
+        finally:
+            cam.close()
+        stats = rs.stop()
+    assert stats is not None
+    assert batches.count(2) >= 5, batches  # steps that delivered two frames (~5/36 of them)
+    assert stats.lockstep_timeouts <= 1  # the first step, before the client connected
+    assert stats.steps == 120
