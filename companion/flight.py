@@ -126,10 +126,10 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera",
-        # every frame answered in turn: the lockstep emulator waits for one answer per frame it
-        # delivers (two when latency jitter delivers two in a step); skipping to the newer one
-        # (a real camera's backlog, ?frames=newest) would cost a lockstep timeout a skip
-        f"tcp://127.0.0.1:{p_frame}?frames=all",
+        # the default intake (?frames=newest, as in a realtime flight): the lockstep emulator
+        # takes a setpoint stamped with the newest delivered frame's time as the answer to every
+        # frame delivered so far (docs/reference/wire.md), so a skipped stale frame costs nothing
+        f"tcp://127.0.0.1:{p_frame}",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / READY_FILE),
         "--progress-file", str(out / PROGRESS_FILE),
