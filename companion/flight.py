@@ -126,10 +126,10 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         *[a for o in overrides for a in ("--set", o)],
         *[a for f in faults for a in ("--inject-fault", f)],
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera",
-        # the default intake (?frames=newest, as in a realtime flight): the lockstep emulator
-        # takes a setpoint stamped with the newest delivered frame's time as the answer to every
-        # frame delivered so far (docs/reference/wire.md), so a skipped stale frame costs nothing
-        f"tcp://127.0.0.1:{p_frame}",
+        # every frame answered in turn (the flights as flown before, one step per frame); a
+        # client on the default intake (?frames=newest, realtime) also keeps lockstep: the
+        # emulator takes an answer stamped with the newest frame's time for every frame before it
+        f"tcp://127.0.0.1:{p_frame}?frames=all",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / READY_FILE),
         "--progress-file", str(out / PROGRESS_FILE),
