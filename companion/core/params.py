@@ -177,6 +177,12 @@ class RmpcParams:
     # docs/records/2026-11-offset-free.md section 4).
     recovery_q_diag: tuple[float, float, float, float, float, float, float] | None = None
     recovery_eps: float | None = None
+    # Which tube, visibility and terminal rows the soft copy's slacks relax when it has its
+    # own design (recovery_q_diag / recovery_eps): "own" (that design's P, eps and gamma) or
+    # "hard" (the hard problem's: the slacks then measure how far the plan is from the hard
+    # problem's feasible set, whose reach ends recovery; the soft design keeps the cost).
+    # An old config without the key reads "own", as it flew.
+    recovery_rows: str = "own"
     # A second, loaded solver process on stand-by (solve_isolation = "process"): a timeout or
     # a lost solver process promotes it, so the next step solves instead of flying the
     # terminal law while a fresh process loads (~0.6-1 s). ~60 MB and ~0.7 s of CPU once.
@@ -235,6 +241,7 @@ class RmpcParams:
             ("solve_isolation", self.solve_isolation, ("process", "none")),
             ("solve_time_clock", self.solve_time_clock, ("wall", "cpu")),
             ("rti_linearisation", self.rti_linearisation, ("graph", "scalar")),
+            ("recovery_rows", self.recovery_rows, ("own", "hard")),
         ):
             if value not in allowed:
                 raise ParamError(

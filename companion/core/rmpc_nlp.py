@@ -54,9 +54,13 @@ class NlpSolver:
         solver: str, clock: Callable[[], float] | None = None,
     ) -> None:
         self._clock = clock
+        row_design = None
         if soft:
+            # recovery_rows = "hard": the soft copy relaxes the hard problem's rows (only its
+            # cost is its own design's), so its slacks measure the distance to the hard set
+            row_design = (rmpc, terminal) if rmpc.recovery_rows == "hard" else None
             rmpc, terminal = recovery_design(rmpc, camera, terminal)
-        nlp, layout = build_nlp(rmpc, camera, terminal, soft)
+        nlp, layout = build_nlp(rmpc, camera, terminal, soft, row_design)
         self.layout: Layout = layout
         self.kind = "soft" if soft else "hard"
         self.solver_name = solver

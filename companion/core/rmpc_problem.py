@@ -42,7 +42,10 @@ The soft copy subtracts a slack ``>= 0`` from each of these rows and adds
 terminal rows) to the cost (an exact L1 penalty); dynamics, input bounds and the state box stay
 hard, except that a velocity bound the measured state already exceeds is moved out to where
 braking at an admissible rate can bring it (``rmpc.velocity_box_return``; otherwise the soft
-copy would be infeasible at stage 1).
+copy would be infeasible at stage 1). A soft copy with its own weights
+(``rmpc.recovery_q_diag``, :func:`companion.core.rmpc_recovery.recovery_design`) relaxes its
+own design's rows, or with ``rmpc.recovery_rows = "hard"`` the hard problem's (``build_nlp``'s
+``row_design``: the cost stays the soft design's).
 """
 
 from __future__ import annotations
@@ -227,9 +230,11 @@ def centre(u: Any, rmpc: RmpcParams, camera: CameraParams, d: Any = None) -> tup
 
 
 def build_nlp(
-    rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool
+    rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
+    row_design: tuple[RmpcParams, TerminalDesign] | None = None,
 ) -> tuple[dict[str, ca.SX], Layout]:
-    """The NLP ``{x, p, f, g}`` (SX) and its layout. See the module docstring."""
+    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``: module docstring."""
+    row_rmpc, row_terminal = row_design or (rmpc, terminal)
     big_n = rmpc.horizon
     q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)
     p_mat = np.asarray(terminal.p, dtype=float)
@@ -261,8 +266,8 @@ def build_nlp(
                   d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
-        for group, kind, val, upper, corner in _path_items(rmpc, camera, terminal, n, x, u,
-                                                           x_next, d, vis_stage):
+        for group, kind, val, upper, corner in _path_items(row_rmpc, camera, row_terminal, n,
+                                                           x, u, x_next, d, vis_stage):
             s_idx: int | None = None
             if soft:
                 s = ca.SX.sym(f"sl_{kind}_{n}")
@@ -281,9 +286,7 @@ def build_nlp(
         x, u = xs[n], us[n]
         pn_ = par[NP_STAGE * n : NP_STAGE * (n + 1)]
         v_a, vdot_a, psidot_a = stage_motion(rmpc, x, u, pn_[0:2], pn_[2:4], pn_[4], s4_ref)
-        d_n = pn_[5:8]
-        x_index[n] = add_w(x)
-        u_index[n] = add_w(u)
+        x_index[n], u_index[n] = add_w(x), add_w(u)  # in this order: w is x_n, u_n, ...
         ue = input_error(u, v_a, vdot_a, psidot_a)
         cost = cost + ca.bilin(q, x, x) + ca.bilin(r, ue, ue)
         x_next = euler_step(x, u, v_a, vdot_a, psidot_a, rmpc.desired_depth_m, rmpc.dt_s)
@@ -294,7 +297,7 @@ def build_nlp(
         g.append(gap)
         equality.extend([True] * NX)
         n_g += NX
-        path_rows(n, x, u, x_next, d_n)
+        path_rows(n, x, u, x_next, pn_[5:8])  # d: the estimated disturbance
     if soft:
         cost = cost + _input_rate(rmpc, us, par)
     x_index[big_n] = add_w(xs[big_n])
