@@ -21,6 +21,7 @@ mapping is written), normalised ``(u, n)/lambda``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -190,16 +191,22 @@ def rotation_from_quat(q_wxyz: ArrayLike) -> np.ndarray:
     )
 
 
-def body_z_from_quat(q_wxyz: tuple[float, float, float, float]) -> tuple[float, float, float]:
-    """The body z axis in NED, ``rotation_from_quat(q)[:, 2]`` (the same values, on plain
-    floats); :class:`GeometryError` as there."""
+def _unit_quat(q_wxyz: Sequence[float]) -> tuple[float, float, float, float]:
+    """``q / |q|`` on plain floats (rotation_from_quat's normalisation, the same values);
+    :class:`GeometryError` for a non-finite or zero quaternion, as there."""
     w, x, y, z = (float(v) for v in q_wxyz)
     nrm = math.sqrt(w * w + x * x + y * y + z * z)
     if not math.isfinite(nrm):
         raise GeometryError("rotation_from_quat: non-finite input")
     if nrm < 1e-9:
         raise GeometryError("rotation_from_quat: zero quaternion")
-    w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+    return w / nrm, x / nrm, y / nrm, z / nrm
+
+
+def body_z_from_quat(q_wxyz: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """The body z axis in NED, ``rotation_from_quat(q)[:, 2]`` (the same values, on plain
+    floats); :class:`GeometryError` as there."""
+    w, x, y, z = _unit_quat(q_wxyz)
     return 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
 
 
@@ -228,13 +235,7 @@ def euler_zyx_from_quat(q_wxyz: ArrayLike) -> tuple[float, float, float]:
     if isinstance(q_wxyz, tuple | list) and len(q_wxyz) == 4:
         # a telemetry sample's tuple or list (every step): the same formulas as the
         # matrix path below, on plain floats
-        w, x, y, z = (float(v) for v in q_wxyz)
-        nrm = math.sqrt(w * w + x * x + y * y + z * z)
-        if not math.isfinite(nrm):
-            raise GeometryError("rotation_from_quat: non-finite input")
-        if nrm < 1e-9:
-            raise GeometryError("rotation_from_quat: zero quaternion")
-        w, x, y, z = w / nrm, x / nrm, y / nrm, z / nrm
+        w, x, y, z = _unit_quat(q_wxyz)
         theta = -math.asin(max(-1.0, min(1.0, 2 * (x * z - w * y))))
         phi = math.atan2(2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
         psi = math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))

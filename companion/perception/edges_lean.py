@@ -118,18 +118,9 @@ def refine_quad_lean(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSe
     ``e`` px along ``nrm``. Lines are fitted to ``(j sp, e)`` in that frame (a rotation: the
     same total-least-squares line as in the image) and mapped back."""
     g = _grid(s)
-    c = np.asarray(corners, dtype=np.float64).tolist()
-    margin = 1.5 * s.profile_half_px + 1.0
-    frames = []
-    for i in range(4):
-        (ax, ay), (bx, by) = c[i], c[(i + 1) % 4]
-        dx, dy = bx - ax, by - ay
-        length = math.sqrt(dx * dx + dy * dy)
-        if length < 2.0 * margin + 4.0:
-            return None
-        tx, ty = dx / length, dy / length
-        frames.append((ax + margin * tx, ay + margin * ty, tx, ty,
-                       (length - 2.0 * margin) / (s.samples_per_edge - 1)))
+    frames = edge_frames(corners, s)
+    if frames is None:
+        return None
     u = g.j[None, :] * np.array([f[4] for f in frames])[:, None]  # (4, N) along each edge
     e, ok, width = _pass(gray, frames, _ONES, g, s, True)
     lines = _fit(u, e, ok, False)
@@ -153,6 +144,25 @@ _Frame = tuple[float, float, float, float, float]  # p0 x, y; t x, y; profile sp
 _Line = tuple[float, float, float, float, float, float]  # u, v of a point; cos, sin; rms, kept
 _ONES = [1.0, 1.0, 1.0, 1.0]
 
+
+
+def edge_frames(corners: FloatArray, s: LeanSettings) -> list[_Frame] | None:
+    """Each edge's frame (origin, unit direction, profile spacing) from the quad's corners,
+    the profiles kept ``1.5 profile_half_px + 1`` px from the corners; None when an edge is
+    too short for that."""
+    c = np.asarray(corners, dtype=np.float64).tolist()
+    margin = 1.5 * s.profile_half_px + 1.0
+    frames = []
+    for i in range(4):
+        (ax, ay), (bx, by) = c[i], c[(i + 1) % 4]
+        dx, dy = bx - ax, by - ay
+        length = math.sqrt(dx * dx + dy * dy)
+        if length < 2.0 * margin + 4.0:
+            return None
+        tx, ty = dx / length, dy / length
+        frames.append((ax + margin * tx, ay + margin * ty, tx, ty,
+                       (length - 2.0 * margin) / (s.samples_per_edge - 1)))
+    return frames
 
 def _pass(gray: npt.NDArray[np.uint8], frames: list[_Frame], scale: list[float], g: _Grid,
           s: LeanSettings, want_width: bool

@@ -44,6 +44,7 @@ from companion.perception.edges_lean import (
     _intersections,
     _Line,
     _on_line,
+    edge_frames,
 )
 
 _F32 = npt.NDArray[np.float32]
@@ -111,18 +112,9 @@ def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanS
     that stretch, and ends the passes when it moves no line end farther than
     ``_ACCEPT_PX``."""
     g = _grid(s)
-    c = np.asarray(corners, dtype=np.float64).tolist()
-    margin = 1.5 * s.profile_half_px + 1.0
-    frames = []
-    for i in range(4):
-        (ax, ay), (bx, by) = c[i], c[(i + 1) % 4]
-        dx, dy = bx - ax, by - ay
-        length = math.sqrt(dx * dx + dy * dy)
-        if length < 2.0 * margin + 4.0:
-            return None
-        tx, ty = dx / length, dy / length
-        frames.append((ax + margin * tx, ay + margin * ty, tx, ty,
-                       (length - 2.0 * margin) / (s.samples_per_edge - 1)))
+    frames = edge_frames(corners, s)
+    if frames is None:
+        return None
     u = g.j[None, :] * np.array([f[4] for f in frames])[:, None]  # (4, N) along each edge
     tracked = scale is not None
     e, ok, width = _pass(gray, frames, scale if scale is not None else _ONES, g, s, True)
