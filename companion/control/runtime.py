@@ -452,7 +452,7 @@ class CompanionApp:
                     link.send_attitude_target(res.setpoint.q_wxyz.tolist(),
                                               res.setpoint.thrust_norm,
                                               time_boot_ms=int(max(t_s, 0.0) * 1e3) & 0xFFFFFFFF)
-                    sent_ns = time.monotonic_ns()
+                    sent_ns = link.last_tx_ns  # when it left, not after its log record
                     self.sent += 1
                     self.offboard.on_streamed(t_s)
                 except NoPeerError:

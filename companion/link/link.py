@@ -31,6 +31,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from companion.link import wire
 from companion.link.commands import LinkCommands
 from companion.link.endpoints import parse_connection_string
 from companion.link.errors import LinkError, NoPeerError
@@ -129,6 +130,7 @@ class MavlinkLink(LinkCommands):
         self.limits = limits or ValueLimits()
         self._clock_ns = clock_ns
         self._on_rx, self._on_tx = on_rx, on_tx
+        self.last_tx_ns: int | None = None  # monotonic ns right after the last frame's send
         self._queue_size = queue_size
         self._queue_frames = queue_frames
         self.counters: Counter[str] = Counter()
@@ -468,7 +470,7 @@ class MavlinkLink(LinkCommands):
         if self._verifier is not None:
             self._enc.signing.timestamp = max(self._enc.signing.timestamp, signing_timestamp_now())
         try:
-            raw = bytes(msg.pack(self._enc))
+            raw = wire.pack(msg, self._enc)
         except Exception as e:  # struct.error / MAVError on out-of-range fields
             raise LinkError(f"cannot encode {msg.get_type()}: {e}") from e
         self._enc.seq = (self._enc.seq + 1) % 256
@@ -486,15 +488,8 @@ class MavlinkLink(LinkCommands):
         except OSError as e:
             self._count("tx_errors")
             raise LinkError(f"send {msg.get_type()} on {self.endpoint}: {e}") from e
+        self.last_tx_ns = time.monotonic_ns()  # the frame left (its log record is made after)
         self._count("tx_frames")
         if self._on_tx is not None:
-            self._on_tx(
-                Sent(
-                    msg=msg,
-                    raw=raw,
-                    t_tx_ns=self._clock_ns(),
-                    msgid=msg.get_msgId(),
-                    name=msg.get_type(),
-                )
-            )
+            self._on_tx(Sent(msg, raw, self._clock_ns(), msg.get_msgId(), msg.get_type()))
         return raw

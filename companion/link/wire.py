@@ -113,6 +113,30 @@ def decode_fields(data: bytes, h: Header, s: _Spec) -> dict[str, Any]:
     return out
 
 
+_HEADER_V2 = struct.Struct("<BBBBBBBHB")
+_ATTITUDE_TARGET = mavlink2.MAVLink_set_attitude_target_message
+_ATTITUDE_TARGET_CRC_EXTRA = bytes([_ATTITUDE_TARGET.crc_extra])
+
+
+def pack(msg: Any, mav: Any) -> bytes:
+    """``msg``'s MAVLink 2 frame from ``mav`` (seq, source ids, signing), byte for byte what
+    ``msg.pack(mav)`` gives. SET_ATTITUDE_TARGET, unsigned (the setpoint every step), is packed
+    here with the message's precompiled struct (~3 us instead of pymavlink's ~11 us: its header
+    object, bytearray copies and CRC object); anything else (a signed link too) by pymavlink."""
+    if type(msg) is not _ATTITUDE_TARGET or mav.signing.sign_outgoing:
+        return bytes(msg.pack(mav))
+    q = msg.q
+    payload = msg.unpacker.pack(msg.time_boot_ms, q[0], q[1], q[2], q[3], msg.body_roll_rate,
+                                msg.body_pitch_rate, msg.body_yaw_rate, msg.thrust,
+                                msg.target_system, msg.target_component, msg.type_mask)
+    # MAVLink 2 drops the payload's trailing zero bytes (at least one byte stays)
+    payload = payload.rstrip(b"\x00") or payload[:1]
+    msgid = _ATTITUDE_TARGET.id
+    frame = _HEADER_V2.pack(MAGIC_V2, len(payload), 0, 0, mav.seq, mav.srcSystem,
+                            mav.srcComponent, msgid & 0xFFFF, msgid >> 16) + payload
+    return frame + _CRC.pack(_mcrf4xx(_ATTITUDE_TARGET_CRC_EXTRA, _mcrf4xx(frame[1:], 0xFFFF)))
+
+
 class LazyMessage:
     """``Received.msg`` of a fast-path frame: the pymavlink message, decoded from the frame's
     bytes only when someone asks for one of its attributes (the flight never does; tests and
@@ -136,4 +160,5 @@ class LazyMessage:
         return repr(self._decoded())
 
 
-__all__ = ["Header", "LazyMessage", "crc_ok", "decode_fields", "single_frame_header", "spec"]
+__all__ = ["Header", "LazyMessage", "crc_ok", "decode_fields", "pack", "single_frame_header",
+           "spec"]
