@@ -126,9 +126,9 @@ def pack(msg: Any, mav: Any) -> bytes:
     if type(msg) is not _ATTITUDE_TARGET or mav.signing.sign_outgoing:
         return bytes(msg.pack(mav))
     q = msg.q
-    payload: bytes = msg.unpacker.pack(msg.time_boot_ms, q[0], q[1], q[2], q[3], msg.body_roll_rate,
-                                msg.body_pitch_rate, msg.body_yaw_rate, msg.thrust,
-                                msg.target_system, msg.target_component, msg.type_mask)
+    payload: bytes = msg.unpacker.pack(
+        msg.time_boot_ms, q[0], q[1], q[2], q[3], msg.body_roll_rate, msg.body_pitch_rate,
+        msg.body_yaw_rate, msg.thrust, msg.target_system, msg.target_component, msg.type_mask)
     # MAVLink 2 drops the payload's trailing zero bytes (at least one byte stays)
     payload = payload.rstrip(b"\x00") or payload[:1]
     msgid = _ATTITUDE_TARGET.id
