@@ -17,6 +17,7 @@ here (a byte-wise state machine in Python, then the decode); this ~4 us.
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import fastcrc
@@ -114,27 +115,43 @@ def decode_fields(data: bytes, h: Header, s: _Spec) -> dict[str, Any]:
 
 
 _HEADER_V2 = struct.Struct("<BBBBBBBHB")
-_ATTITUDE_TARGET = mavlink2.MAVLink_set_attitude_target_message
-_ATTITUDE_TARGET_CRC_EXTRA = bytes([_ATTITUDE_TARGET.crc_extra])
+
+
+def _attitude_target_payload(msg: Any) -> bytes:
+    q = msg.q
+    return msg.unpacker.pack(  # type: ignore[no-any-return]
+        msg.time_boot_ms, q[0], q[1], q[2], q[3], msg.body_roll_rate, msg.body_pitch_rate,
+        msg.body_yaw_rate, msg.thrust, msg.target_system, msg.target_component, msg.type_mask)
+
+
+def _timesync_payload(msg: Any) -> bytes:
+    return msg.unpacker.pack(msg.tc1, msg.ts1)  # type: ignore[no-any-return]
+
+
+# what the step sends (the setpoint, the TIMESYNC probe before it): the wire field order of
+# the message's generated ``pack``, its CRC_EXTRA byte and msgid
+_PACKERS: dict[type, tuple[Callable[[Any], bytes], bytes, int]] = {
+    cls: (payload, bytes([cls.crc_extra]), cls.id) for cls, payload in (
+        (mavlink2.MAVLink_set_attitude_target_message, _attitude_target_payload),
+        (mavlink2.MAVLink_timesync_message, _timesync_payload))}
 
 
 def pack(msg: Any, mav: Any) -> bytes:
     """``msg``'s MAVLink 2 frame from ``mav`` (seq, source ids, signing), byte for byte what
-    ``msg.pack(mav)`` gives. SET_ATTITUDE_TARGET, unsigned (the setpoint every step), is packed
-    here with the message's precompiled struct (~3 us instead of pymavlink's ~11 us: its header
-    object, bytearray copies and CRC object); anything else (a signed link too) by pymavlink."""
-    if type(msg) is not _ATTITUDE_TARGET or mav.signing.sign_outgoing:
+    ``msg.pack(mav)`` gives. SET_ATTITUDE_TARGET and TIMESYNC, unsigned (sent every step), are
+    framed here with the message's precompiled struct (~3 us instead of pymavlink's ~11 us: its
+    header object, bytearray copies and CRC object); anything else (a signed link too) by
+    pymavlink."""
+    packer = _PACKERS.get(type(msg))
+    if packer is None or mav.signing.sign_outgoing:
         return bytes(msg.pack(mav))
-    q = msg.q
-    payload: bytes = msg.unpacker.pack(
-        msg.time_boot_ms, q[0], q[1], q[2], q[3], msg.body_roll_rate, msg.body_pitch_rate,
-        msg.body_yaw_rate, msg.thrust, msg.target_system, msg.target_component, msg.type_mask)
+    payload_of, crc_extra, msgid = packer
+    payload = payload_of(msg)
     # MAVLink 2 drops the payload's trailing zero bytes (at least one byte stays)
     payload = payload.rstrip(b"\x00") or payload[:1]
-    msgid = _ATTITUDE_TARGET.id
     frame = _HEADER_V2.pack(MAGIC_V2, len(payload), 0, 0, mav.seq, mav.srcSystem,
                             mav.srcComponent, msgid & 0xFFFF, msgid >> 16) + payload
-    return frame + _CRC.pack(_mcrf4xx(_ATTITUDE_TARGET_CRC_EXTRA, _mcrf4xx(frame[1:], 0xFFFF)))
+    return frame + _CRC.pack(_mcrf4xx(crc_extra, _mcrf4xx(frame[1:], 0xFFFF)))
 
 
 class LazyMessage:

@@ -202,7 +202,11 @@ def test_setpoint_packer_gives_pymavlink_bytes() -> None:
         assert wire.pack(msg, mav) == bytes(msg.pack(mav)), i
         n_fast += 1
     assert n_fast == 5000
-    other = mav.timesync_encode(0, 123)
+    for tc1, ts1 in [(0, 0), (0, 123), (2**63 - 1, -(2**63)), (1, 2**40)] + [
+            (rng.randrange(2**62), rng.randrange(2**62)) for _ in range(500)]:
+        msg = mav.timesync_encode(tc1, ts1)
+        assert wire.pack(msg, mav) == bytes(msg.pack(mav))
+    other = mav.heartbeat_encode(18, 8, 0, 0, 4)
     assert wire.pack(other, mav) == bytes(other.pack(mav))
     bad = mav.set_attitude_target_encode(2**32, 1, 1, 7, [1.0, 0, 0, 0], 0, 0, 0, 0.5)
     with pytest.raises(Exception) as fast:
