@@ -12,6 +12,8 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+from pymavlink.dialects.v20 import common as mavlink2
+
 from companion.link.errors import LinkError
 from companion.link.px4 import (
     ARM_FORCE_MAGIC,
@@ -23,6 +25,8 @@ from companion.link.px4 import (
     MAV_STATE_ACTIVE,
     MAV_TYPE_ONBOARD_CONTROLLER,
 )
+
+_ATTITUDE_TARGET = mavlink2.MAVLink_set_attitude_target_message
 
 
 class LinkCommands:
@@ -51,23 +55,16 @@ class LinkCommands:
         thrust = float(thrust_norm)
         if len(q) != 4 or not all(math.isfinite(x) for x in q):
             raise LinkError(f"attitude setpoint q_wxyz must be 4 finite numbers, got {q_wxyz!r}")
-        n = math.sqrt(sum(x * x for x in q))
+        w, x, y, z = q
+        n = math.sqrt(w * w + x * x + y * y + z * z)  # the sum's order of sum(x * x for x in q)
         if not 0.9 <= n <= 1.1:
             raise LinkError(f"attitude setpoint quaternion norm {n:.3f} is not ~1")
         if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
             raise LinkError(f"thrust_norm {thrust_norm!r} not in [0, 1]")
         t_ms = self.boot_time_ms() if time_boot_ms is None else time_boot_ms
-        return self._enc.set_attitude_target_encode(
-            t_ms,
-            self.target_system,
-            self.target_component,
-            ATTITUDE_THRUST_TYPE_MASK,
-            [x / n for x in q],
-            0.0,
-            0.0,
-            0.0,
-            thrust,
-        )
+        return _ATTITUDE_TARGET(t_ms, self.target_system, self.target_component,
+                                ATTITUDE_THRUST_TYPE_MASK, [w / n, x / n, y / n, z / n],
+                                0.0, 0.0, 0.0, thrust)
 
     def send_attitude_target(
         self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
