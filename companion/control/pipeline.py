@@ -123,7 +123,8 @@ class ControlPipeline:
     def step(self, image: np.ndarray | None, t_s: float, store: TelemetryStore,
              t_now_s: float | None = None, in_control: bool | None = None,
              perceived: PerceptionResult | None = None,
-             actuation_delay_s: float | None = None) -> StepResult:
+             actuation_delay_s: float | None = None,
+             send: Callable[[AttitudeSetpoint, float], None] | None = None) -> StepResult:
         """One frame captured at ``t_s``; ``t_now_s``: the time the step runs (same time base;
         default ``t_s``, i.e. no latency known); ``actuation_delay_s``: from ``t_now_s`` to the
         vehicle flying this step's command, as measured by the runtime
@@ -131,7 +132,10 @@ class ControlPipeline:
         ``in_control``: our setpoints fly the vehicle
         (the runtime knows OFFBOARD was requested before the 1 Hz HEARTBEAT confirms it;
         default: the HEARTBEAT's mode). ``perceived``: the perception result of that frame
-        computed elsewhere (a replay from logged detections); ``image`` is then not looked at."""
+        computed elsewhere (a replay from logged detections); ``image`` is then not looked at.
+        ``send(setpoint, now)``: called with the setpoint as soon as the command stage (the
+        last check that gates it) built it, before the result is assembled (the runtime sends
+        it there)."""
         t_now = t_s if t_now_s is None or not math.isfinite(t_now_s) else max(t_s, t_now_s)
         clock = self._timer
         marks: list[tuple[str, float]] = [("start", clock())] if clock else []
@@ -151,6 +155,8 @@ class ControlPipeline:
                            t_now)
         if clock:
             marks.append(("command", clock()))
+        if send is not None and cmd.setpoint is not None:
+            send(cmd.setpoint, t_now)
         timings = {name: (t - marks[i][1]) * 1e3 for i, (name, t) in enumerate(marks[1:])}
         return StepResult(
             timings_ms=timings,

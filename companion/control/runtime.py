@@ -11,10 +11,9 @@ around the loop are their own modules:
 - :mod:`~companion.control.recording`: what is logged and at which log time;
 - :mod:`~companion.control.faults`: fault injection windows (tests and bench).
 
-Here: the start-up sequence, the background tasks (a heartbeat announcing the companion as
-MAV_TYPE_ONBOARD_CONTROLLER at 1 Hz, link statistics, TIMESYNC requests, an optional
-ground-truth recorder for scoring that feeds nothing else) and the control loop, one pipeline
-step per camera frame, streaming the setpoint.
+Here: the start-up sequence, the background tasks (a 1 Hz HEARTBEAT as an onboard controller,
+link statistics, TIMESYNC requests, an optional ground-truth recorder for scoring that feeds
+nothing else) and the control loop, one pipeline step per camera frame, streaming the setpoint.
 """
 
 from __future__ import annotations
@@ -57,6 +56,7 @@ from companion.control.timebase import TimeBase
 from companion.control.vehicle import Vehicle
 from companion.control.vehicle_limits import VehicleLimitsStage, adopt_vehicle_limits, set_pipeline
 from companion.control.wiring import allow_rules, new_pipeline
+from companion.core.setpoint import AttitudeSetpoint
 from companion.link import MavlinkLink, NoPeerError
 from companion.log import schemas as sch
 from companion.log.live import start_live
@@ -242,8 +242,7 @@ class CompanionApp:
         log.info("companion: %d steps, %d setpoints sent, %d messages in; log %s "
                  "(%d written, %d dropped); CPU %s ms per step (getrusage, all threads and the "
                  "solver process, first frame to exit)", self.steps, self.sent, self.rx_count,
-                 self.log_path,
-                 logger.stats.written, logger.stats.dropped,
+                 self.log_path, logger.stats.written, logger.stats.dropped,
                  "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
         self._write_progress(final=True)
 
@@ -262,8 +261,7 @@ class CompanionApp:
 
     async def _drain(self, link: MavlinkLink) -> None:
         """Wait for the link to close: the callback does the work on every frame (the link
-        queues none, ``queue_frames`` is off), and a link closed by an error raises it here,
-        which ends the flight's task group."""
+        queues none), and a link closed by an error raises it here (ends the task group)."""
         async for _rx in link:
             pass
 
@@ -280,7 +278,7 @@ class CompanionApp:
             self.log_stats(link)
 
     def log_stats(self, link: MavlinkLink) -> None:
-        assert self._records is not None
+        assert self._records is not None, "the log is open"
         self._records.link_stats(link, self.stale_frames, self.timebase.stale_count)
 
     async def _timesync(self, link: MavlinkLink) -> None:
@@ -311,8 +309,7 @@ class CompanionApp:
                 records.at(clock.now_ns(),
                            lambda t: logger.log(TOPIC_TRUTH, t, rec, schema=sch.JSON))
 
-        transport, _ = await loop.create_datagram_endpoint(
-            _Proto, local_addr=("127.0.0.1", port))
+        transport, _ = await loop.create_datagram_endpoint(_Proto, local_addr=("127.0.0.1", port))
         ready.set()
         try:
             await asyncio.Future()
@@ -333,8 +330,7 @@ class CompanionApp:
                 time.monotonic() > exit_deadline or self.offboard.phase is OffboardPhase.DONE
             ):
                 break
-            # before the first frame the camera may still be starting (a loaded machine takes
-            # seconds to start the emulator): wait longer than between frames
+            # before the first frame the camera may still be starting: wait longer
             wait_s = self.idle_timeout_s if self._first_frame_s is not None else max(
                 self.idle_timeout_s, self.startup_timeout_s)
             if exit_deadline is not None:  # stopping: wait no longer than the exit allows
@@ -366,8 +362,7 @@ class CompanionApp:
         finally:
             stop.cancel()
         if nxt in done:
-            frame = nxt.result()
-            return frame
+            return nxt.result()  # type: ignore[no-any-return]
         nxt.cancel()
         with contextlib.suppress(asyncio.CancelledError, StopAsyncIteration):
             await nxt
@@ -425,43 +420,49 @@ class CompanionApp:
         return True
 
     def _compute_and_send(self, frame: CameraFrame, t_s: float) -> tuple[StepResult, _Sent]:
-        """The pipeline's step and its setpoint on the link (or a stream gap)."""
-        assert self._records is not None and self._link is not None
-        logger, link, vehicle = self._records.logger, self._link, self.vehicle
+        """The pipeline's step and its setpoint on the link (or a stream gap), sent as soon
+        as the command is built (the pipeline's ``send``), the step's result after."""
+        assert self._records is not None
+        logger, vehicle = self._records.logger, self.vehicle
         t_start_ns = time.monotonic_ns()
-        # The log writer waits while the step computes and sends (McapLogger.hold): its Python
-        # serialisation otherwise takes the GIL from the step for up to CPython's 5 ms switch
-        # interval (measured: send stage 1.2-1.9 -> 0.4-0.6 ms median, frame -> command
-        # 6.7-7.1 -> 5.8-6.2 ms median at load 6, interleaved).
+        # The log writer waits while the step computes and sends (McapLogger.hold): it would
+        # take the GIL from the step for up to the 5 ms switch interval (send stage 1.2-1.9 ->
+        # 0.4-0.6 ms median, frame -> command 6.7-7.1 -> 5.8-6.2 ms, load 6, interleaved).
         meter = vehicle.delay_meter
         measured = None if meter is None else meter.value()
+        sent: list[int | None] = []  # the send's time (None: no peer yet); empty: a stream gap
         logger.hold()
         try:
             res = self.pipeline.step(np.asarray(frame.image), t_s, vehicle.store,
                                      t_now_s=vehicle.now_s(), in_control=vehicle.in_control(),
-                                     actuation_delay_s=measured)
-            sent_ns = None
-            if res.setpoint is not None and self.offboard.phase is not OffboardPhase.DONE:
-                try:
-                    t_now = res.t_now_s if res.t_now_s is not None else t_s
-                    if meter is not None and meter.due(t_now):
-                        # right before the setpoint: the same way, the same delays
-                        ts1 = time.monotonic_ns()
-                        link.send_timesync(*vehicle.timesync.request(ts1))
-                        meter.sent(ts1, t_now)
-                    link.send_attitude_target(res.setpoint.q_wxyz.tolist(),
-                                              res.setpoint.thrust_norm,
-                                              time_boot_ms=int(max(t_s, 0.0) * 1e3) & 0xFFFFFFFF)
-                    sent_ns = link.last_tx_ns  # when it left, not after its log record
-                    self.sent += 1
-                    self.offboard.on_streamed(t_s)
-                except NoPeerError:
-                    pass
-            else:
-                self.offboard.on_stream_gap()
+                                     actuation_delay_s=measured,
+                                     send=lambda sp, t_now: self._send(sp, t_now, t_s, sent))
         finally:
             logger.release()
-        return res, _Sent(sent_ns, measured, t_start_ns)
+        if not sent:
+            self.offboard.on_stream_gap()
+        return res, _Sent(sent[0] if sent else None, measured, t_start_ns)
+
+    def _send(self, setpoint: AttitudeSetpoint, t_now: float, t_s: float, sent: list[Any]) -> None:
+        """The setpoint on the link unless OFFBOARD is done, a due TIMESYNC probe right before
+        it (same way, same delays); ``sent`` gets when it left (None: no autopilot heard)."""
+        if self.offboard.phase is OffboardPhase.DONE:
+            return
+        link, vehicle, meter = self._link, self.vehicle, self.vehicle.delay_meter
+        assert link is not None
+        try:
+            if meter is not None and meter.due(t_now):
+                ts1 = time.monotonic_ns()
+                link.send_timesync(*vehicle.timesync.request(ts1))
+                meter.sent(ts1, t_now)
+            link.send_attitude_target(setpoint.q_wxyz.tolist(), setpoint.thrust_norm,
+                                      time_boot_ms=int(max(t_s, 0.0) * 1e3) & 0xFFFFFFFF)
+        except NoPeerError:
+            sent.append(None)
+            return
+        sent.append(link.last_tx_ns)  # when it left, not after its log record
+        self.sent += 1
+        self.offboard.on_streamed(t_s)
 
     def _log_step(self, frame: CameraFrame, t_s: float, t_log: int, frame_late_s: float,
                   res: StepResult, sent: _Sent, logged_input: dict[str, Any] | None) -> None:
