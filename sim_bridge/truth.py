@@ -7,7 +7,6 @@ sends it without ever blocking or raising on the network (failures are counted).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import socket
@@ -16,6 +15,7 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
+import orjson
 
 from sim_bridge import LinkError
 from sim_bridge.camera.camera import RenderedFrame
@@ -38,6 +38,15 @@ def _vec(x: Sequence[float] | np.ndarray) -> list[float | None]:
     # tolist(): the same Python floats as float() of each element, without a numpy scalar each
     return [v if math.isfinite(v) else None
             for v in np.asarray(x, dtype=float).reshape(-1).tolist()]
+
+
+def _dumps(record: dict[str, Any]) -> bytes:
+    """``record`` as compact JSON. orjson (~10x json's speed, ~0.1 ms a step less): the same
+    values in the shortest round-trip form as json writes them, but exponents unpadded
+    (``1e-5`` where json wrote ``1e-05``); both parse to the same floats, and the companion
+    logs the bytes once orjson parses them. A non-finite float becomes null, as
+    :func:`truth_record` writes it anyway (json refused one: none ever reached it)."""
+    return orjson.dumps(record)
 
 
 def truth_record(
@@ -113,7 +122,7 @@ class TruthPublisher:
     def publish(self, record: dict[str, Any]) -> bool:
         """Send one record; ``True`` if the datagram left, ``False`` (counted) otherwise."""
         try:
-            data = json.dumps(record, separators=(",", ":"), allow_nan=False).encode()
+            data = _dumps(record)
             if len(data) > _MAX_DATAGRAM:
                 raise ValueError(f"record of {len(data)} bytes exceeds one datagram")
             self._sock.sendto(data, self.address)
