@@ -35,9 +35,21 @@ def _num(x: float) -> float | None:
 
 
 def _vec(x: Sequence[float] | np.ndarray) -> list[float | None]:
-    # tolist(): the same Python floats as float() of each element, without a numpy scalar each
-    return [v if math.isfinite(v) else None
-            for v in np.asarray(x, dtype=float).reshape(-1).tolist()]
+    # tolist(): the same Python floats as float() of each element, without a numpy scalar each;
+    # one sum finds a vector of finite numbers (all of them, nearly always) at once
+    v: list[float] = np.asarray(x, dtype=float).reshape(-1).tolist()
+    if math.isfinite(sum(v)):  # inf/nan in v make the sum inf/nan (so may an overflow: fine)
+        return v  # type: ignore[return-value]
+    return [e if math.isfinite(e) else None for e in v]
+
+
+def _rows(x: np.ndarray) -> list[list[float | None]]:
+    """An (n, k) array as n lists (``[_vec(r) for r in x]``), in one ``tolist`` when finite."""
+    a = np.asarray(x, dtype=float)
+    if bool(np.isfinite(a).all()):
+        out: list[list[float | None]] = a.reshape(len(a), -1).tolist()
+        return out
+    return [_vec(r) for r in a]
 
 
 def _dumps(record: dict[str, Any]) -> bytes:
@@ -95,8 +107,8 @@ def truth_record(
         "setpoint_age_s": None if setpoint_age_s is None else _num(setpoint_age_s),
     }
     if frame is not None:
-        rec["corners_px"] = [_vec(c) for c in frame.corners_px]
-        rec["top_corners_px"] = [_vec(c) for c in frame.top_corners_px]
+        rec["corners_px"] = _rows(frame.corners_px)
+        rec["top_corners_px"] = _rows(frame.top_corners_px)
         rec["target_in_image"] = bool(frame.target_in_image)
     return rec
 
