@@ -39,6 +39,12 @@ if TYPE_CHECKING:
     from sim_bridge.app import SimBridge
 
 
+def _floats(x: Any) -> list[float]:
+    """``x``'s elements as Python floats (``float()`` of each), in one ``tolist``."""
+    out: list[float] = np.asarray(x, dtype=float).reshape(-1).tolist()
+    return out
+
+
 def specific_force_frd(s: VehicleState) -> np.ndarray:
     """What an ideal accelerometer reads (m/s^2, body FRD): the vehicle's acceleration
     less gravity, i.e. thrust, drag, wind and turbulence (``R' (a - g e_z)``); ``-g``
@@ -93,12 +99,10 @@ class Telemetry:
                                          0, 0, 0, 0, 0, 0)
         if mid == ATTITUDE_QUATERNION:
             q, w = s.q_wxyz, s.rates_frd_rad_s
-            return mav.attitude_quaternion_encode(ms, *(float(v) for v in q),
-                                                  *(float(v) for v in w))
+            return mav.attitude_quaternion_encode(ms, *_floats(q), *_floats(w))
         if mid == ATTITUDE:
             w = s.rates_frd_rad_s
-            return mav.attitude_encode(ms, s.roll_rad, s.pitch_rad, s.yaw_rad,
-                                       *(float(v) for v in w))
+            return mav.attitude_encode(ms, s.roll_rad, s.pitch_rad, s.yaw_rad, *_floats(w))
         if mid == ATTITUDE_TARGET:  # PX4 streams/ATTITUDE_TARGET.hpp: the attitude setpoint
             cmd = self.sim.attitude_target or px4.attitude_command()
             q = quat_from_euler(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad)
@@ -111,15 +115,13 @@ class Telemetry:
             if self._accel_noise > 0 or np.any(self._accel_bias):
                 f = f + self._accel_bias + self._accel_noise * self._imu_rng.standard_normal(3)
             w = s.rates_frd_rad_s
-            return mav.highres_imu_encode(self.sim.us(t), *(float(v) for v in f),
-                                          *(float(v) for v in w), 0.0, 0.0, 0.0, 0.0, 0.0,
-                                          0.0, 0.0, 0b111111)
+            return mav.highres_imu_encode(self.sim.us(t), *_floats(f), *_floats(w), 0.0, 0.0,
+                                          0.0, 0.0, 0.0, 0.0, 0.0, 0b111111)
         if mid == LOCAL_POSITION_NED:
             vel = s.vel_ned_m_s
             if self._vel_noise > 0:
                 vel = vel + self._vel_noise * self._vel_rng.standard_normal(3)
-            return mav.local_position_ned_encode(ms, *(float(v) for v in s.pos_ned_m),
-                                                 *(float(v) for v in vel))
+            return mav.local_position_ned_encode(ms, *_floats(s.pos_ned_m), *_floats(vel))
         if mid == GLOBAL_POSITION_INT:
             lat, lon, alt = self.ned_to_global(s.pos_ned_m)
             rel = float(px4.home_ned_m[2] - s.pos_ned_m[2])
@@ -161,13 +163,14 @@ class Telemetry:
         is encoded once when its encoding draws no noise and has no side effect (the links
         pack it each with their own sequence number): the same fields either way."""
         faults = self.sim.cfg.sim.faults
+        dropout, nan = faults.dropout(t), faults.nan(t)  # of t only: once a step
         encoded: dict[int, Any] = {}
         for name, streams in self.streams.items():
             link = self.sim.links[name]
             for mid in streams.due(t):
-                if mid in STATE_STREAMS and faults.dropout(t):
+                if dropout and mid in STATE_STREAMS:
                     continue  # injected telemetry dropout
-                if mid in STATE_STREAMS and faults.nan(t):
+                if nan and mid in STATE_STREAMS:
                     self.sim.transport.tx(link, self.encode_nan(link, mid, t),
                                           rng=self._imu_tx_rng if mid == HIGHRES_IMU else None)
                     continue
