@@ -324,8 +324,8 @@ class Camera:
             if k_half is not None:
                 half = cv2.filter2D(half, -1, k_half, borderType=cv2.BORDER_REFLECT)
         out = cv2.resize(half, (w, h), interpolation=cv2.INTER_LINEAR)
-        if occluded or not np.all(box_z > NEAR_M):
-            if not occluded and not np.all(box_z <= NEAR_M):  # rare: the camera at the box
+        if occluded or not (box_z > NEAR_M).all():
+            if not occluded and not (box_z <= NEAR_M).all():  # rare: the camera at the box
                 canvas = render_ground(self._ground_tex, self.lens, r, c_w, ground_z)
                 self.target.draw_box(self.lens, canvas, box_px, box_z, box_pts, r, t,
                                      top_faces_camera, agv)

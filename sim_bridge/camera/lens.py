@@ -169,7 +169,7 @@ class Lens:
             return
         inverse = InverseLensMap(k, d, w, h)
         ideal = inverse.at(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        if not np.all(np.isfinite(ideal)):
+        if not np.isfinite(ideal).all():
             raise ConfigError("camera.calibration_file: the distortion does not invert over "
                               "the image")
         lo = np.floor(ideal.reshape(-1, 2).min(axis=0)) - 2

@@ -155,7 +155,7 @@ def render_ground(tex: np.ndarray, lens: Lens, r: np.ndarray, c_w: np.ndarray, g
         image = small if half else cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
         dz = corners @ a[2]
-        if np.all(dz > _SKY_DZ):
+        if (dz > _SKY_DZ).all():
             return image
         # Part of the view is at or above the horizon: paint it as sky.
         rect = corners[:, :2] + 0.5 * np.sign(corners[:, :2] - [lens.rcx, lens.rcy])

@@ -120,7 +120,7 @@ class TargetPainter:
     ) -> tuple[int, int, int, int] | None:
         """Draw the box on ``lens``'s canvas (``px``: its 8 corners in canvas pixels); returns
         the drawn ROI."""
-        if np.all(z_cv > NEAR_M):
+        if (z_cv > NEAR_M).all():
             # The box's silhouette (convex hull of its 8 corners) is dark; the top is drawn in
             # the same pass with coverages that partition each pixel: ground (1 - h), sides
             # (h - t), top t. Compositing the top over a separately anti-aliased silhouette
@@ -143,7 +143,7 @@ class TargetPainter:
                 out += (fg - np.float32(BOX_SIDE_LEVEL)) * t_cov
             image[y0:y1, x0:x1] = (out + 0.5).astype(np.uint8)
             return roi
-        if np.all(z_cv <= NEAR_M):
+        if (z_cv <= NEAR_M).all():
             return None
         # The box crosses the near plane (the camera is at/inside it): clip each visible face in
         # the camera frame and fill it plainly. Rare; no sub-pixel care needed.
