@@ -10,12 +10,32 @@ import itertools
 import select
 import socket
 import time
+from collections.abc import Iterator
+from typing import Any
 
 from sim_bridge.config import CameraModelConfig, TelemetryConfig, with_link
 from tests.sim.harness import MavClient, make_config, read_frame, run_sim, sim_with_client
 
 BOOT_OFFSET_S = 37.25
 STEP_US = 50_000
+
+
+def _step_batches(rs: Any) -> Iterator[list[dict[str, Any]]]:
+    """The frame headers of each lockstep step, as the camera socket delivers them (a step can
+    deliver two: every frame waiting after the first), until the emulator stops."""
+    cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=5.0)
+    try:
+        cam.settimeout(5.0)
+        while rs.thread.is_alive():
+            try:
+                batch = [read_frame(cam)[0]]
+                while select.select([cam], [], [], 0.03)[0]:
+                    batch.append(read_frame(cam)[0])
+            except (TimeoutError, ConnectionError):
+                return
+            yield batch
+    finally:
+        cam.close()
 
 
 def test_lockstep_frames_arrive_late_by_the_latency_with_capture_stamps(
@@ -34,27 +54,15 @@ def test_lockstep_frames_arrive_late_by_the_latency_with_capture_stamps(
     latest_ms = 0
     with run_sim(cfg, duration_s=10.0) as rs:
         client.target = ("127.0.0.1", rs.ports["offboard"])
-        cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=5.0)
-        try:
-            cam.settimeout(5.0)
-            while rs.thread.is_alive():
-                try:
-                    batch = [read_frame(cam)[0]]
-                    # every frame of this step (a step can deliver two), then the answers
-                    while select.select([cam], [], [], 0.03)[0]:
-                        batch.append(read_frame(cam)[0])
-                except (TimeoutError, ConnectionError):
-                    break
-                # the emulator is blocked in this step: all its telemetry is here
-                for m in client.collect(0.01):
-                    if m.get_type() == "ATTITUDE_QUATERNION":
-                        latest_ms = max(latest_ms, m.time_boot_ms)
-                got += [(h["seq"], h["t_us"], latest_ms * 1000) for h in batch]
-                for _ in batch:  # one answer per frame (docs/reference/wire.md, lockstep)
-                    client.send(client.mav.set_attitude_target_encode(
-                        latest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
-        finally:
-            cam.close()
+        for batch in _step_batches(rs):
+            # the emulator is blocked in this step: all its telemetry is here
+            for m in client.collect(0.01):
+                if m.get_type() == "ATTITUDE_QUATERNION":
+                    latest_ms = max(latest_ms, m.time_boot_ms)
+            got += [(h["seq"], h["t_us"], latest_ms * 1000) for h in batch]
+            for _ in batch:  # one answer per frame (docs/reference/wire.md, lockstep)
+                client.send(client.mav.set_attitude_target_encode(
+                    latest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
         stats = rs.stop()
     assert stats is not None
     assert len(got) > 100
@@ -171,22 +179,11 @@ def test_lockstep_answer_to_the_newest_frame_releases_a_step_of_two(client: MavC
     batches: list[int] = []
     with run_sim(cfg, duration_s=6.0) as rs:
         client.target = ("127.0.0.1", rs.ports["offboard"])
-        cam = socket.create_connection(("127.0.0.1", rs.ports["frames"]), timeout=5.0)
-        try:
-            cam.settimeout(5.0)
-            while rs.thread.is_alive():
-                try:
-                    batch = [read_frame(cam)[0]]
-                    while select.select([cam], [], [], 0.03)[0]:
-                        batch.append(read_frame(cam)[0])
-                except (TimeoutError, ConnectionError):
-                    break
-                batches.append(len(batch))
-                newest_ms = batch[-1]["t_us"] // 1000
-                client.send(client.mav.set_attitude_target_encode(
-                    newest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
-        finally:
-            cam.close()
+        for batch in _step_batches(rs):
+            batches.append(len(batch))
+            newest_ms = batch[-1]["t_us"] // 1000
+            client.send(client.mav.set_attitude_target_encode(
+                newest_ms, 1, 1, 7, q, 0, 0, 0, 0.5))
         stats = rs.stop()
     assert stats is not None
     assert batches.count(2) >= 5, batches  # steps that delivered two frames (~5/36 of them)
