@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import socket
 import struct
 import threading
@@ -199,3 +200,15 @@ def read_frame(sock: socket.socket) -> tuple[dict[str, Any], bytes]:
     assert magic == b"IBVF" and ver == 1
     assert zlib.crc32(payload) == crc
     return {"seq": seq, "t_us": t_us, "w": w, "h": h, "enc": enc}, payload
+
+
+def drain_truth(sock: socket.socket, quiet_s: float = 0.3) -> list[dict[str, Any]]:
+    """Every ground-truth record (one JSON datagram each) waiting on ``sock``, until none
+    arrives for ``quiet_s``."""
+    sock.settimeout(quiet_s)
+    records = []
+    while True:
+        try:
+            records.append(json.loads(sock.recv(65536)))
+        except TimeoutError:
+            return records

@@ -4,7 +4,6 @@ frames (TCP), ground truth (UDP JSON), FOLLOW_TARGET from the AGV's own sysid, t
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import socket
 from typing import Any
@@ -12,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from sim_bridge.config import with_link
-from tests.sim.harness import MavClient, make_config, read_frame, run_sim
+from tests.sim.harness import MavClient, drain_truth, make_config, read_frame, run_sim
 
 
 def test_lockstep_world_on_the_wire(client: MavClient) -> None:
@@ -56,12 +55,7 @@ def test_lockstep_world_on_the_wire(client: MavClient) -> None:
                             local_pos[m.time_boot_ms] = m
             finally:
                 cam.close()
-            truth.settimeout(0.3)
-            while True:
-                try:
-                    records.append(json.loads(truth.recv(65536)))
-                except TimeoutError:
-                    break
+            records += drain_truth(truth)
     finally:
         truth.close()
     # frames: one per step, stamped with simulated time, +1 sequence

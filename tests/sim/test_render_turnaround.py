@@ -5,7 +5,6 @@ for pixel, the frame of the pose its ground-truth record reports
 
 from __future__ import annotations
 
-import json
 import math
 import socket
 from typing import Any
@@ -18,7 +17,7 @@ from sim_bridge.app import build_camera
 from sim_bridge.camera.camera import quat_to_matrix
 from sim_bridge.config import with_link
 from sim_bridge.physics.agv import AgvState
-from tests.sim.harness import MavClient, make_config, read_frame, run_sim
+from tests.sim.harness import MavClient, drain_truth, make_config, read_frame, run_sim
 
 
 def test_quat_to_matrix_is_scipys_bit_for_bit() -> None:
@@ -70,14 +69,7 @@ def _fly(client: MavClient, truth: socket.socket, n_steps: int
             cam.close()
         stats = rs.stop()
     assert stats is not None and stats.lockstep_timeouts == 0
-    records = []
-    truth.settimeout(0.3)
-    while True:
-        try:
-            records.append(json.loads(truth.recv(65536)))
-        except TimeoutError:
-            break
-    return cfg, frames, records
+    return cfg, frames, drain_truth(truth)
 
 
 @pytest.mark.timeout(120)
