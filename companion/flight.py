@@ -133,9 +133,27 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / READY_FILE),
         "--progress-file", str(out / PROGRESS_FILE),
+        "--camera-timeout", f"{camera_timeout_s(config)}",
         *(["--live"] if live else []),
     ]
     return sim, comp
+
+
+CAMERA_TIMEOUT_MARGIN_S = 5.0
+"""How much longer than the emulator's lockstep timeout the companion waits for a frame."""
+
+
+def camera_timeout_s(config: Path) -> float:
+    """The companion's "no camera frame" stop for a lockstep flight on ``config``: longer than
+    the emulator's ``sim.lockstep_timeout_s`` by :data:`CAMERA_TIMEOUT_MARGIN_S`, so that a
+    setpoint lost or late under load makes the emulator step on (and count a lockstep
+    timeout) before the companion would take the silence for a dead camera and end the
+    flight; never below ``companion run``'s own 5 s default."""
+    sim = read_document(config).get("sim", {})
+    lockstep_s = sim.get("lockstep_timeout_s", 0.0) if isinstance(sim, dict) else 0.0
+    if isinstance(lockstep_s, bool) or not isinstance(lockstep_s, (int, float)):
+        lockstep_s = 0.0  # the emulator's --check-config refuses such a file by name
+    return max(5.0, float(lockstep_s) + CAMERA_TIMEOUT_MARGIN_S)
 
 
 def write_merged_config(config: Path, overrides: Sequence[str], path: Path) -> dict[str, Any]:

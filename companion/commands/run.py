@@ -26,6 +26,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--log", type=Path, default=None,
                    help="MCAP log file (default: logging.dir/flight-<time>.mcap)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.add_argument("--camera-timeout", type=_positive_s, default=5.0, metavar="S",
+                   help="stop when no camera frame arrives for S seconds once frames have "
+                        "flowed (default 5; a lockstep flight sets it above the emulator's "
+                        "sim.lockstep_timeout_s, so the emulator's timeout acts first)")
     p.add_argument("--truth-port", type=int, default=None,
                    help="record the emulator's ground truth from this UDP port (scoring only)")
     p.add_argument("--inject-fault", action="append", default=[], metavar="KIND:T0:T1",
@@ -41,6 +45,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.set_defaults(func=_run)
 
 
+def _positive_s(text: str) -> float:
+    """A finite number of seconds > 0 (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not (value > 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0: {text!r}")
+    return value
+
+
 def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set)
     if args.live:
@@ -50,6 +65,7 @@ def _run(args: argparse.Namespace) -> int:
     app = CompanionApp(
         cfg, mavlink_url=args.mavlink, camera_url=args.camera, log_path=log_path,
         truth_port=args.truth_port, duration_s=args.duration,
+        idle_timeout_s=args.camera_timeout,
         faults=tuple(FaultWindow.parse(f) for f in args.inject_fault), config_text=text,
         ready_file=args.ready_file, progress_file=args.progress_file,
     )
