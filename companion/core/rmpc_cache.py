@@ -56,12 +56,12 @@ class CompiledNlp:
     compiled_now: bool
 
 
-def cache_key(source: str) -> str:
+def cache_key(source: str, flags: tuple[str, ...] = COMPILER_FLAGS) -> str:
     """SHA-256 (first 24 hex digits) of the generated C source, CasADi version and flags."""
     h = hashlib.sha256()
     h.update(source.encode())
     h.update(str(getattr(ca, "__version__", "?")).encode())
-    h.update(" ".join(COMPILER_FLAGS).encode())
+    h.update(" ".join(flags).encode())
     return h.hexdigest()[:24]
 
 
@@ -155,21 +155,27 @@ def _generate_and_compile(solver: ca.Function, directory: Path, tag: str) -> Com
         return CompiledNlp(library=library, key=key, compiled_now=True)
 
 
-def compiled_functions(build: Callable[[], list[ca.Function]], cache_dir: str, tag: str,
-                       alias_key: str) -> CompiledNlp:
+Source = list[ca.Function] | tuple[list[ca.Function], str]
+"""What :func:`compiled_functions` compiles: CasADi functions, and optionally C code appended
+after their generated source (which may call them by name)."""
+
+
+def compiled_functions(build: Callable[[], Source], cache_dir: str, tag: str,
+                       alias_key: str, flags: tuple[str, ...] = COMPILER_FLAGS) -> CompiledNlp:
     """The shared library holding the plain CasADi functions ``build()`` returns (load each
     with ``ca.external(name, library)``), compiled on a cache miss; the same cache as the
-    NLPs' (:func:`compiled_nlp`): the library is named by the hash of its generated source.
-    ``alias_key`` names an alias file that finds the library without calling ``build`` (which
-    derives the functions symbolically: ~0.5 s of CPU); it must hash everything the functions
-    are built from (the caller's problem and the code that builds them)."""
+    NLPs' (:func:`compiled_nlp`): the library is named by the hash of its generated source
+    and ``flags`` (gcc's). ``alias_key`` names an alias file that finds the library without
+    calling ``build`` (which derives the functions symbolically: ~0.5 s of CPU); it must hash
+    everything the functions are built from (the caller's problem and the code that builds
+    them)."""
     directory = Path(cache_dir).expanduser()
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise RmpcBuildError(f"rmpc.cache_dir: cannot create {directory}: {exc}") from exc
     h = hashlib.sha256()
-    for part in (alias_key, tag, str(getattr(ca, "__version__", "?")), " ".join(COMPILER_FLAGS)):
+    for part in (alias_key, tag, str(getattr(ca, "__version__", "?")), " ".join(flags)):
         h.update(b"\0" + part.encode())
     alias = directory / f"rmpc_{tag}_{h.hexdigest()[:24]}.alias"
     prefix = f"rmpc_{tag}_"
@@ -181,7 +187,7 @@ def compiled_functions(build: Callable[[], list[ca.Function]], cache_dir: str, t
             and (directory / name).exists():
         return CompiledNlp(library=directory / name, key=name[len(prefix):-3],
                            compiled_now=False)
-    found = _compile_source(directory, tag, build())
+    found = _compile_source(directory, tag, build(), flags)
     _write_alias(alias, found, tag)
     return found
 
@@ -197,15 +203,21 @@ def _write_alias(alias: Path, found: CompiledNlp, tag: str) -> None:
         log.debug("RMPC %s: alias not written: %s", tag, exc)
 
 
-def _compile_source(directory: Path, tag: str, functions: list[ca.Function]) -> CompiledNlp:
-    """Generate the C source of ``functions`` and compile it (atomic rename into the cache)."""
+def _compile_source(directory: Path, tag: str, source: Source,
+                    flags: tuple[str, ...]) -> CompiledNlp:
+    """Generate the C source of ``source``'s functions (and append its C, if any) and
+    compile it with ``flags`` (atomic rename into the cache)."""
+    functions, appended = source if isinstance(source, tuple) else (source, "")
     with tempfile.TemporaryDirectory(prefix="rmpc_gen_") as tmp:
         src_path = Path(tmp) / f"rmpc_{tag}.c"
         gen = ca.CodeGenerator(src_path.name)
         for f in functions:
             gen.add(f)
         gen.generate(str(tmp) + os.sep)
-        key = cache_key(src_path.read_text())
+        if appended:
+            with src_path.open("a") as out:
+                out.write(appended)
+        key = cache_key(src_path.read_text(), flags)
         library = directory / f"rmpc_{tag}_{key}.so"
         if library.exists():
             return CompiledNlp(library=library, key=key, compiled_now=False)
@@ -213,7 +225,7 @@ def _compile_source(directory: Path, tag: str, functions: list[ca.Function]) -> 
         name = f"rmpc_{tag}_{key}.tmp{os.getpid()}"
         try:
             importer = ca.Importer(str(src_path), "shell", {
-                "flags": list(COMPILER_FLAGS), "directory": str(directory) + os.sep,
+                "flags": list(flags), "directory": str(directory) + os.sep,
                 "name": name, "temp_suffix": False, "cleanup": False})
         except RuntimeError as exc:
             raise RmpcBuildError(f"RMPC {tag}: compilation failed: {exc}") from exc

@@ -39,7 +39,7 @@ import casadi as ca
 import daqp
 import numpy as np
 
-from companion.core import rmpc_rti_gen
+from companion.core import rmpc_rti_gen, rmpc_rti_loops
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import (
     CompiledNlp,
@@ -105,6 +105,19 @@ class _Buffered:
         return self.res
 
 
+def _lin_library(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
+                 key: str) -> CompiledNlp:
+    """The compiled ``rti_lin`` of ``rmpc.rti_linearisation`` (``"loops"``: CasADi's stage
+    functions and the C condensing around them, :mod:`companion.core.rmpc_rti_loops`, with
+    its own gcc flags)."""
+    if rmpc.rti_linearisation == "loops":
+        return compiled_functions(lambda: rmpc_rti_loops.lin_source(rmpc, camera, terminal),
+                                  rmpc.cache_dir, "rti_lin", alias_key=key,
+                                  flags=rmpc_rti_loops.FLAGS)
+    return compiled_functions(lambda: [rmpc_rti_gen.lin_function(rmpc, camera, terminal)],
+                              rmpc.cache_dir, "rti_lin", alias_key=key)
+
+
 class RtiSolver:
     """The compiled RTI of one hard problem (module docstring). Deterministic: the same
     ``(eta0, parameters, guess, bounds)`` give the same plan bit for bit. Not thread-safe
@@ -119,23 +132,25 @@ class RtiSolver:
         self._rows = lay.rows
         self.compiled: tuple[CompiledNlp, CompiledNlp] | None = None
         if rmpc.jit:
-            # the functions are derived from the hard NLP by rmpc_rti_gen's code: a library
-            # built before is found by those two alone, without deriving them again
+            # the functions are derived from the hard NLP by rmpc_rti_gen's code (and
+            # rmpc_rti_loops'): a library built before is found by those alone, without
+            # deriving them again
             code = hashlib.sha256(Path(rmpc_rti_gen.__file__).read_bytes()).hexdigest()
             if rmpc.rti_linearisation != "graph":  # (the same NLP: the form is in the key)
                 code += f":{rmpc.rti_linearisation}"
+            if rmpc.rti_linearisation == "loops":
+                code += hashlib.sha256(Path(rmpc_rti_loops.__file__).read_bytes()).hexdigest()
             key = problem_key(nlp, "rti", code)
-            self.compiled = (
-                compiled_functions(lambda: [rmpc_rti_gen.lin_function(rmpc, camera, terminal)],
-                                   rmpc.cache_dir, "rti_lin", alias_key=key),
-                compiled_functions(lambda: [rmpc_rti_gen.val_function(rmpc, camera, terminal)],
-                                   rmpc.cache_dir, "rti_val", alias_key=key))
+            self.compiled = (_lin_library(rmpc, camera, terminal, key),
+                             compiled_functions(
+                                 lambda: [rmpc_rti_gen.val_function(rmpc, camera, terminal)],
+                                 rmpc.cache_dir, "rti_val", alias_key=key))
             try:
                 lin = ca.external("rti_lin", str(self.compiled[0].library))
                 val = ca.external("rti_val", str(self.compiled[1].library))
             except RuntimeError as exc:
                 raise RmpcBuildError(f"loading the RTI's functions: {exc}") from exc
-        else:
+        else:  # ("loops" is C: without jit, the graph's function, the same numbers)
             lin = rmpc_rti_gen.lin_function(rmpc, camera, terminal)
             val = rmpc_rti_gen.val_function(rmpc, camera, terminal)
         self._lin = _Buffered(lin)

@@ -220,17 +220,20 @@ class _StageFunctions:
                 {"cse": True})
         return self._made[key]
 
-    def terminal(self, x_n: ca.MX) -> list[ca.MX]:
-        """``(r_N, g_N, dr_N/dx_N, dg_N/dx_N)`` at ``x_n``."""
+    def terminal_function(self) -> ca.Function:
+        """``x_N -> (r_N, g_N, dr_N/dx_N, dg_N/dx_N)``."""
         xt = ca.SX.sym("x_N", NX)
         items = _path_items(self.rmpc, self.camera, self.design, self.rmpc.horizon, xt,
                             None, None, None, self.vis_stage)
         g = ca.vertcat(*[item[2] for item in items])
         chol_p = np.linalg.cholesky(np.asarray(self.design.p, dtype=float))  # P = L L'
         r = ca.mtimes(chol_p.T, xt)
-        fn = ca.Function("rti_terminal", [xt], [r, g, ca.jacobian(r, xt), ca.jacobian(g, xt)],
-                         {"cse": True})
-        out: list[ca.MX] = fn.call([x_n])
+        return ca.Function("rti_terminal", [xt], [r, g, ca.jacobian(r, xt), ca.jacobian(g, xt)],
+                           {"cse": True})
+
+    def terminal(self, x_n: ca.MX) -> list[ca.MX]:
+        """``(r_N, g_N, dr_N/dx_N, dg_N/dx_N)`` at ``x_n``."""
+        out: list[ca.MX] = self.terminal_function().call([x_n])
         return out
 
 
