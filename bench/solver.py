@@ -16,7 +16,7 @@ linearisation + QP + check) is reported alongside as ``internal_*``.
 ``--rti-only`` runs only the real-time iteration's loops (and the paper loop of the full NLP
 they are compared with), skipping the edge and IPOPT loops of the full NLP.
 
-    python bench/solver.py --log FLIGHT.mcap [--evict-mb 0]
+    python bench/solver.py --log FLIGHT.mcap [--evict-mb 0] [--linearisation loops]
 
 instead prints where an RTI step's CPU time goes (guess, certificate, state box, compiled
 linearisation, DAQP, numpy glue, compiled check, the rest of ``Rmpc.solve``), in a replay of
@@ -105,6 +105,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                          "solves (bench/solver_parts.py)")
     ap.add_argument("--evict-mb", type=float, default=0.0,
                     help="with --log: MB written between two solves (default 0: warm caches)")
+    ap.add_argument("--linearisation", choices=("loops", "graph", "scalar"), default=None,
+                    help="with --log: fly this rmpc.rti_linearisation (default: the log's)")
     return ap.parse_args(argv)
 
 
@@ -213,8 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.log is not None:
         import solver_parts as sp  # bench/ is on the path as the script's dir
-        sp.report_in_flight(sp.in_flight(args.log), os.getloadavg()[0])
-        sp.report(sp.measure(args.log, args.evict_mb), os.getloadavg()[0])
+        with sp.linearisation(args.linearisation):
+            sp.report_in_flight(sp.in_flight(args.log), os.getloadavg()[0])
+            sp.report(sp.measure(args.log, args.evict_mb), os.getloadavg()[0])
         return 0
     cfg = load_config()
     out = _result(cfg, _measure(args, cfg))

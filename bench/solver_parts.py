@@ -13,8 +13,10 @@ is the figure to compare with the target, the parts say where it goes.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +28,26 @@ from companion.core.rmpc import Rmpc
 
 Call = tuple[str, Any]
 _EVICT = np.zeros(0)
+
+
+@contextlib.contextmanager
+def linearisation(form: str | None) -> Iterator[None]:
+    """Every controller built inside flies ``rmpc.rti_linearisation = form`` (None: the
+    log's), whatever the log recorded (a log recorded before the key cannot be overridden
+    by ``replay --set``)."""
+    if form is None:
+        yield
+        return
+    init = rmpc_mod.Rmpc.__init__
+
+    def patched(self: Rmpc, rmpc: Any, *a: Any, **k: Any) -> None:
+        init(self, dataclasses.replace(rmpc, rti_linearisation=form), *a, **k)
+
+    rmpc_mod.Rmpc.__init__ = patched  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        rmpc_mod.Rmpc.__init__ = init  # type: ignore[method-assign]
 
 
 def capture(log: Path) -> tuple[list[Call], Any, dict[str, Any]]:
@@ -130,6 +152,7 @@ def measure(log: Path, evict_mb: float = 0.0) -> dict[str, Any]:
     calls, cfg, summary = capture(log)
     design = design_terminal(cfg.rmpc, cfg.camera)
     mpc = Rmpc(cfg.rmpc, cfg.camera, design, clock=time.perf_counter)
+    form = mpc.cfg.rti_linearisation
     _play(mpc, calls)  # warm the caches once
     times, results = _play(mpc, calls)
     rti = np.array([r.status.startswith("rti:") and "nlp: " not in r.status for r in results])
@@ -146,6 +169,7 @@ def measure(log: Path, evict_mb: float = 0.0) -> dict[str, Any]:
     parts = {p: np.array([s.get(p, 0.0) for s in timers.steps])[rti] * 1e6 for p in PARTS}
     same = all(np.array_equal(a.u0, b.u0) for a, b in zip(results, results_i, strict=True))
     return {"log": str(log), "replay": summary, "evict_mb": evict_mb, "solves": len(results),
+            "linearisation": form,
             "rti_steps": int(rti.sum()), "nlp_steps": int((~rti).sum()),
             "wall_us": wall, "cpu_us": cpu, "parts_us": parts, "deterministic": same}
 
@@ -155,7 +179,8 @@ def report(m: dict[str, Any], load: float) -> None:
     def q(a: np.ndarray) -> str:
         return f"{np.median(a):>8.1f}{np.percentile(a, 95):>8.1f}{np.mean(a):>8.1f}"
     rep = m["replay"]
-    print(f"RTI step parts on {m['log']} (load avg {load:.2f}; {m['evict_mb']:g} MB written "
+    print(f"RTI step parts on {m['log']} (rti_linearisation {m['linearisation']!r}; load avg "
+          f"{load:.2f}; {m['evict_mb']:g} MB written "
           f"between two solves): {m['solves']} solves, "
           f"{m['rti_steps']} flew the RTI, {m['nlp_steps']} the full NLP; replay "
           f"{rep['commands_compared']} commands, max |dq| {rep['max_quat_diff']:.2g}; "

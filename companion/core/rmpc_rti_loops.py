@@ -41,37 +41,61 @@ at -O1; the library compiles in ~1-2 s."""
 DRIVER = r"""
 typedef int (*rti_stage_t)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 
+/* GCC's vector extension (any target; each lane rounded as a scalar would be): 2 doubles */
+typedef casadi_real rti_v2 __attribute__((vector_size(2 * sizeof(casadi_real))));
+#define RTI_LOAD(v, p) __builtin_memcpy(&(v), (p), sizeof(rti_v2))
+#define RTI_STORE(p, v) __builtin_memcpy((p), &(v), sizeof(rti_v2))
+
+/* acc[c] (c < cols) = (zero ? +0 : acc[c]) + a[0] X[k[0]][c] + a[1] X[k[1]][c] + ... (n
+   terms, X's rows NUA apart): each entry's terms added in this order, 8 entries at a time */
+static void rti_axpys(casadi_real* acc, int cols, int zero, const casadi_real* a, const int* k,
+                      int n, const casadi_real* X) {
+  int c = 0, j, t;
+  for (; c + 8 <= cols; c += 8) {
+    rti_v2 s[4], x;
+    for (t = 0; t < 4; ++t) {
+      if (zero) { rti_v2 z = {0., 0.}; s[t] = z; } else { RTI_LOAD(s[t], acc + c + 2 * t); }
+    }
+    for (j = 0; j < n; ++j) {
+      const casadi_real* xr = X + k[j] * NUA + c;
+      rti_v2 av = {a[j], a[j]};
+      for (t = 0; t < 4; ++t) { RTI_LOAD(x, xr + 2 * t); s[t] += av * x; }
+    }
+    for (t = 0; t < 4; ++t) RTI_STORE(acc + c + 2 * t, s[t]);
+  }
+  for (; c < cols; ++c) {
+    casadi_real v = zero ? 0. : acc[c];
+    for (j = 0; j < n; ++j) v += a[j] * X[k[j] * NUA + c];
+    acc[c] = v;
+  }
+}
+
 /* out (m x cols, row stride NUA) = M (m x 7, column-major) S (7 x cols, row stride NUA):
-   each entry summed over the inner index in ascending order from +0 (casadi_mtimes') */
+   each entry summed over the inner index in ascending order from +0 (casadi_mtimes'; the
+   terms with M's zeros left out: +-0, the graph's structural zeros) */
 static void rti_mul(const casadi_real* M, int m, const casadi_real* S, int cols,
                     casadi_real* out) {
-  int i, q, c;
+  int i, q, n, k[NX];
+  casadi_real a[NX];
   for (i = 0; i < m; ++i) {
-    casadi_real* o = out + i * NUA;
-    for (c = 0; c < cols; ++c) o[c] = 0.;
-    for (q = 0; q < NX; ++q) {
-      casadi_real a = M[i + m * q];
-      const casadi_real* s = S + q * NUA;
-      if (a == 0.) continue; /* (+-0 terms: the graph's structural zeros) */
-      for (c = 0; c < cols; ++c) o[c] += a * s[c];
-    }
+    for (n = 0, q = 0; q < NX; ++q)
+      if (M[i + m * q] != 0.) { a[n] = M[i + m * q]; k[n++] = q; }
+    rti_axpys(out + i * NUA, cols, 1, a, k, n, S);
   }
 }
 
 /* H (upper triangle, row stride NUA) += J' J and g += J' r over J's rows (row stride NUA,
-   its first cols columns), the rows in ascending order (the graph's sparse product's) */
+   its first cols columns), each entry's terms in ascending row order (the graph's sparse
+   product's; the rows where J(k, i) = 0 left out: +-0 terms) */
 static void rti_gn(const casadi_real* J, const casadi_real* r, int rows, int cols,
                    casadi_real* H, casadi_real* g) {
-  int i, k, c;
+  int i, j, n, k[NRMAX];
+  casadi_real a[NRMAX];
   for (i = 0; i < cols; ++i) {
-    casadi_real* h = H + i * NUA;
-    for (k = 0; k < rows; ++k) {
-      casadi_real a = J[k * NUA + i];
-      const casadi_real* jk = J + k * NUA;
-      if (a == 0.) continue;
-      for (c = i; c < cols; ++c) h[c] += a * jk[c];
-      g[i] += a * r[k];
-    }
+    for (n = 0, j = 0; j < rows; ++j)
+      if (J[j * NUA + i] != 0.) { a[n] = J[j * NUA + i]; k[n++] = j; }
+    for (j = 0; j < n; ++j) g[i] += a[j] * r[k[j]];
+    rti_axpys(H + i * NUA + i, cols - i, 0, a, k, n, J + i);
   }
 }
 
@@ -92,7 +116,8 @@ CASADI_SYMBOL_EXPORT int rti_lin(const casadi_real** arg, casadi_real** res, cas
   const casadi_real *U = arg[0], *p = arg[2];
   casadi_real *H = res[0], *g = res[1], *cv = res[2], *Jc = res[3];
   casadi_real x[NX], r[NRMAX], gv[NGMAX], A[NX * NX], B[NX * NU], Rx[NRMAX * NX],
-      Ru[NRMAX * NU], Gx[NGMAX * NX], Gu[NGMAX * NU], S[NX * NUA], Jr[NRMAX * NUA];
+      Ru[NRMAX * NU], Gx[NGMAX * NX], Gu[NGMAX * NU], Jr[NRMAX * NUA];
+  const casadi_real* S = Jc; /* dx(n)/dU: the state rows of stage n (none at n = 0) */
   casadi_real sw[SZ_W];
   casadi_int siw[SZ_IW + 1];
   const casadi_real* sarg[SZ_ARG];
@@ -117,8 +142,7 @@ CASADI_SYMBOL_EXPORT int rti_lin(const casadi_real** arg, casadi_real** res, cas
     }
     /* dx(n+1)/du(k) = A dx(n)/du(k), k < n; B at k = n: the state rows of stage n+1 */
     rti_rows(A, B, NX, S, ncol, Jc + NX * n * NUA);
-    for (i = 0; i < NX; ++i)
-      for (c = 0; c < ncol + NU; ++c) S[i * NUA + c] = Jc[(NX * n + i) * NUA + c];
+    S = Jc + NX * n * NUA;
     for (i = 0; i < NX; ++i) x[i] = cv[NX * n + i];
   }
   sarg[0] = x;

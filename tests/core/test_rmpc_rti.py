@@ -259,10 +259,11 @@ def test_the_condensed_linearisation_is_the_rollouts(rti) -> None:  # type: igno
     assert np.min(np.linalg.eigvalsh(h)) > 0
 
 
-@pytest.mark.parametrize("form", ["graph", "scalar"])
+@pytest.mark.parametrize("form", ["loops", "graph", "scalar"])
 def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti, form) -> None:  # type: ignore[no-untyped-def]
-    """rti_lin's H and g (rmpc.rti_linearisation "graph": the condensed J_r's product;
-    "scalar": a backward recursion over stage blocks, as scalar code) are 2 J_r' J_r and
+    """rti_lin's H and g (rmpc.rti_linearisation "loops", the default: the condensed J_r's
+    product as C loops; "graph": the same as CasADi's sparse product; "scalar": a backward
+    recursion over stage blocks, as scalar code) are 2 J_r' J_r and
     2 J_r' r of the residuals of the whole rollout differentiated as one expression (no
     condensing), and g is the gradient of the NLP's cost (central differences of rti_val's
     cost)."""
@@ -271,7 +272,8 @@ def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti, fo
     from companion.core.rmpc_problem import NP_STAGE, NU
     from companion.core.rmpc_rti_gen import _StageFunctions
 
-    if form != "graph":  # (not compiled here: the same function, evaluated by CasADi)
+    assert rti.cfg.rti_linearisation == "loops"  # (the default config's, compiled)
+    if form != "loops":  # (not compiled here: the same function, evaluated by CasADi)
         rti = Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", rti_linearisation=form,
                                        jit=False), cfg.camera, design)
     solver, eta0, par, u, lo, hi = _paper_step(rti)
