@@ -162,6 +162,7 @@ class RtiSolver:
         self.path_upper = upper
         self.path_root = np.sqrt(upper)
         self.u_max = np.tile(np.asarray(rmpc.u_max, dtype=float), rmpc.horizon)
+        self._u_min = -self.u_max  # (the same negation the step did each time, made once)
         # views of the compiled functions' outputs (filled by each call, never copied)
         self._hess = self._lin.res[0].reshape(n_u, n_u)
         self._grad = self._lin.res[1]
@@ -173,6 +174,7 @@ class RtiSolver:
         n_p = upper.size
         self._up, self._lo = np.zeros(n_u + n_p), np.full(n_u + n_p, -DAQP_INF)
         self._sense = np.zeros(n_u + n_p, dtype=np.int32)
+        self._up_u, self._lo_u, self._up_p = self._up[:n_u], self._lo[:n_u], self._up[n_u:]
         self._no_box = np.zeros(n_s)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
@@ -212,8 +214,8 @@ class RtiSolver:
         one brought the excess down (a full Gauss-Newton step far from the solution can
         oscillate; the step then goes to the full NLP, whose result does not depend on how
         many QPs were tried). See the module docstring."""
-        u_max = self.u_max
-        u = np.minimum(np.maximum(u_guess.ravel(), -u_max), u_max)
+        u_max, u_min = self.u_max, self._u_min
+        u = np.minimum(np.maximum(u_guess.ravel(), u_min), u_max)
         iters, qps = 0, 0
         status, viol = "rti: no QP", math.inf
         for _ in range(self.cfg.rti_max_qp):
@@ -226,7 +228,7 @@ class RtiSolver:
                                   eta, u.reshape(self.horizon, NU), math.nan, iters, qps,
                                   math.inf)
             u += du
-            np.minimum(np.maximum(u, -u_max, out=u), u_max, out=u)
+            np.minimum(np.maximum(u, u_min, out=u), u_max, out=u)
             self._val(u, eta0, par, state_lo, state_hi)
             previous, viol = viol, float(self._excess[0])
             if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
@@ -270,12 +272,11 @@ class RtiSolver:
         whole QP's: the QP is strictly convex, and a minimiser of its cost over a larger set
         that lies in the smaller one is the smaller one's minimiser."""
         self.calls += 1
-        n_u = self.n_u
         self._lin(u, eta0, par)  # (copied into the function's own argument buffer)
         up, lo = self._up, self._lo
-        np.subtract(self.u_max, u, out=up[:n_u])
-        np.subtract(-self.u_max, u, out=lo[:n_u])
-        np.subtract(self.path_upper, self._c_p, out=up[n_u:])
+        np.subtract(self.u_max, u, out=self._up_u)
+        np.subtract(self._u_min, u, out=self._lo_u)
+        np.subtract(self.path_upper, self._c_p, out=self._up_p)
         du, flag, iters = self._daqp(self._j_path, up, lo)
         if flag == DAQP_INFEASIBLE:
             return du, flag, iters  # more rows cannot make an infeasible QP feasible
