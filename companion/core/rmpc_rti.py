@@ -7,8 +7,10 @@ terminal rows, the same state box), linearised at the previous plan shifted by o
 - single shooting: the decision is the N x 4 inputs ``U``; the states are the nonlinear
   rollout of the NLP's own dynamics from ``eta0`` (so the plan's dynamics are exact);
 - the Gauss-Newton Hessian of the quadratic cost, the NLP's rows on the rollout (built by the
-  code that builds the NLP's) and their Jacobian come from one compiled CasADi function,
-  condensed from stage Jacobians (:mod:`companion.core.rmpc_rti_gen`, cached like the NLPs);
+  code that builds the NLP's) and their Jacobian come from one compiled function, condensed
+  from stage Jacobians (:mod:`companion.core.rmpc_rti_gen`; ``rmpc.rti_linearisation =
+  "loops"``: the condensing as C loops, :mod:`companion.core.rmpc_rti_loops`, the same
+  numbers bit for bit; cached like the NLPs);
   a second one gives the rows by the NLP's own ``g``, the cost and their largest excess (the
   check);
 - DAQP (a dual active-set solver for small dense QPs) solves the QP in-process with a bounded

@@ -32,6 +32,10 @@ within the run-to-run spread of the default in flight (cold caches); docs/refere
 drift apart unseen (tests/core/test_rmpc_rti.py compares them, and ``H``, ``g`` of both forms
 with those of the whole rollout differentiated as one expression).
 
+``rmpc.rti_linearisation = "loops"`` (:mod:`companion.core.rmpc_rti_loops`): this module's
+stage functions, with the condensing of :func:`lin_function` as fixed C loops around them:
+the same numbers bit for bit, ~1/8 of the code.
+
 Two libraries (``rmpc_rti_lin_*``, ``rmpc_rti_val_*``): each is found by its generated
 source's hash, so a change to one does not recompile the other.
 """
