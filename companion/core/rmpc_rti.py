@@ -41,7 +41,7 @@ import casadi as ca
 import daqp
 import numpy as np
 
-from companion.core import rmpc_rti_gen, rmpc_rti_loops
+from companion.core import rmpc_daqp, rmpc_rti_gen, rmpc_rti_loops
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import (
     CompiledNlp,
@@ -177,6 +177,11 @@ class RtiSolver:
         self._up, self._lo = np.zeros(n_u + n_p), np.full(n_u + n_p, -DAQP_INF)
         self._sense = np.zeros(n_u + n_p, dtype=np.int32)
         self._up_u, self._lo_u, self._up_p = self._up[:n_u], self._lo[:n_u], self._up[n_u:]
+        # the QP without the state box through DAQP's C entry on these arrays (None: the
+        # installed DAQP is not the one its structs are laid out for; daqp.solve then)
+        found = rmpc_daqp.direct(QP_ITER_LIMIT)
+        self._direct = None if found is None else rmpc_daqp.DirectQp(
+            *found, self._hess, self._grad, self._j_path, self._up, self._lo, self._sense)
         self._no_box = np.zeros(n_s)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
@@ -298,6 +303,9 @@ class RtiSolver:
               lo: np.ndarray) -> tuple[np.ndarray, int, int]:
         """DAQP on this step's H and g with ``rows`` (the bounds' first ``n_u``: the input
         box, DAQP's simple bounds), from a cold start. DAQP writes none of its arguments."""
+        if self._direct is not None and rows is self._j_path and up is self._up \
+                and lo is self._lo:
+            return self._direct.solve()  # (the same arrays, refilled in place)
         sense = self._sense if up.size == self._sense.size else np.zeros(up.size, np.int32)
         du, _, flag, info = daqp.solve(self._hess, self._grad, rows, up, lo, sense,
                                        iter_limit=QP_ITER_LIMIT)
