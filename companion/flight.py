@@ -139,6 +139,20 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
     return sim, comp
 
 
+def positive_seconds(text: str) -> float:
+    """A finite number of seconds > 0 (an ``argparse`` type: ``companion run
+    --camera-timeout``)."""
+    import argparse
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not (value > 0.0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0: {text!r}")
+    return value
+
+
 CAMERA_TIMEOUT_MARGIN_S = 5.0
 """How much longer than the emulator's lockstep timeout the companion waits for a frame."""
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from companion.config import load_config
 from companion.control.faults import FaultWindow
 from companion.control.runtime import CompanionApp
+from companion.flight import positive_seconds
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -26,7 +27,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--log", type=Path, default=None,
                    help="MCAP log file (default: logging.dir/flight-<time>.mcap)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
-    p.add_argument("--camera-timeout", type=_positive_s, default=5.0, metavar="S",
+    p.add_argument("--camera-timeout", type=positive_seconds, default=5.0, metavar="S",
                    help="stop when no camera frame arrives for S seconds once frames have "
                         "flowed (default 5; a lockstep flight sets it above the emulator's "
                         "sim.lockstep_timeout_s, so the emulator's timeout acts first)")
@@ -43,17 +44,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--progress-file", type=Path, default=None,
                    help="keep 'ELAPSED_S STEPS' in this file (for orchestration)")
     p.set_defaults(func=_run)
-
-
-def _positive_s(text: str) -> float:
-    """A finite number of seconds > 0 (argparse type)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
-    if not (value > 0.0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0: {text!r}")
-    return value
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -8,8 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from companion.commands import run as run_cmd
-from companion.flight import CAMERA_TIMEOUT_MARGIN_S, camera_timeout_s, demo_commands
+from companion.flight import (
+    CAMERA_TIMEOUT_MARGIN_S,
+    camera_timeout_s,
+    demo_commands,
+    positive_seconds,
+)
 
 CONFIG = Path(__file__).resolve().parents[2] / "config"
 
@@ -43,5 +47,5 @@ def test_demo_passes_the_camera_timeout(tmp_path: Path) -> None:
 @pytest.mark.parametrize("text", ["0", "-1", "nan", "inf", "soon"])
 def test_run_refuses_a_bad_camera_timeout(text: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match="seconds"):
-        run_cmd._positive_s(text)
-    assert run_cmd._positive_s("12.5") == 12.5
+        positive_seconds(text)
+    assert positive_seconds("12.5") == 12.5
