@@ -347,9 +347,9 @@ class FrameServer:
         frame written once into the ring and a notice naming its slot."""
         if self._clients:
             record: tuple[bytes | memoryview, ...] | None = None
-            notice = b""
+            notice: bytes | None = None  # b"": this frame not through the ring
             for c in list(self._clients):
-                if c.wants_shm and not notice:
+                if c.wants_shm and notice is None:
                     notice = await self._ring_notice(seq, t_us, image)
                 if c.wants_shm and notice:
                     c.offer((notice,) if c.announced or self._ring is None
@@ -378,11 +378,16 @@ class FrameServer:
         h, w = _check_fields(seq, t_us, image)
         payload = _payload(image, code) if code in (0, 1) else \
             await asyncio.to_thread(_payload, image, code)
-        try:
-            if self._ring is None:
-                self._ring = FrameRing(len(payload), tag=str(self.port))
-            return self._ring.write(HEADER, (code, seq, t_us, w, h), payload)
-        except LinkError as e:
-            self._ring_failed = True
-            log.warning("camera frames: no shared memory, the whole frames over TCP: %s", e)
+        if self._ring is None:
+            try:  # a compressed frame's size varies: room for a raw one and more
+                room = len(payload) if code in (0, 1) else image.nbytes + 65536
+                self._ring = FrameRing(room, tag=str(self.port))
+            except LinkError as e:
+                self._ring_failed = True
+                log.warning("camera frames: no shared memory, the whole frames over TCP: %s", e)
+                return b""
+        if len(payload) > self._ring.capacity:  # this frame whole over TCP
+            log.warning("camera frame %d (%d bytes) does not fit a shared-memory slot", seq,
+                        len(payload))
             return b""
+        return self._ring.write(HEADER, (code, seq, t_us, w, h), payload)

@@ -6,17 +6,20 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 
 from companion.camera import open_camera
 from sim_bridge.camera.frames import FrameServer
 
 
-def test_tcp_and_shared_memory_deliver_the_same_frames() -> None:
-    images = [np.random.default_rng(s).integers(0, 256, (120, 160), dtype=np.uint8)
+@pytest.mark.parametrize("encoding", ["mono8", "bgr8", "png"])
+def test_tcp_and_shared_memory_deliver_the_same_frames(encoding: str) -> None:
+    shape = (120, 160, 3) if encoding == "bgr8" else (120, 160)
+    images = [np.random.default_rng(s).integers(0, 256, shape, dtype=np.uint8)
               for s in range(12)]
 
     async def main() -> tuple[list[tuple[int, int, bytes]], ...]:
-        async with FrameServer("127.0.0.1", 0) as srv:
+        async with FrameServer("127.0.0.1", 0, encoding) as srv:
             url = f"tcp://127.0.0.1:{srv.port}?frames=all"
             tcp = open_camera(url, queue_size=1)
             shm = open_camera(url + "&transport=shm", queue_size=1)
