@@ -160,6 +160,7 @@ class _RecordProtocol(asyncio.BufferedProtocol):
         self._on_record = on_record
         self._on_announce = on_announce
         self._announce: Announcement | None = None  # set while the segment's name is read
+        self._announced_ok = False  # this connection's segment is mapped
         self._max_payload = max_payload_bytes
         self.done: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
         self.bad: BadRecord | None = None
@@ -217,6 +218,8 @@ class _RecordProtocol(asyncio.BufferedProtocol):
     def _other_record(self) -> None:
         """A header that is not a whole frame's: a shared-memory notice or announcement."""
         if self._on_announce is not None and self._head[:4] == NOTICE_MAGIC:
+            if not self._announced_ok:
+                raise BadRecord("a shared-memory notice before the segment's announcement")
             header = FrameHeader.unpack(bytes(self._head))
             header.check(self._max_payload, NOTICE_MAGIC)
             self._read_next(0)
@@ -240,6 +243,7 @@ class _RecordProtocol(asyncio.BufferedProtocol):
             raise BadRecord(f"shared-memory segment name {name!r} is not UTF-8") from exc
         assert self._on_announce is not None
         self._on_announce(ann, path)
+        self._announced_ok = True
 
     def needed_bytes(self) -> int:
         """Bytes still to read before the part being read (a header, or the payload the
@@ -340,8 +344,8 @@ class FrameSocketSource(CameraSource):
     def _slot_payload(self, rec: _Record) -> memoryview | None:
         """The payload of a notice's frame copied out of its slot (None: torn or lapped)."""
         h = rec.header
-        if self._shm is None:
-            raise CameraError(f"frame {h.seq}: a shared-memory notice before the segment")
+        if self._shm is None:  # a notice of a connection that is gone (and its segment)
+            return None
         return self._shm.read(h.reserved, h.seq, h.t_us, h.payload_len, h.crc32)
 
     async def _next_frame(self) -> CameraFrame | None:

@@ -97,11 +97,12 @@ def test_a_missing_or_foreign_segment_is_a_clear_error(tmp_path: Path) -> None:
         SharedFrames(str(tmp_path / "short"), _ann(ring))
 
 
-async def _serve(records: list[bytes], requests: list[bytes]
-                 ) -> tuple[asyncio.Server, int]:
+async def _serve(records: list[bytes], requests: list[bytes],
+                 later: list[bytes] | None = None) -> tuple[asyncio.Server, int]:
+    """A server sending ``records`` on its first connection, ``later`` (or the same) after."""
     async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         requests.append(await reader.readexactly(8))
-        for r in records:
+        for r in records if len(requests) == 1 or later is None else later:
             writer.write(r)
         await writer.drain()
         try:
@@ -166,3 +167,18 @@ def test_a_tcp_client_takes_no_notice_and_the_url_names_the_transport() -> None:
     for bad in ("tcp://h:1?transport=udp", "tcp://h:1?frames=all&frames=all", "tcp://h:1?x=1"):
         with pytest.raises(CameraError, match="transport=shm"):
             open_camera(bad)
+
+
+def test_a_notice_before_the_announcement_is_a_bad_record(tmp_path: Path) -> None:
+    """The client resynchronises (reconnects) and takes the frames of the next connection."""
+    ring = Ring(tmp_path / "ring")
+    n5 = ring.write(0, 5, _image(5))
+
+    async def main() -> tuple[int, int]:
+        server, port = await _serve([n5], [], later=[ring.announcement(), n5])
+        async with server, FrameSocketSource("127.0.0.1", port, shared_memory=True) as cam:
+            f = await asyncio.wait_for(anext(cam), 10.0)
+            assert np.array_equal(f.image, _image(5))
+            return cam.stats.bad_records, cam.stats.connects
+
+    assert asyncio.run(main()) == (1, 2)
