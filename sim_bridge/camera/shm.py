@@ -128,7 +128,12 @@ class FrameRing:
         except OSError as e:
             raise LinkError(f"frame ring: cannot create {self.path}: {e}") from e
         try:
-            os.ftruncate(fd, self.size)
+            # allocated now: a full /dev/shm (a container's 64 MB) is an error here, where a
+            # sparse file would kill the process with SIGBUS at the first write into a hole
+            if hasattr(os, "posix_fallocate"):
+                os.posix_fallocate(fd, 0, self.size)
+            else:  # macOS: no tmpfs under the temporary directory, an ordinary file
+                os.ftruncate(fd, self.size)
             self._mm = mmap.mmap(fd, self.size)
         except OSError as e:
             with contextlib.suppress(OSError):
