@@ -18,6 +18,10 @@ collective thrust (the vehicle's true hover thrust keeps it in the air, e.g. 0.5
 ``--digest``). ``--cv-threads N``: the emulator's OpenCV threads (``sim-bridge --cv-threads``;
 1 by default, 0 = OpenCV's own pool; the frames are the same either way).
 
+``--transport shm``: the client asks for the frames through the emulator's shared memory
+(docs/reference/wire.md) and copies each out of its slot; the digest hashes the same header
+(with the payload's CRC-32) and pixels, so both transports give the same digest.
+
 ``--digest``: an identity check of the emulator's output. The client switches the vehicle to
 OFFBOARD and flies a slow attitude wave (so the vehicle and the view move), and prints one
 SHA-256 over every frame (header and pixels) and every MAVLink datagram of the offboard link
@@ -35,6 +39,7 @@ import argparse
 import hashlib
 import json
 import math
+import mmap
 import os
 import resource
 import socket
@@ -46,9 +51,12 @@ import time
 from typing import Any
 
 import numpy as np
+from fastcrc.crc32 import iso_hdlc as crc32
 from pymavlink.dialects.v20 import common as mavlink2
 
 HEADER = struct.Struct("<4sBBHIQHHII")
+ANNOUNCE = struct.Struct("<4sBBHIIIQI")  # the shared-memory segment (docs/reference/wire.md)
+SHM_REQUEST = struct.pack("<4sBBH", b"IBVQ", 1, 1, 0)
 # ``python -c _PROFILED OUT ARGS...``: the emulator under cProfile timed by the process's CPU
 # clock (a wall-clock profile on a loaded machine charges other processes' time to whatever
 # line was running when the scheduler took the core away).
@@ -122,6 +130,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--thrust", type=float, default=0.5, help="the client's hover thrust")
     ap.add_argument("--cv-threads", type=int, default=1,
                     help="the emulator's OpenCV threads (sim-bridge --cv-threads; 0: its pool)")
+    ap.add_argument("--transport", choices=("tcp", "shm"), default="tcp",
+                    help="the frames over TCP or through the emulator's shared memory")
     ap.add_argument("--digest", action="store_true",
                     help="fly an attitude wave in OFFBOARD and print the output's SHA-256")
     ap.add_argument("--lockstep-timeout", type=float, default=None,
@@ -173,6 +183,48 @@ def _connect_frames(p_frame: int) -> socket.socket:
             time.sleep(0.05)
 
 
+class _Ring:
+    """The emulator's shared-memory frame ring, read as docs/reference/wire.md says."""
+
+    def __init__(self, tcp: socket.socket, head: bytes) -> None:
+        _, _, self.flags, _, self.n, self.stride, self.off, size, name_len = ANNOUNCE.unpack(head)
+        name = bytearray(name_len)
+        read_exact(tcp, memoryview(name), name_len)
+        with open(name.decode(), "rb") as f:
+            self.mm = mmap.mmap(f.fileno(), size, prot=mmap.PROT_READ)
+        self.gens = [np.frombuffer(self.mm, np.uint64, 1, 4096 + i * self.stride)
+                     for i in range(self.n)]
+
+    def read(self, head: tuple[Any, ...], buf: memoryview) -> bool:
+        """Copy the notice's frame into ``buf``; False if its slot was torn or lapped."""
+        slot, n = head[3], head[8]
+        base = 4096 + slot * self.stride
+        g1 = int(self.gens[slot][0])
+        if g1 & 1 or HEADER.unpack_from(self.mm, base + 16)[4] != head[4]:
+            return False
+        buf[:n] = self.mm[base + self.off:base + self.off + n]
+        return int(self.gens[slot][0]) == g1
+
+
+def _read_record(tcp: socket.socket, buf: memoryview, ring: list[_Ring],
+                 digest: bool) -> tuple[Any, ...]:
+    """The next frame's header, its payload in ``buf`` (over TCP or out of the ring);
+    a shared-memory frame's header as the TCP record's (the CRC computed for the digest)."""
+    while True:
+        raw = bytes(read_exact(tcp, buf, HEADER.size))
+        if raw[:4] == b"IBVA":
+            ring[:] = [_Ring(tcp, raw)]
+            continue
+        head = HEADER.unpack(raw)
+        if raw[:4] == b"IBVF":
+            read_exact(tcp, buf, head[8])
+            return head
+        if not ring[0].read(head, buf):
+            raise RuntimeError(f"frame {head[4]}: shared-memory slot torn or lapped")
+        crc = crc32(buf[:head[8]]) if digest else head[9]
+        return (b"IBVF", head[1], head[2], 0, *head[4:9], crc)
+
+
 def _client_loop(args: argparse.Namespace, tcp: socket.socket, udp: socket.socket,
                  mav: mavlink2.MAVLink, hover: bytes, p_sim: int,
                  digest: Any) -> tuple[list[float], list[int]]:
@@ -187,10 +239,12 @@ def _client_loop(args: argparse.Namespace, tcp: socket.socket, udp: socket.socke
     release = args.digest or args.lockstep_timeout is not None
     if release:
         tcp.settimeout(1.0)
+    ring: list[_Ring] = []
+    if args.transport == "shm":
+        tcp.sendall(SHM_REQUEST)
     while True:
         try:
-            head = HEADER.unpack(read_exact(tcp, buf, HEADER.size))
-            read_exact(tcp, buf, head[8])
+            head = _read_record(tcp, buf, ring, args.digest)
         except TimeoutError:
             if release and not arrivals:  # step 0's frame left before we connected
                 udp.sendto(hover, ("127.0.0.1", p_sim))

@@ -128,8 +128,10 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         "--mavlink", f"udpin:127.0.0.1:{p_comp}", "--camera",
         # every frame answered in turn (the flights as flown before, one step per frame); a
         # client on the default intake (?frames=newest, realtime) also keeps lockstep: the
-        # emulator takes an answer stamped with the newest frame's time for every frame before it
-        f"tcp://127.0.0.1:{p_frame}?frames=all",
+        # emulator takes an answer stamped with the newest frame's time for every frame before it;
+        # the frames through the emulator's shared memory (both run here: no 1 MB loopback
+        # write and read a frame, docs/reference/wire.md)
+        f"tcp://127.0.0.1:{p_frame}?frames=all&transport=shm",
         "--log", str(out / "flight.mcap"), "--truth-port", str(p_truth),
         "--duration", f"{duration_s}", "--ready-file", str(out / READY_FILE),
         "--progress-file", str(out / PROGRESS_FILE),

@@ -217,9 +217,12 @@ class SimBridge:
             await ml.open()
             self._stack.callback(ml.close)
             self.links[name] = ml
-            rates = None
-            if cfg.sim.telemetry.rates == "px4":
-                rates = PX4_ONBOARD_RATES_HZ if name == "offboard" else PX4_NORMAL_RATES_HZ
+            # the GCS link at PX4's "normal" rates with either setting: the emulator's own
+            # (offboard) rates there doubled the datagrams a step for a ground station that
+            # PX4 sends no ATTITUDE_QUATERNION or HIGHRES_IMU at all
+            rates = None if name == "offboard" else PX4_NORMAL_RATES_HZ
+            if cfg.sim.telemetry.rates == "px4" and name == "offboard":
+                rates = PX4_ONBOARD_RATES_HZ
             self.telemetry.streams[name] = Streams(rates)
             self.transport.add(ml)
             self.ports[name] = ml.port

@@ -10,6 +10,9 @@ URLs (:func:`open_camera`):
   :class:`FrameSocketSource`: the newest frame the socket holds is taken, older ones
   skipped undecoded (``?frames=newest``, the default); ``?frames=all``: every frame in
   turn, as the lockstep emulator expects (one answer per frame it delivers).
+  ``&transport=shm`` (either order): the frames through the emulator's shared memory, only
+  a small notice per frame over TCP (the emulator on this host; ``transport=tcp``, the
+  default, anywhere).
 - ``0``, ``/dev/video0``: a local camera device, ``rtsp://...``, ``http(s)://...``, ``udp://...``:
   a live stream; a file path (or ``file://path``): a video file (read at the consumer's pace,
   nothing dropped). All through ``cv2.VideoCapture``: :class:`VideoCaptureSource`.
@@ -55,8 +58,8 @@ __all__ = [
 # ----------------------------------------------------------------------------------------------
 # URL dispatch
 
-_TCP = re.compile(r"^tcp://(?P<host>\[[^\]]+\]|[^:/]+):(?P<port>\d+)/?"
-                  r"(?:\?frames=(?P<frames>newest|all))?$")
+_TCP = re.compile(r"^tcp://(?P<host>\[[^\]]+\]|[^:/?]+):(?P<port>\d+)/?(?:\?(?P<query>.*))?$")
+_TCP_QUERY = {"frames": ("newest", "all"), "transport": ("tcp", "shm")}
 _STREAM_SCHEMES = ("rtsp://", "rtsps://", "rtmp://", "http://", "https://", "udp://", "rtp://")
 
 
@@ -69,10 +72,13 @@ def open_camera(url: str, **kwargs: Any) -> CameraSource:
         raise CameraError("camera url: empty")
     if url.startswith("tcp://"):
         m = _TCP.match(url)
-        if m is None:
+        query = _tcp_query(url, m["query"]) if m is not None else None
+        if m is None or query is None:
             raise CameraError(f"camera url {url!r}: expected tcp://host:port, optionally "
-                              "?frames=newest (the default) or ?frames=all")
-        kwargs.setdefault("read_ahead", m["frames"] != "all")
+                              "?frames=newest (the default) or ?frames=all, and "
+                              "&transport=tcp (the default) or &transport=shm")
+        kwargs.setdefault("read_ahead", query.get("frames") != "all")
+        kwargs.setdefault("shared_memory", query.get("transport") == "shm")
         return FrameSocketSource(m["host"].strip("[]"), int(m["port"]), **kwargs)
     if url.startswith("mcap://") or url.endswith(".mcap"):
         return _open_mcap(url, **kwargs)
@@ -88,6 +94,17 @@ def open_camera(url: str, **kwargs: Any) -> CameraSource:
     if not Path(path).expanduser().is_file():
         raise CameraError(f"camera url {url!r}: no such file")
     return VideoCaptureSource(str(Path(path).expanduser()), live=False, **kwargs)
+
+
+def _tcp_query(url: str, query: str | None) -> dict[str, str] | None:
+    """The frame socket URL's query as a dict (None if a key or value is unknown)."""
+    out: dict[str, str] = {}
+    for part in (query or "").split("&") if query else []:
+        key, _, value = part.partition("=")
+        if value not in _TCP_QUERY.get(key, ()) or key in out:
+            return None
+        out[key] = value
+    return out
 
 
 def _open_mcap(url: str, **kwargs: Any) -> CameraSource:

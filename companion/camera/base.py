@@ -79,6 +79,7 @@ class SourceStats:
     connect_failures: int = 0
     disconnects: int = 0  # connection lost (peer closed / reset)
     decode_errors: int = 0  # payloads that did not decode (jpeg/png, capture read)
+    torn_frames: int = 0  # shared-memory frames overwritten before they were read (dropped)
 
 
 _T = TypeVar("_T")

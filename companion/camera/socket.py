@@ -19,6 +19,13 @@ import numpy.typing as npt
 from fastcrc.crc32 import iso_hdlc as _crc32
 
 from companion.camera.base import _CHANNELS, CameraError, CameraFrame, CameraSource, _Newest, _stop
+from companion.camera.shm import (
+    ANNOUNCE_MAGIC,
+    NOTICE_MAGIC,
+    REQUEST_SHM,
+    Announcement,
+    SharedFrames,
+)
 
 _log = logging.getLogger(__name__)
 
@@ -60,9 +67,11 @@ class FrameHeader:
     def unpack(cls, data: bytes) -> FrameHeader:
         return cls(*FRAME_HEADER.unpack(data))
 
-    def check(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES) -> None:
-        """Raise :class:`BadRecord` naming the first field that is not acceptable."""
-        if self.magic != FRAME_MAGIC:
+    def check(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES,
+              magic: bytes = FRAME_MAGIC) -> None:
+        """Raise :class:`BadRecord` naming the first field that is not acceptable (``magic``:
+        ``NOTICE_MAGIC`` for a shared-memory notice)."""
+        if self.magic != magic:
             raise BadRecord(f"bad magic {self.magic!r}")
         if self.version != FRAME_VERSION:
             raise BadRecord(f"unsupported version {self.version}")
@@ -129,7 +138,7 @@ def decode_payload(header: FrameHeader, payload: bytes | memoryview
 @dataclass(frozen=True)
 class _Record:
     header: FrameHeader
-    payload: bytes | memoryview  # read-only
+    payload: bytes | memoryview | None  # read-only; None: a notice (the frame is in its slot)
     t_rx_ns: int
 
 
@@ -145,9 +154,13 @@ class _RecordProtocol(asyncio.BufferedProtocol):
     resynchronises by reconnecting), or fails with the error when the connection ends
     (:class:`ConnectionError` at EOF)."""
 
-    def __init__(self, on_record: Callable[[FrameHeader, memoryview], None],
-                 max_payload_bytes: int) -> None:
+    def __init__(self, on_record: Callable[[FrameHeader, memoryview | None], None],
+                 max_payload_bytes: int,
+                 on_announce: Callable[[Announcement, str], None] | None = None) -> None:
         self._on_record = on_record
+        self._on_announce = on_announce
+        self._announce: Announcement | None = None  # set while the segment's name is read
+        self._announced_ok = False  # this connection's segment is mapped
         self._max_payload = max_payload_bytes
         self.done: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
         self.bad: BadRecord | None = None
@@ -168,13 +181,18 @@ class _RecordProtocol(asyncio.BufferedProtocol):
         if self._pos < len(self._buf):
             return
         try:
+            if self._announce is not None:
+                self._announced(self._announce, bytes(self._buf))
+                return
             if self._header is None:
+                if self._head[:4] != FRAME_MAGIC:
+                    self._other_record()
+                    return
                 header = FrameHeader.unpack(bytes(self._head))
                 header.check(self._max_payload)
                 if header.payload_len > 0:  # read the payload next
+                    self._read_next(header.payload_len)
                     self._header = header
-                    self._buf = memoryview(bytearray(header.payload_len))
-                    self._pos = 0
                     return
                 payload = memoryview(b"")
             else:
@@ -185,10 +203,47 @@ class _RecordProtocol(asyncio.BufferedProtocol):
             self.bad = exc
             self.done.set_result(True)
             return
+        except CameraError as exc:  # a segment that cannot be mapped: no use reconnecting
+            self.done.set_exception(exc)
+            return
         self._header = None
-        self._buf = memoryview(self._head)
-        self._pos = 0
+        self._read_next(0)
         self._on_record(header, payload)
+
+    def _read_next(self, payload_len: int) -> None:
+        """Read ``payload_len`` bytes next (0: the next record's header)."""
+        self._buf = memoryview(bytearray(payload_len)) if payload_len else memoryview(self._head)
+        self._pos = 0
+
+    def _other_record(self) -> None:
+        """A header that is not a whole frame's: a shared-memory notice or announcement."""
+        if self._on_announce is not None and self._head[:4] == NOTICE_MAGIC:
+            if not self._announced_ok:
+                raise BadRecord("a shared-memory notice before the segment's announcement")
+            header = FrameHeader.unpack(bytes(self._head))
+            header.check(self._max_payload, NOTICE_MAGIC)
+            self._read_next(0)
+            self._on_record(header, None)
+        elif self._on_announce is not None and self._head[:4] == ANNOUNCE_MAGIC:
+            try:
+                ann = Announcement.unpack(bytes(self._head))
+            except CameraError as exc:
+                raise BadRecord(str(exc)) from exc
+            self._announce = ann
+            self._read_next(ann.name_len)
+        else:
+            raise BadRecord(f"bad magic {bytes(self._head[:4])!r}")
+
+    def _announced(self, ann: Announcement, name: bytes) -> None:
+        self._announce = None
+        self._read_next(0)
+        try:
+            path = name.decode()
+        except UnicodeDecodeError as exc:
+            raise BadRecord(f"shared-memory segment name {name!r} is not UTF-8") from exc
+        assert self._on_announce is not None
+        self._on_announce(ann, path)
+        self._announced_ok = True
 
     def needed_bytes(self) -> int:
         """Bytes still to read before the part being read (a header, or the payload the
@@ -212,6 +267,13 @@ class FrameSocketSource(CameraSource):
     size or CRC closes the connection and reconnects at once (``resyncs``). Records are
     decoded only when the consumer takes them (a dropped frame costs no decoding); JPEG/PNG
     decode in a worker thread.
+
+    ``shared_memory`` (``?transport=shm``): ask the emulator for its frames through shared
+    memory (same host only): the frames are copied out of the ring it announces when the
+    consumer takes them; one overwritten or being written by then is dropped
+    (``torn_frames``). A segment that cannot be mapped fails the source
+    (:class:`CameraError` naming it). An emulator that does not offer shared memory keeps
+    sending whole frames, which are taken as they come.
     """
 
     def __init__(
@@ -225,6 +287,7 @@ class FrameSocketSource(CameraSource):
         connect_timeout_s: float = 2.0,
         max_payload_bytes: int = MAX_PAYLOAD_BYTES,
         read_ahead: bool = True,
+        shared_memory: bool = False,
     ) -> None:
         super().__init__()
         if not 0 < port < 65536:
@@ -246,10 +309,13 @@ class FrameSocketSource(CameraSource):
         # the connection being read (None between connections): how much it holds unread
         self._reading: tuple[_RecordProtocol, int] | None = None
         self._last_seq: int | None = None
+        self._shared_memory = shared_memory
+        self._shm: SharedFrames | None = None  # the announced ring, mapped
         self.connected = asyncio.Event()
 
     def __repr__(self) -> str:
-        return f"FrameSocketSource('tcp://{self.host}:{self.port}')"
+        query = "?transport=shm" if self._shared_memory else ""
+        return f"FrameSocketSource('tcp://{self.host}:{self.port}{query}')"
 
     async def _start(self) -> None:
         self._buffer = _Newest(self._queue_size)
@@ -261,6 +327,26 @@ class FrameSocketSource(CameraSource):
             await _stop(self._task)
         if self._buffer is not None:
             self._buffer.close()
+        self._unmap()
+
+    def _unmap(self) -> None:
+        if self._shm is not None:
+            self._shm.close()
+            self._shm = None
+
+    def _announced(self, ann: Announcement, path: str) -> None:
+        """The emulator's shared-memory segment (raises :class:`CameraError` if it cannot be
+        mapped: the source fails)."""
+        self._unmap()
+        self._shm = SharedFrames(path, ann)
+        _log.info("frame socket: frames through shared memory %s (%d slots)", path, ann.n_slots)
+
+    def _slot_payload(self, rec: _Record) -> memoryview | None:
+        """The payload of a notice's frame copied out of its slot (None: torn or lapped)."""
+        h = rec.header
+        if self._shm is None:  # a notice of a connection that is gone (and its segment)
+            return None
+        return self._shm.read(h.reserved, h.seq, h.t_us, h.payload_len, h.crc32)
 
     async def _next_frame(self) -> CameraFrame | None:
         assert self._buffer is not None
@@ -270,11 +356,17 @@ class FrameSocketSource(CameraSource):
                 self._raise_if_failed()
                 return None
             rec = await self._newest(rec)
+            payload = rec.payload if rec.payload is not None else self._slot_payload(rec)
+            if payload is None:
+                self._count("torn_frames")
+                _log.warning("frame %d dropped: its shared-memory slot was overwritten",
+                             rec.header.seq)
+                continue
             try:
                 if rec.header.encoding in (2, 3):
-                    image, enc = await asyncio.to_thread(decode_payload, rec.header, rec.payload)
+                    image, enc = await asyncio.to_thread(decode_payload, rec.header, payload)
                 else:
-                    image, enc = decode_payload(rec.header, rec.payload)
+                    image, enc = decode_payload(rec.header, payload)
             except CameraError as exc:
                 self._count("decode_errors")
                 _log.warning("frame %d dropped: %s", rec.header.seq, exc)
@@ -323,7 +415,9 @@ class FrameSocketSource(CameraSource):
             try:
                 transport, proto = await asyncio.wait_for(
                     loop.create_connection(
-                        lambda: _RecordProtocol(self._received, self._max_payload),
+                        lambda: _RecordProtocol(
+                            self._received, self._max_payload,
+                            self._announced if self._shared_memory else None),
                         self.host, self.port),
                     self._connect_timeout_s,
                 )
@@ -334,6 +428,8 @@ class FrameSocketSource(CameraSource):
                 delay = min(2 * delay, self._backoff[1])
                 continue
             self._count("connects")
+            if self._shared_memory:
+                transport.write(REQUEST_SHM)
             sock = transport.get_extra_info("socket")
             self._reading = (proto, sock.fileno()) if sock is not None else None
             self.connected.set()
@@ -362,8 +458,9 @@ class FrameSocketSource(CameraSource):
         protocol hands each good record to :meth:`_received` meanwhile."""
         return await proto.done
 
-    def _received(self, header: FrameHeader, payload: memoryview) -> None:
-        """A record with a good CRC (called by :class:`_RecordProtocol`)."""
+    def _received(self, header: FrameHeader, payload: memoryview | None) -> None:
+        """A record with a good CRC, or a shared-memory notice (``payload`` None; called by
+        :class:`_RecordProtocol`)."""
         assert self._buffer is not None
         t_rx_ns = time.monotonic_ns()
         self._count("frames_received")

@@ -23,7 +23,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="MAVLink connection: udpin:0.0.0.0:14540, udpout:HOST:PORT, "
                         "tcp:HOST:PORT, /dev/ttyACM0,921600 (default: mavlink.url)")
     p.add_argument("--camera", default="tcp://127.0.0.1:5700",
-                   help="camera: tcp://HOST:PORT (frame socket), device index, file, rtsp://")
+                   help="camera: tcp://HOST:PORT (frame socket; ?transport=shm: its frames "
+                        "through shared memory, same host), device index, file, rtsp://")
     p.add_argument("--log", type=Path, default=None,
                    help="MCAP log file (default: logging.dir/flight-<time>.mcap)")
     p.add_argument("--duration", type=float, default=None, help="stop after S seconds")

@@ -22,6 +22,7 @@ import numpy as np
 from fastcrc.crc32 import iso_hdlc as _crc32
 
 from sim_bridge import LinkError, SimBridgeError
+from sim_bridge.camera.shm import REQUEST, FrameRing, parse_request
 
 __all__ = [
     "ENCODINGS",
@@ -105,13 +106,8 @@ def encode_payload(image: np.ndarray, encoding: str | int = "mono8") -> bytes:
     return payload if isinstance(payload, bytes) else payload.tobytes()
 
 
-def encode_frame_parts(seq: int, t_us: int, image: np.ndarray, encoding: str | int = "mono8"
-                       ) -> tuple[bytes, bytes | memoryview]:
-    """One record as (header, payload), not joined: for mono8/bgr8 the payload is a view of
-    ``image``'s memory, so the image must not change until the record is written. The frame
-    server sends the two parts as they are: copying a 1 MB frame into bytes and joining it to
-    its header cost ~1 ms per frame (fresh 1 MB buffers fault their pages in), in series with
-    every lockstep step."""
+def _check_fields(seq: int, t_us: int, image: np.ndarray) -> tuple[int, int]:
+    """The image's height and width once the header fields fit (:class:`FrameError`)."""
     if not 0 <= seq <= 0xFFFFFFFF:
         raise FrameError(f"seq {seq} out of u32 range")
     if not 0 <= t_us <= 0xFFFFFFFFFFFFFFFF:
@@ -119,6 +115,17 @@ def encode_frame_parts(seq: int, t_us: int, image: np.ndarray, encoding: str | i
     h, w = image.shape[:2]
     if not (0 < w <= 0xFFFF and 0 < h <= 0xFFFF):
         raise FrameError(f"image size {w} x {h} does not fit the u16 header fields")
+    return int(h), int(w)
+
+
+def encode_frame_parts(seq: int, t_us: int, image: np.ndarray, encoding: str | int = "mono8"
+                       ) -> tuple[bytes, bytes | memoryview]:
+    """One record as (header, payload), not joined: for mono8/bgr8 the payload is a view of
+    ``image``'s memory, so the image must not change until the record is written. The frame
+    server sends the two parts as they are: copying a 1 MB frame into bytes and joining it to
+    its header cost ~1 ms per frame (fresh 1 MB buffers fault their pages in), in series with
+    every lockstep step."""
+    h, w = _check_fields(seq, t_us, image)
     code = _encoding_code(encoding)
     payload = _payload(image, code)
     # fastcrc's CRC-32 (the same CRC-32/ISO-HDLC as zlib's, ~0.02 ms against zlib's ~0.23 ms on
@@ -176,9 +183,19 @@ async def read_frame(reader: asyncio.StreamReader) -> tuple[FrameHeader, np.ndar
     return header, decode_payload(header, payload)
 
 
-async def _until_eof(reader: asyncio.StreamReader) -> None:
-    """Return when the peer closes its side (clients send nothing; anything sent is ignored)."""
+async def _until_eof(reader: asyncio.StreamReader, client: _Client) -> None:
+    """Return when the peer closes its side. A client may send one request first (shared
+    memory, docs/reference/wire.md); anything else it sends is ignored."""
     with contextlib.suppress(ConnectionError, OSError):
+        head = b""
+        while len(head) < REQUEST.size:
+            data = await reader.read(REQUEST.size - len(head))
+            if not data:
+                return
+            head += data
+        client.wants_shm = parse_request(head) is not None
+        if client.wants_shm:
+            log.info("frame client %s asks for shared memory", client.peer)
         while await reader.read(4096):
             pass
 
@@ -190,6 +207,8 @@ class _Client:
         self.writer = writer
         self.peer = writer.get_extra_info("peername")
         self.slot: tuple[bytes | memoryview, ...] | None = None
+        self.wants_shm = False  # it sent the shared-memory request
+        self.announced = False  # it was sent the shared-memory segment's name
         self.wake = asyncio.Event()
         self.sent = 0
         self.dropped = 0
@@ -211,6 +230,8 @@ class _Client:
                     continue
                 for part in record:  # header, payload: written as they are (no join)
                     self.writer.write(part)
+                if len(record) == 2 and record[0][:4] == b"IBVA":
+                    self.announced = True
                 await self.writer.drain()
                 self.sent += 1
         except (ConnectionError, OSError) as e:
@@ -241,6 +262,8 @@ class FrameServer:
         self._closing = False
         self._gone_sent = 0
         self._gone_dropped = 0
+        self._ring: FrameRing | None = None
+        self._ring_failed = False
 
     async def __aenter__(self) -> FrameServer:
         try:
@@ -261,6 +284,8 @@ class FrameServer:
 
     async def close(self) -> None:
         self._closing = True
+        if self._ring is not None:
+            self._ring.close()
         if self._server is not None:
             self._server.close()
         for c in list(self._clients):
@@ -281,7 +306,7 @@ class FrameServer:
         self._clients.add(client)
         client.task = asyncio.current_task()
         run = asyncio.ensure_future(client.run())
-        eof = asyncio.ensure_future(_until_eof(reader))
+        eof = asyncio.ensure_future(_until_eof(reader, client))
         try:
             # The client leaves when it closes its side (EOF) or when writing to it fails.
             await asyncio.wait({run, eof}, return_when=asyncio.FIRST_COMPLETED)
@@ -317,14 +342,52 @@ class FrameServer:
         return self._gone_dropped + sum(c.dropped for c in self._clients)
 
     async def publish(self, seq: int, t_us: int, image: np.ndarray) -> None:
-        """Encode once and offer the record to every connected client (never blocks on them)."""
+        """Encode once and offer the record to every connected client (never blocks on
+        them): the whole record over TCP, or to a client that asked for shared memory the
+        frame written once into the ring and a notice naming its slot."""
         if self._clients:
-            if self.encoding in ("mono8", "bgr8"):
-                record = encode_frame_parts(seq, t_us, image, self.encoding)
-            else:  # compression takes milliseconds: keep the event loop free
-                record = await asyncio.to_thread(encode_frame_parts, seq, t_us, image,
-                                                 self.encoding)
+            record: tuple[bytes | memoryview, ...] | None = None
+            notice: bytes | None = None  # b"": this frame not through the ring
             for c in list(self._clients):
+                if c.wants_shm and notice is None:
+                    notice = await self._ring_notice(seq, t_us, image)
+                if c.wants_shm and notice:
+                    c.offer((notice,) if c.announced or self._ring is None
+                            else (self._ring.announcement, notice))
+                    continue
+                if record is None:
+                    record = await self._encode(seq, t_us, image)
                 c.offer(record)
         self.published += 1
         await asyncio.sleep(0)
+
+    async def _encode(self, seq: int, t_us: int, image: np.ndarray
+                      ) -> tuple[bytes, bytes | memoryview]:
+        if self.encoding in ("mono8", "bgr8"):
+            return encode_frame_parts(seq, t_us, image, self.encoding)
+        # compression takes milliseconds: keep the event loop free
+        return await asyncio.to_thread(encode_frame_parts, seq, t_us, image, self.encoding)
+
+    async def _ring_notice(self, seq: int, t_us: int, image: np.ndarray) -> bytes:
+        """The frame written into the shared-memory ring (created on first use): its
+        notice, or b"" when the ring cannot take it (the client then gets the whole
+        record over TCP, as a client that did not ask)."""
+        if self._ring_failed:
+            return b""
+        code = _encoding_code(self.encoding)
+        h, w = _check_fields(seq, t_us, image)
+        payload = _payload(image, code) if code in (0, 1) else \
+            await asyncio.to_thread(_payload, image, code)
+        if self._ring is None:
+            try:  # a compressed frame's size varies: room for a raw one and more
+                room = len(payload) if code in (0, 1) else image.nbytes + 65536
+                self._ring = FrameRing(room, tag=str(self.port))
+            except LinkError as e:
+                self._ring_failed = True
+                log.warning("camera frames: no shared memory, the whole frames over TCP: %s", e)
+                return b""
+        if len(payload) > self._ring.capacity:  # this frame whole over TCP
+            log.warning("camera frame %d (%d bytes) does not fit a shared-memory slot", seq,
+                        len(payload))
+            return b""
+        return self._ring.write(HEADER, (code, seq, t_us, w, h), payload)
