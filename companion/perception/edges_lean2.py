@@ -153,19 +153,21 @@ def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanS
 def _widen_reads(reads: list[float], frames: list[_Frame], scale: list[float], g: _Grid2,
                  s: LeanSettings) -> None:
     """Widen ``reads`` (``[x_min, y_min, x_max, y_max]``) to the sample positions of one
-    :func:`_pass`: each edge's samples are an affine grid, so its four corner samples (first
-    and last profile, first and last sample along the normal) bound them all. The bilinear
-    interpolation reads the pixels around a position (the caller adds that margin)."""
-    n_1, a0, a1 = s.samples_per_edge - 1, g.k0, g.k0 + g.step * (g.k - 1)
-    x_min, y_min, x_max, y_max = reads
+    :func:`_pass`: each edge's samples are an affine grid ``p0 + a t + b n`` (``a`` from 0 to
+    the last profile, ``b`` across the profile's offsets ``k0 .. -k0``, symmetric), so per axis
+    its extremes are ``p0 +- |along| +- |across|`` at the grid's corners. The bilinear
+    interpolation reads the pixels around a position (:func:`read_box_px` adds that margin)."""
+    last, half = s.samples_per_edge - 1, -g.k0
+    lo_x, lo_y, hi_x, hi_y = [reads[0]], [reads[1]], [reads[2]], [reads[3]]
     for (x0, y0, tx, ty, sp), sc in zip(frames, scale, strict=True):
-        nx, ny = ty * sc, -tx * sc
-        for along in (0.0, sp * n_1):
-            for across in (a0, a1):
-                x, y = x0 + along * tx + across * nx, y0 + along * ty + across * ny
-                x_min, x_max = min(x_min, x), max(x_max, x)
-                y_min, y_max = min(y_min, y), max(y_max, y)
-    reads[:] = (x_min, y_min, x_max, y_max)
+        a, b = 0.5 * sp * last, half * sc  # the normal is (ty, -tx) * sc
+        cx, cy = x0 + a * tx, y0 + a * ty  # the grid's centre
+        rx, ry = abs(a * tx) + abs(b * ty), abs(a * ty) + abs(b * tx)
+        lo_x.append(cx - rx)
+        hi_x.append(cx + rx)
+        lo_y.append(cy - ry)
+        hi_y.append(cy + ry)
+    reads[:] = (min(lo_x), min(lo_y), max(hi_x), max(hi_y))
 
 
 def read_box_px(reads: list[float], w: int, h: int) -> tuple[int, int, int, int] | None:
