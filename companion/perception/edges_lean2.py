@@ -99,7 +99,7 @@ def _grid(s: LeanSettings) -> _Grid2:
 
 
 def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSettings,
-                      scale: list[float] | None = None
+                      scale: list[float] | None = None, reads: list[float] | None = None
                       ) -> tuple[FloatArray, list[EdgeFit], list[float]] | None:
     """Sub-pixel corners (4, 2) of the bright convex quadrilateral whose coarse corners
     (clockwise on screen, within ~2 px) are ``corners``, the four edges' fits and their blur
@@ -110,13 +110,19 @@ def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanS
     ``scale``: the previous frame's blur scales when ``corners`` are its refined corners
     (tracking): the first pass is then already stretched and centred on lines measured at
     that stretch, and ends the passes when it moves no line end farther than
-    ``_ACCEPT_PX``."""
+    ``_ACCEPT_PX``.
+
+    ``reads``: ``[x_min, y_min, x_max, y_max]`` (px), widened to hold every sample position
+    the passes read (:func:`_widen_reads`): the caller learns which pixels the result depends
+    on (what the flight log must keep for an exact replay)."""
     g = _grid(s)
     frames = edge_frames(corners, s)
     if frames is None:
         return None
     u = g.j[None, :] * np.array([f[4] for f in frames])[:, None]  # (4, N) along each edge
     tracked = scale is not None
+    if reads is not None:
+        _widen_reads(reads, frames, scale if scale is not None else _ONES, g, s)
     e, ok, width = _pass(gray, frames, scale if scale is not None else _ONES, g, s, True)
     lines = _fit_final(u, e, ok) if tracked else _fit(u, e, ok, False)
     if lines is None:
@@ -126,6 +132,8 @@ def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanS
     if not (tracked and _converged(lines, u, _ACCEPT_PX)):
         for it in range(1, s.passes):
             frames = [_on_line(f, ln) for f, ln in zip(frames, lines, strict=True)]
+            if reads is not None:
+                _widen_reads(reads, frames, scale, g, s)
             e, ok, _ = _pass(gray, frames, scale, g, s, False)
             # tracked, every later pass's lines get the outlier pass (the next pass is centred
             # on the lines its outliers did not pull) and converged passes end early; from a
@@ -140,6 +148,43 @@ def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanS
     fits = [_edge_fit(f, ln) for f, ln in zip(frames, lines, strict=True)]
     out = _intersections(fits)
     return None if out is None else (out, fits, scale)
+
+
+def _widen_reads(reads: list[float], frames: list[_Frame], scale: list[float], g: _Grid2,
+                 s: LeanSettings) -> None:
+    """Widen ``reads`` (``[x_min, y_min, x_max, y_max]``) to the sample positions of one
+    :func:`_pass`: each edge's samples are an affine grid ``p0 + a t + b n`` (``a`` from 0 to
+    the last profile, ``b`` across the profile's offsets ``k0 .. -k0``, symmetric), so per axis
+    its extremes are ``p0 +- |along| +- |across|`` at the grid's corners. The bilinear
+    interpolation reads the pixels around a position (:func:`read_box_px` adds that margin)."""
+    last, half = s.samples_per_edge - 1, -g.k0
+    lo_x, lo_y, hi_x, hi_y = [reads[0]], [reads[1]], [reads[2]], [reads[3]]
+    for (x0, y0, tx, ty, sp), sc in zip(frames, scale, strict=True):
+        a, b = 0.5 * sp * last, half * sc  # the normal is (ty, -tx) * sc
+        cx, cy = x0 + a * tx, y0 + a * ty  # the grid's centre
+        rx, ry = abs(a * tx) + abs(b * ty), abs(a * ty) + abs(b * tx)
+        lo_x.append(cx - rx)
+        hi_x.append(cx + rx)
+        lo_y.append(cy - ry)
+        hi_y.append(cy + ry)
+    reads[:] = (min(lo_x), min(lo_y), max(hi_x), max(hi_y))
+
+
+def read_box_px(reads: list[float], w: int, h: int) -> tuple[int, int, int, int] | None:
+    """The pixels ``(x0, y0, x1, y1)`` (end exclusive, within a ``w`` x ``h`` image) that
+    sample positions within ``reads`` (:func:`refine_quad_lean2`) can read; None when no
+    position was recorded. ``cv2.warpAffine``'s bilinear interpolation reads the pixel at and
+    after each position, rounded to 1/32 px: a pixel of margin each side is added for that
+    rounding; positions off the image read its border pixels (``BORDER_REPLICATE``), which
+    the clipped box holds."""
+    x_min, y_min, x_max, y_max = reads
+    if not (x_min <= x_max and y_min <= y_max):
+        return None
+    x0, y0 = max(math.floor(x_min) - 2, 0), max(math.floor(y_min) - 2, 0)
+    x1, y1 = min(math.floor(x_max) + 4, w), min(math.floor(y_max) + 4, h)
+    if x0 >= x1 or y0 >= y1:  # wholly off the image: it read a border pixel
+        return None
+    return x0, y0, x1, y1
 
 
 def _converged(new_lines: list[_Line], u: FloatArray, eps_px: float) -> bool:
@@ -272,4 +317,4 @@ def _pass(gray: npt.NDArray[np.uint8], frames: list[_Frame], scale: list[float],
     return e, ok, [_median(row, c) for row, c in zip(width, cnt, strict=True)]
 
 
-__all__ = ["refine_quad_lean2"]
+__all__ = ["read_box_px", "refine_quad_lean2"]

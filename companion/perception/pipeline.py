@@ -181,8 +181,9 @@ class Perception:
         self.roi_hits = 0
         self.full_searches = 0
         #: ``(x0, y0, x1, y1)`` (pixels, end exclusive) of the last image: every pixel the
-        #: detector read lies inside it (the region of interest, or the whole image when it
-        #: searched everywhere). Logging this crop is enough to replay perception exactly.
+        #: detector read lies inside it (the region of interest, the detector's own smaller
+        #: box when it knows one, or the whole image when it searched everywhere). Logging
+        #: this crop is enough to replay perception exactly.
         self.last_region: tuple[int, int, int, int] | None = None
 
     @property
@@ -196,15 +197,17 @@ class Perception:
         nothing acceptable. A candidate cut by the region's edge fails the border check and so
         sends the search to the whole image. Depends only on earlier results: replay-exact."""
         h, w = image.shape[:2]
+        tried = False
         if self._use_roi and self._last_corners is not None:
             x0, y0, x1, y1 = roi_box(self._last_corners, w, h)
             if (x1 - x0) * (y1 - y0) < 0.5 * w * h:
+                tried = True
                 off = np.array([x0, y0], dtype=np.float64)
                 sub = self.detector.analyse(image[y0:y1, x0:x1],
                                             None if hint is None else hint - off)
                 if sub.detection is not None:
                     self.roi_hits += 1
-                    self.last_region = (x0, y0, x1, y1)
+                    self.last_region = self._read_region(x0, y0, x1, y1)
                     d = sub.detection
                     # the constructors, not dataclasses.replace (its generic field walk cost
                     # more than the rest of this function): the same values
@@ -212,8 +215,21 @@ class Perception:
                                       d.flags)
                     return DetectionReport(moved, sub.rejections, sub.reason, sub.candidates)
         self.full_searches += 1
-        self.last_region = (0, 0, w, h)
-        return self.detector.analyse(image, hint)
+        report = self.detector.analyse(image, hint)
+        # after a failed region of interest, what it read (and left in the detector's state)
+        # counts too: the whole image
+        self.last_region = (0, 0, w, h) if tried else self._read_region(0, 0, w, h)
+        return report
+
+    def _read_region(self, x0: int, y0: int, x1: int, y1: int) -> tuple[int, int, int, int]:
+        """The pixels of the image that the detector's last analyse of its part ``(x0, y0,
+        x1, y1)`` read: the detector's own box when it knows a smaller one (a tracked
+        rectangle's edge profiles: about a sixth of the region of interest, so the logged
+        crop and its PNG shrink as much), else the whole part."""
+        box = getattr(self.detector, "last_read_box", None)
+        if box is None:
+            return x0, y0, x1, y1
+        return x0 + box[0], y0 + box[1], x0 + box[2], y0 + box[3]
 
     def process(self, image: npt.NDArray[np.uint8], *, t_us: int | None = None) -> PerceptionResult:
         """Measure the target in ``image`` ((H, W) mono or (H, W, 3) BGR uint8)."""

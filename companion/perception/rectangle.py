@@ -43,7 +43,7 @@ from companion.perception._types import (
 )
 from companion.perception.edges import EdgeFit, EdgeSettings, refine_quad
 from companion.perception.edges_lean import LeanSettings, refine_quad_lean
-from companion.perception.edges_lean2 import refine_quad_lean2
+from companion.perception.edges_lean2 import read_box_px, refine_quad_lean2
 from companion.perception.plausibility import (
     QuadLimits,
     approx_quad,
@@ -183,6 +183,10 @@ class RectangleDetector(QuadDetectorBase):
         # the last adaptive grey levels computed and for how many frames they were reused
         self._held_levels: tuple[int, float] | None = None
         self._held_age = 0
+        # (x0, y0, x1, y1) px, end exclusive: every pixel the last analyse read (a tracked
+        # "lean2" frame on held levels: its edge profiles' box); None: the whole image
+        self.last_read_box: tuple[int, int, int, int] | None = None
+        self._reads = [0.0] * 4
 
 
     def analyse(
@@ -197,6 +201,7 @@ class RectangleDetector(QuadDetectorBase):
         hold = (tracking and s.edges == "lean2" and self._held_levels is not None
                 and self._held_age < _HOLD_LEVELS_FRAMES)
         levels = self._levels(gray, tracking, hold)
+        self.last_read_box = None
         if isinstance(levels, str):
             return DetectionReport(
                 None, (), f"no bright region (nothing stands out of the ground: {levels})", 0)
@@ -205,6 +210,8 @@ class RectangleDetector(QuadDetectorBase):
             tracked = self._track(gray, hint, w, h, edge_settings)
             if tracked is not None:
                 self._blur_scale, self._motion = self._refined_scale, self._tracked_motion
+                if hold or s.threshold is not None:  # no histogram read the image
+                    self.last_read_box = read_box_px(self._reads, w, h)
                 return DetectionReport(tracked, (), "", 1)
             if hold:  # the blob search with this frame's own levels
                 levels = self._levels(gray, tracking, False)
@@ -316,7 +323,8 @@ class RectangleDetector(QuadDetectorBase):
         if (signed_area(start) <= 0.0
                 or not all(m < x < w - 1 - m and m < y < h - 1 - m for x, y in pts)):
             return None
-        refined = self._refine(gray, start, edge_settings, self._blur_scale)
+        self._reads[:] = (math.inf, math.inf, -math.inf, -math.inf)
+        refined = self._refine(gray, start, edge_settings, self._blur_scale, self._reads)
         if refined is None:
             return None
         corners, fits = refined
@@ -379,8 +387,8 @@ class RectangleDetector(QuadDetectorBase):
         return self._detection(corners, fits, w, h)
 
     def _refine(self, gray: npt.NDArray[np.uint8], corners: FloatArray,
-                edge_settings: EdgeSettings | LeanSettings, scale: list[float] | None = None
-                ) -> tuple[FloatArray, list[EdgeFit]] | None:
+                edge_settings: EdgeSettings | LeanSettings, scale: list[float] | None = None,
+                reads: list[float] | None = None) -> tuple[FloatArray, list[EdgeFit]] | None:
         """The settings' edge method on coarse ``corners`` ("lean2": from the blur ``scale``
         when given, and the measured one kept in ``_refined_scale``)."""
         self._refined_scale = None
@@ -388,7 +396,7 @@ class RectangleDetector(QuadDetectorBase):
             return refine_quad(gray, corners, edge_settings)
         if self.settings.edges != "lean2":
             return refine_quad_lean(gray, corners, edge_settings)
-        refined = refine_quad_lean2(gray, corners, edge_settings, scale)
+        refined = refine_quad_lean2(gray, corners, edge_settings, scale, reads)
         if refined is None:
             return None
         self._refined_scale = refined[2]

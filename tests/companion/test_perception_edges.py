@@ -225,3 +225,40 @@ def test_lean2_follows_an_exposure_step_while_it_holds_the_grey_levels(gain: flo
         res = perception.process(img)
         assert res.ok and res.corners_px is not None, (k, res.reason)
         assert tp.set_error_px(res.corners_px, true) < bound_px, k
+
+
+@pytest.mark.parametrize("noise_std", [5.0, 20.0])
+def test_lean2_read_box_holds_every_pixel_it_read(noise_std: float) -> None:
+    """What the flight log keeps of a tracked frame (``Perception.last_region``: a "lean2"
+    tracked frame on held grey levels reports its edge profiles' box, a sixth of the region of
+    interest) is all perception read: a second Perception fed only those pixels (zero
+    elsewhere, as replay pastes a crop into an empty frame) returns the same corners to the
+    bit, frame after frame, its regions the same. Cutting five pixels off each side of the box
+    changes the corners (its margin for OpenCV's rounding is two pixels a side; the outermost
+    samples of a profile seldom move a crossing, so four changed few frames, 2026-11-28)."""
+    live = Perception(CFG.camera, CFG.target)
+    replayed = Perception(CFG.camera, CFG.target)
+    cut = Perception(CFG.camera, CFG.target)
+    small = 0
+    differs = 0
+    for k in range(24):
+        top, bottom = tp.box_level(3.0, -0.1 + 0.003 * k, 0.05, 0.4 + 0.005 * k)
+        img, _ = tp.render_box(11, top, bottom, 0.1, -0.05)
+        img = tp.degrade(img, noise_std, 0.0, seed=k)
+        res = live.process(img)
+        assert res.ok and res.corners_px is not None and live.last_region is not None
+        x0, y0, x1, y1 = live.last_region
+        if (x1 - x0) * (y1 - y0) < 0.3 * 1000 * 1000 / 9:
+            small += 1
+        pasted = np.zeros_like(img)
+        pasted[y0:y1, x0:x1] = img[y0:y1, x0:x1]
+        again = replayed.process(pasted)
+        assert again.corners_px is not None and replayed.last_region == live.last_region, k
+        assert np.array_equal(again.corners_px, res.corners_px), k
+        shaved = np.zeros_like(img)
+        shaved[y0 + 5:y1 - 5, x0 + 5:x1 - 5] = img[y0 + 5:y1 - 5, x0 + 5:x1 - 5]
+        other = cut.process(shaved if (x1 - x0) < 1000 else img)
+        differs += other.corners_px is None or not np.array_equal(other.corners_px,
+                                                                  res.corners_px)
+    assert small >= 16, small  # 7 frames in 8 hold the grey levels; the first searches
+    assert differs > 0.5 * 24
