@@ -32,9 +32,9 @@ from companion.log import schemas as sch
 from companion.log.encode import decode_json
 from companion.log.reader import LogReader
 from companion.log.writer import McapLogger
-from companion.perception import Perception
+from companion.perception import Perception, PerceptionResult
 from companion.replay_inputs import Perceived, ReplayInputError, input_mode
-from companion.replay_stream import StepInput, StreamWorker, step_inputs
+from companion.replay_stream import StepInput, StreamWorker, perception_result, step_inputs
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +282,8 @@ class _Replayer:
             if s.record is None:  # the end
                 self.recorded_sat, self.corrupt_chunks = s.sat_count, s.corrupt_chunks
                 return
-            self.run_step(s.record, self._perceived(s))
+            p = self._perceived(s)
+            self.run_step(s.record, p, perception_result(s, p, self.perception))
         raise ReplayError(f"{self.log_path}: the replay's inputs ended early")
 
     def _perceived(self, s: StepInput) -> Perceived:
@@ -293,7 +294,8 @@ class _Replayer:
             raise ReplayError(f"{self.log_path}: perception ended before the step records")
         return nxt
 
-    def run_step(self, rec_step: dict[str, Any], p: Perceived) -> None:
+    def run_step(self, rec_step: dict[str, Any], p: Perceived,
+                 seen: PerceptionResult | None) -> None:
         res = self.res
         res.frames_missing += p.missing
         res.outside_crop += p.outside_crop
@@ -305,7 +307,7 @@ class _Replayer:
         out = self.pipeline.step(None, t_s, self.store,
                                  t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
                                  in_control=ic if isinstance(ic, bool) else None,
-                                 perceived=p.result(self.perception),
+                                 perceived=seen,
                                  actuation_delay_s=float(ad) if isinstance(ad, (int, float))
                                  and self.cfg.control.latency.auto_delay else None)
         res.steps += 1

@@ -19,6 +19,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
@@ -28,6 +29,7 @@ from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import STAMPED_MESSAGES
 from companion.log.encode import decode_json
 from companion.log.reader import LogReader
+from companion.perception import Perception, PerceptionResult
 from companion.replay_inputs import (
     Perceived,
     ReplayInputError,
@@ -42,6 +44,7 @@ STEP_KEYS = ("rx_count", "frame_t_us", "t_rx_ns", "fault_injected", "t_now_s", "
              "actuation_delay_s", "setpoint", "frame_seq", "offboard")
 #: the messages the replay's store and time base read; the others are counted only
 USED_MESSAGES = TelemetryStore.MESSAGES | STAMPED_MESSAGES
+Corners = tuple[tuple[float, float], ...]
 _BATCH = 64  # steps per message from the worker process
 _FIRST_BATCH = 2  # ... but the first message, which the replay's first step waits for
 
@@ -52,6 +55,8 @@ class StepInput(NamedTuple):
     ``messages``: ``(name, fields, sysid, t_rx_ns)`` to ingest first, in order;
     ``perceived``: the step's perception (None when the replay supplies it);
     ``truth``: ``(log time ns, JSON bytes)`` of ``/truth`` read since the step before;
+    ``measured``: when ``perceived`` has corners, its result's raw, undistorted and metric
+    corners (``Perceived.result``: computed here, beside the controller's process);
     ``sat_count``, ``corrupt_chunks``: with the end marker, the SET_ATTITUDE_TARGET messages
     the flight sent and the damaged chunks reading skipped (CRC-checked as read)."""
 
@@ -59,6 +64,7 @@ class StepInput(NamedTuple):
     messages: tuple[tuple[str, dict[str, Any], int, int], ...]
     perceived: Perceived | None
     truth: tuple[tuple[int, bytes], ...] = ()
+    measured: tuple[Corners, Corners, Corners, float] | None = None
     sat_count: int = 0
     corrupt_chunks: int = 0
 
@@ -143,7 +149,8 @@ def step_inputs(path: Path, cfg: Config, perception: str, truth: bool) -> Iterat
         if perception in ("crop", "frames"):
             seen = perceive_log(path, cfg)
         try:
-            yield from _read(reader, topics, perception, seen)
+            metric = Perception(cfg.camera, cfg.target, perception=cfg.perception)
+            yield from _read(reader, topics, perception, seen, metric)
         finally:
             close = getattr(seen, "close", None)
             if close is not None:
@@ -151,7 +158,7 @@ def step_inputs(path: Path, cfg: Config, perception: str, truth: bool) -> Iterat
 
 
 def _read(reader: LogReader, topics: list[str], perception: str,
-          seen: Iterator[Perceived] | None) -> Iterator[StepInput]:
+          seen: Iterator[Perceived] | None, metric: Perception) -> Iterator[StepInput]:
     """The stream of :func:`step_inputs`: a step is handed on once all of its ``rx_count``
     messages have been read (a step record is stamped with its frame's time, but the messages
     it saw may have arrived after that frame; log-time order keeps their order of arrival)."""
@@ -167,7 +174,8 @@ def _read(reader: LogReader, topics: list[str], perception: str,
                 raise ReplayInputError("perception ended before the step records")
         else:
             p = perceived_from_record(rec) if perception == "detections" else None
-        out = StepInput(_compact(rec), mav.take(rec), p, tuple(truth))
+        out = StepInput(_compact(rec), mav.take(rec), p, tuple(truth),
+                        _measured(p, metric) if p is not None else None)
         truth.clear()
         return out
 
@@ -189,7 +197,37 @@ def _read(reader: LogReader, topics: list[str], perception: str,
             yield emit(pending.popleft())
     while pending:  # end of the log (or a log cut short): hand on what is left
         yield emit(pending.popleft())
-    yield StepInput(None, (), None, tuple(truth), sat, reader.recovery.corrupt_chunks)
+    yield StepInput(None, (), None, tuple(truth), None, sat, reader.recovery.corrupt_chunks)
+
+
+def _measured(p: Perceived, metric: Perception
+              ) -> tuple[Corners, Corners, Corners, float] | None:
+    """``p.result``'s corners as plain floats (exact; cheaper to send than arrays)."""
+    if p.missing or p.corners_px is None:
+        return None
+    r = p.result(metric)
+    if r is None or r.corners_undistorted_px is None or r.points_m is None:
+        return None
+    return (_rows(r.corners_px), _rows(r.corners_undistorted_px), _rows(r.points_m),
+            r.quality)
+
+
+def _rows(a: Any) -> Corners:
+    return tuple((float(x), float(y)) for x, y in a.tolist())
+
+
+def perception_result(s: StepInput, p: Perceived, metric: Perception
+                      ) -> PerceptionResult | None:
+    """The pipeline's perception input of step ``s`` whose perception is ``p``: the step's
+    ``measured`` corners as the arrays :meth:`Perception.measured` gives (float64, the
+    undistorted and metric ones read-only), else ``p.result(metric)`` computed here."""
+    if s.measured is None:
+        return p.result(metric)
+    raw, undist, points, quality = s.measured
+    arrays = [np.array(v, dtype=np.float64) for v in (raw, undist, points)]
+    for a in arrays[1:]:
+        a.setflags(write=False)
+    return PerceptionResult("ok", "", arrays[0], arrays[1], arrays[2], quality)
 
 
 def _worker_main(conn: Any, path: str, raw_cfg: dict[str, Any], source: str,
@@ -264,4 +302,5 @@ def _plain(v: Any) -> Any:
     return v
 
 
-__all__ = ["STEP_KEYS", "USED_MESSAGES", "StepInput", "StreamWorker", "step_inputs"]
+__all__ = ["STEP_KEYS", "USED_MESSAGES", "StepInput", "StreamWorker", "perception_result",
+           "step_inputs"]

@@ -37,7 +37,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--from-detections", action="store_true",
                    help="controller only: use the recorded detections instead of perception")
     p.add_argument("--in-process", action="store_true",
-                   help="run perception in this process (default: a second process)")
+                   help="read the log and run perception in this process (default: a "
+                        "second process, beside the controller)")
     p.add_argument("--out", type=Path, default=None, help="output dir (default out/replay)")
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=_run)
