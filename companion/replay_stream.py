@@ -46,6 +46,7 @@ STEP_KEYS = ("rx_count", "frame_t_us", "t_rx_ns", "fault_injected", "t_now_s", "
 USED_MESSAGES = TelemetryStore.MESSAGES | STAMPED_MESSAGES
 Corners = tuple[tuple[float, float], ...]
 _BATCH = 64  # steps per message from the worker process
+_PIPE_BYTES = 1 << 20  # the pipe to the replay (see _grow_pipe)
 _FIRST_BATCH = 2  # ... but the first message, which the replay's first step waits for
 
 
@@ -261,6 +262,7 @@ class StreamWorker:
         methods = mp.get_all_start_methods()
         ctx: Any = mp.get_context("fork" if "fork" in methods else "spawn")
         self._conn, child = ctx.Pipe(duplex=False)
+        _grow_pipe(child)
         self._proc = ctx.Process(
             target=_worker_main,
             args=(child, str(path), _plain(cfg.raw), cfg.source, perception, truth),
@@ -292,6 +294,19 @@ class StreamWorker:
             if kind == "error":
                 raise ReplayInputError(f"replay input process: {payload}")
             yield from payload
+
+
+def _grow_pipe(conn: Any) -> None:
+    """Let the worker run ~450 steps ahead (1 MB; a step is ~2.3 kB pickled, the default
+    pipe of 64 kB holds less than one batch): with a full pipe the worker waits for the
+    replay to read, and on a loaded machine the replay then waits for the worker to be
+    scheduled again, batch after batch. Best effort (Linux; the default size still works)."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(conn.fileno(), fcntl.F_SETPIPE_SZ, _PIPE_BYTES)
+    except (ImportError, AttributeError, OSError):
+        pass
 
 
 def _plain(v: Any) -> Any:
