@@ -5,10 +5,11 @@ exactly what the live process saw) are fed in the order the live process consume
 step k, exactly the ``rx_count`` messages that had been ingested live. Every recomputed command
 is compared with the recorded one.
 
-Perception runs as its own stage (:mod:`companion.replay_inputs`): from the logged perception
-inputs (crops, or an old log's full frames), in a child process by default so that it and the
-controller use two cores; or, with ``from_detections``, not at all: the controller is fed the
-corners each step recorded (tuning the controller: solver-bound).
+Reading the log and perception run as their own stage (:mod:`companion.replay_stream`), in a
+child process by default so that they and the controller use two cores: perception from the
+logged perception inputs (crops, or an old log's full frames, :mod:`companion.replay_inputs`);
+or, with ``from_detections``, not at all: the controller is fed the corners each step recorded
+(tuning the controller: solver-bound). This process runs the controller, compares and writes.
 """
 
 from __future__ import annotations
