@@ -1,12 +1,12 @@
-"""Decode the PNGs :func:`companion.log.encode.png_bytes` writes, ~4x faster than OpenCV.
+"""Decode the PNGs :func:`companion.log.encode.png_bytes` writes, ~2x faster than OpenCV.
 
 Those PNGs are 8-bit greyscale or RGB, not interlaced, the first row unfiltered and every
 other row with PNG's UP filter: the picture is the IDAT data inflated (ISA-L) and summed down
 the columns modulo 256, bit for bit what libpng gives. Any other PNG (another
 writer, another filter, a damaged file) is not read here: :func:`read_png` returns None and
-the caller decodes it with OpenCV. An exact replay decodes one crop a step (~1.4 ms with
-OpenCV on a paper flight's ~140 kpx crops, ~0.45 ms here): most of its perception worker's
-reading.
+the caller decodes it with OpenCV. An exact replay decodes one crop a step (1.1-1.3 ms with
+OpenCV on a paper flight's ~140 kpx crops, 0.55-0.7 ms here, at load ~5): most of its second
+process's reading.
 """
 
 from __future__ import annotations
