@@ -11,7 +11,10 @@ duration (targets: exact >= 20x, from detections >= 100x), the start-up (the cal
 step: reading the config, the terminal design, the NLP build or solver load, the perception
 worker) and whether every command matched. CPU of a child process (the perception worker, a
 solver child) counts once it has exited: in the totals, not in the steady figures.
-Wall figures depend on the machine's load (printed); CPU figures much less.
+Wall figures depend on the machine's load (printed); CPU figures much less. The replay's own
+thread is the critical path: its CPU per step (and the start-up's), or half the total CPU when
+that is more, give the rate two idle cores would reach ("on two idle cores"), a figure a loaded
+machine can still measure.
 """
 
 from __future__ import annotations
@@ -41,31 +44,40 @@ def _cpu() -> float:
     return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
 
 
-def measure(log: Path, flight_s: float, **kw: Any) -> dict[str, Any]:
-    marks: dict[str, tuple[float, float, int]] = {}
+def measure(log: Path, flight_s: float, out: Path | None = None, **kw: Any) -> dict[str, Any]:
+    marks: dict[str, tuple[float, float, int, float]] = {}
 
-    def prog(done: int, total: int) -> None:
-        now = (time.perf_counter(), _cpu(), done)
+    def prog(done: int, total: int) -> None:  # called on the replay's (main) thread
+        now = (time.perf_counter(), _cpu(), done, time.thread_time())
         if done == 1:
             marks["first"] = now
         if done == 100:
             marks["a"] = now
         marks["b"] = now
 
-    t0, c0 = time.perf_counter(), _cpu()
-    res = replay(log, None, progress=prog, **kw)
+    t0, c0, m0 = time.perf_counter(), _cpu(), time.thread_time()
+    res = replay(log, out, progress=prog, **kw)
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     a, b = marks.get("a"), marks.get("b")
     steady = None
     if a and b and b[2] > a[2]:
-        steady = {"wall_ms_per_step": 1e3 * (b[0] - a[0]) / (b[2] - a[2]),
-                  "cpu_ms_per_step": 1e3 * (b[1] - a[1]) / (b[2] - a[2])}
+        n = b[2] - a[2]
+        steady = {"wall_ms_per_step": 1e3 * (b[0] - a[0]) / n,
+                  "cpu_ms_per_step": 1e3 * (b[1] - a[1]) / n,
+                  "main_thread_ms_per_step": 1e3 * (b[3] - a[3]) / n}
     first = marks.get("first")
-    startup = None if first is None else {"wall_s": first[0] - t0, "cpu_s": first[1] - c0}
+    startup = None if first is None else {"wall_s": first[0] - t0, "cpu_s": first[1] - c0,
+                                          "main_thread_s": first[3] - m0}
+    bound = None
+    if steady and startup and res.steps:
+        # on two idle cores: the replay's thread (the critical path) or, when the rest (the
+        # input process with perception, the writer's compression) is heavier, half the CPU
+        busy_s = startup["main_thread_s"] + res.steps * steady["main_thread_ms_per_step"] * 1e-3
+        bound = flight_s / max(busy_s, cpu / 2)
     return {"steps": res.steps, "identical": res.summary()["identical"], "wall_s": wall,
             "startup": startup,
             "cpu_s": cpu, "speed_vs_real_time": flight_s / wall if wall > 0 else None,
-            "steady": steady}
+            "steady": steady, "idle_two_core_bound": bound}
 
 
 def main() -> int:
@@ -86,9 +98,10 @@ def main() -> int:
     flight_s = ((ch.last_log_time_ns or 0) - (ch.first_log_time_ns or 0)) * 1e-9
     out: dict[str, Any] = {"log": str(log), "log_bytes": log.stat().st_size,
                            "flight_s": flight_s, "load_1min_before": os.getloadavg()[0]}
-    out["exact_worker"] = measure(log, flight_s, workers=1)
-    out["exact_in_process"] = measure(log, flight_s, workers=0)
-    out["from_detections"] = measure(log, flight_s, from_detections=True)
+    # as `companion replay` runs: writing the replay's log (its report reads it)
+    out["exact_worker"] = measure(log, flight_s, tmp / "exact.mcap", workers=1)
+    out["exact_in_process"] = measure(log, flight_s, tmp / "one.mcap", workers=0)
+    out["from_detections"] = measure(log, flight_s, tmp / "fd.mcap", from_detections=True)
     out["load_1min_after"] = os.getloadavg()[0]
     out["targets"] = {"exact": 20.0, "from_detections": 100.0}
     if args.json:
@@ -105,6 +118,10 @@ def main() -> int:
               f"{st.get('wall_ms_per_step', float('nan')):.2f} ms wall, "
               f"{st.get('cpu_ms_per_step', float('nan')):.2f} ms CPU per step; identical: "
               f"{m['identical']}")
+        bound = m.get("idle_two_core_bound")
+        print(f"  {'':>16}  replay thread (the critical path): "
+              f"{st.get('main_thread_ms_per_step', float('nan')):.2f} ms CPU per step; on two "
+              f"idle cores ~{float('nan') if bound is None else bound:.0f}x")
         su = m["startup"] or {}
         print(f"  {'':>16}  start-up (call -> first step): {su.get('wall_s', float('nan')):.2f} s "
               f"wall, {su.get('cpu_s', float('nan')):.2f} s CPU (this process; the import of "

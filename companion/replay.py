@@ -5,50 +5,40 @@ exactly what the live process saw) are fed in the order the live process consume
 step k, exactly the ``rx_count`` messages that had been ingested live. Every recomputed command
 is compared with the recorded one.
 
-Perception runs as its own stage (:mod:`companion.replay_inputs`): from the logged perception
-inputs (crops, or an old log's full frames), in a child process by default so that it and the
-controller use two cores; or, with ``from_detections``, not at all: the controller is fed the
-corners each step recorded (tuning the controller: solver-bound).
+Reading the log and perception run as their own stage (:mod:`companion.replay_stream`), in a
+child process by default so that they and the controller use two cores: perception from the
+logged perception inputs (crops, or an old log's full frames, :mod:`companion.replay_inputs`);
+or, with ``from_detections``, not at all: the controller is fed the corners each step recorded
+(tuning the controller: solver-bound). This process runs the controller, compares and writes.
 """
 
 from __future__ import annotations
 
-import base64
 import dataclasses
 import logging
 import math
-from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, load_config, with_overrides
 from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP, TOPIC_TRUTH
-from companion.control.telemetry import TelemetryStore
-from companion.control.timebase import STAMPED_MESSAGES, TimeBase
+from companion.control.timebase import TimeBase
 from companion.control.wiring import new_pipeline, new_store
 from companion.log import schemas as sch
 from companion.log.encode import decode_json
 from companion.log.reader import LogReader
 from companion.log.writer import McapLogger
-from companion.perception import Perception
-from companion.replay_inputs import (
-    Perceived,
-    PerceptionWorker,
-    ReplayInputError,
-    input_mode,
-    perceive_log,
-    perceived_from_record,
-)
+from companion.perception import Perception, PerceptionResult
+from companion.replay_inputs import Perceived, ReplayInputError, input_mode
+from companion.replay_stream import StepInput, StreamWorker, perception_result, step_inputs
 
 log = logging.getLogger(__name__)
 
-TOPIC_SAT = "/mavlink/out/SET_ATTITUDE_TARGET"
 
 
 class ReplayError(CompanionError):
@@ -163,31 +153,31 @@ def replay(log_path: Path, out_path: Path | None, config: Path | None = None,
                        from_detections, workers, perceived)
 
 
-def _perception_stage(log_path: Path, cfg: Config, mode: str, workers: int,
-                      perceived: list[Perceived] | None
-                      ) -> tuple[Iterator[Perceived] | None, Callable[[], None]]:
-    """The perception results in step order (None: from the recorded detections) and what
-    ends the stage (the worker process, if one was started: it is, at once)."""
-    if mode == "detections":
-        return None, lambda: None
-    if perceived:
-        return iter(perceived), lambda: None
+def _input_stage(log_path: Path, cfg: Config, mode: str, workers: int, truth: bool,
+                 perceived: list[Perceived] | None
+                 ) -> tuple[Iterator[StepInput], Iterator[Perceived] | None, Callable[[], None]]:
+    """The step inputs in step order, the perception results when the caller has them
+    (a sweep's earlier variant; else None: they come with the step inputs) and what ends
+    the stage (the worker process, if one was started: it is, at once)."""
+    given = iter(perceived) if perceived else None
+    kind = "given" if given is not None else mode
     close: Callable[[], None] = lambda: None  # noqa: E731
     if workers > 0:
-        worker = PerceptionWorker(log_path, cfg)
-        it: Iterable[Perceived] = worker
+        worker = StreamWorker(log_path, cfg, kind, truth)
+        it: Iterator[StepInput] = iter(worker)
         close = worker.close
     else:
-        it = perceive_log(log_path, cfg)
-        close = getattr(it, "close", close)
-    if perceived is None:
-        return iter(it), close
+        gen = step_inputs(log_path, cfg, kind, truth)
+        it, close = gen, gen.close  # type: ignore[attr-defined]
+    if perceived is None or given is not None or mode == "detections":
+        return it, given, close
 
-    def keep() -> Iterator[Perceived]:
-        for p in it:
-            perceived.append(p)
-            yield p
-    return keep(), close
+    def keep() -> Iterator[StepInput]:  # a sweep's first variant: keep what perception saw
+        for s in it:
+            if s.perceived is not None:
+                perceived.append(s.perceived)
+            yield s
+    return keep(), None, close
 
 
 def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Path | None,
@@ -202,10 +192,11 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     cfg = _in_process_solves(replay_config(reader, config, list(overrides or [])))
     mode = "detections" if from_detections else _input_mode(reader, log_path, counts)
     res = _new_result(reader, log_path, cfg, mode)
-    # The perception worker first: forked before this process starts any thread (the
-    # writer's), its start-up (reading the log, the first frames) overlaps the controller's
-    # build on the other core; the first step waits for both.
-    stage, close_stage = _perception_stage(log_path, cfg, mode, workers, perceived)
+    # The input worker first: forked before this process starts any thread (the writer's),
+    # its start-up (reading the log, the first frames) overlaps the controller's build on
+    # the other core; the first step waits for both.
+    stage, given, close_stage = _input_stage(log_path, cfg, mode, workers,
+                                             out_path is not None, perceived)
     writer = None
     try:
         rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
@@ -213,18 +204,17 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
             writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
             writer.open()
             writer.log_config(0, "", dict(cfg.raw), cfg.source)
-        rp.stage, rp.writer = stage, writer
-        topics = [c for c in counts if c.startswith("/mavlink/in/")] + [TOPIC_SAT, TOPIC_STEP]
-        if writer is not None:
-            topics.append(TOPIC_TRUTH)
-        rp.feed(reader, topics)
+        rp.given, rp.writer = given, writer
+        rp.feed(stage)
     except ReplayInputError as exc:
         raise ReplayError(str(exc)) from exc
     finally:
         close_stage()
         if writer is not None:
             writer.close()
-    res.recovery["corrupt_chunks"] = reader.recovery.corrupt_chunks  # found while reading
+    # chunks are CRC-checked as they are read: by the input stage (a damaged one is skipped
+    # and counted there), and here, the few the config and the first step were read from
+    res.recovery["corrupt_chunks"] = max(reader.recovery.corrupt_chunks, rp.corrupt_chunks)
     res.recorded_wire_commands = rp.recorded_sat
     return res
 
@@ -262,90 +252,51 @@ def _new_result(reader: LogReader, log_path: Path, cfg: Config, mode: str) -> Re
 
 
 class _Replayer:
-    """The live process's order, rebuilt: before step k, exactly the ``rx_count`` messages
-    the live process had ingested go into the store; then the step runs and is compared."""
+    """The live process's order, rebuilt: before step k, exactly the messages the live
+    process had ingested (:mod:`companion.replay_stream` counts them) go into the store;
+    then the step runs and is compared."""
 
     def __init__(self, cfg: Config, log_path: Path, res: ReplayResult,
                  timer: Callable[[], float] | None,
                  progress: Callable[[int, int], None] | None, total_steps: int) -> None:
         self.cfg, self.log_path, self.res = cfg, log_path, res
         self.progress, self.total_steps = progress, total_steps
-        #: the perception stage (None: from the recorded detections) and the output log
-        self.stage: Iterator[Perceived] | None = None
+        #: the perception results when not in the step inputs (a sweep's), the output log
+        self.given: Iterator[Perceived] | None = None
         self.writer: McapLogger | None = None
         self.pipeline = new_pipeline(cfg, timer=timer)
         # undistortion + metric of detections
         self.perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
         self.store = new_store(cfg)
         self.tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
-        self.parser = mavlink2.MAVLink(None)
-        self.parser.robust_parsing = True
-        self.rx_seen = 0
-        self.recorded_sat = 0
-        self.pending_steps: deque[dict[str, Any]] = deque()
-        self.mav_in: deque[tuple[str, int, bytes]] = deque()
-        self.used = TelemetryStore.MESSAGES | STAMPED_MESSAGES
+        self.recorded_sat = self.corrupt_chunks = 0
 
-    def feed(self, reader: LogReader, topics: list[str]) -> None:
-        """Read the log once, in log-time order, running each step as soon as it can run."""
-        writer = self.writer
-        # A step record is stamped with its frame's time, but the messages it saw may have
-        # arrived after that frame: run a step once all of its ``rx_count`` messages have
-        # been read (log-time order preserves their order of arrival).
-        for m in reader.messages(topics=topics, decode=False):
-            topic = m.topic
-            if topic == TOPIC_STEP:
-                data = _json(m.raw)
-                if data:
-                    self.pending_steps.append(data)
-            elif topic == TOPIC_SAT:
-                self.recorded_sat += 1
-            elif topic == TOPIC_TRUTH:
-                if writer is not None:
-                    writer.log(TOPIC_TRUTH, m.log_time_ns, m.raw, schema=sch.JSON)
-                continue
-            else:
-                self.mav_in.append((topic[len("/mavlink/in/"):], m.log_time_ns, m.raw))
-                if not self.pending_steps:
-                    continue
-            while self.pending_steps and self._ready(self.pending_steps[0]):
-                self.run_step(self.pending_steps.popleft())
-        while self.pending_steps:  # end of the log (or a log cut short): run what is left
-            self.run_step(self.pending_steps.popleft())
-
-    def _ready(self, step: dict[str, Any]) -> bool:
-        return self.rx_seen + len(self.mav_in) >= int(step.get("rx_count", 0))
-
-    def ingest(self, name: str, t_ns: int, raw_json: bytes) -> None:
-        self.rx_seen += 1
-        if name not in self.used:  # neither the store nor the time base reads it: count it only
-            return
-        data = _json(raw_json) or {}
-        fields, sysid = data.get("fields"), data.get("sysid")
-        if (not isinstance(fields, dict) or not isinstance(sysid, int)
-                or any(v is None for v in fields.values())):
-            # the logged fields lost something (JSON has no NaN): decode the raw bytes
-            msg = _decode(self.parser, base64.b64decode(data.get("raw_b64", "")))
-            if msg is None:
+    def feed(self, stage: Iterable[StepInput]) -> None:
+        """Every step, in order, each after the messages it saw."""
+        writer, store, tb = self.writer, self.store, self.tb
+        for s in stage:
+            if writer is not None:
+                for t_ns, raw in s.truth:
+                    writer.log(TOPIC_TRUTH, t_ns, raw, schema=sch.JSON)
+            for name, fields, sysid, t_rx_ns in s.messages:
+                store.ingest(name, fields, tb.message_s(name, fields, t_rx_ns), sysid)
+            if s.record is None:  # the end
+                self.recorded_sat, self.corrupt_chunks = s.sat_count, s.corrupt_chunks
                 return
-            fields, name, sysid = msg.to_dict(), msg.get_type(), msg.get_srcSystem()
-        # logged fields are the decoded values (floats round-trip JSON exactly)
-        t_s = self.tb.message_s(name, fields, int(data.get("t_rx_ns", t_ns)))
-        self.store.ingest(name, fields, t_s, sysid)
+            p = self._perceived(s)
+            self.run_step(s.record, p, perception_result(s, p, self.perception))
+        raise ReplayError(f"{self.log_path}: the replay's inputs ended early")
 
-    def _perceived(self, rec_step: dict[str, Any]) -> Perceived:
-        if self.stage is None:
-            return perceived_from_record(rec_step)
-        nxt = next(self.stage, None)
+    def _perceived(self, s: StepInput) -> Perceived:
+        if s.perceived is not None:
+            return s.perceived
+        nxt = None if self.given is None else next(self.given, None)
         if nxt is None:
             raise ReplayError(f"{self.log_path}: perception ended before the step records")
         return nxt
 
-    def run_step(self, rec_step: dict[str, Any]) -> None:
-        want = int(rec_step.get("rx_count", 0))
-        while self.rx_seen < want and self.mav_in:
-            self.ingest(*self.mav_in.popleft())
-        p = self._perceived(rec_step)
+    def run_step(self, rec_step: dict[str, Any], p: Perceived,
+                 seen: PerceptionResult | None) -> None:
         res = self.res
         res.frames_missing += p.missing
         res.outside_crop += p.outside_crop
@@ -357,7 +308,7 @@ class _Replayer:
         out = self.pipeline.step(None, t_s, self.store,
                                  t_now_s=float(t_now) if isinstance(t_now, (int, float)) else None,
                                  in_control=ic if isinstance(ic, bool) else None,
-                                 perceived=p.result(self.perception),
+                                 perceived=seen,
                                  actuation_delay_s=float(ad) if isinstance(ad, (int, float))
                                  and self.cfg.control.latency.auto_delay else None)
         res.steps += 1
@@ -389,19 +340,6 @@ def _json(raw: bytes) -> dict[str, Any] | None:
     except ValueError:
         return None
     return out if isinstance(out, dict) else None
-
-
-def _decode(parser: Any, raw: bytes) -> Any:
-    parser.buf = bytearray()
-    parser.buf_index = 0
-    try:
-        msgs = parser.parse_buffer(raw) or []
-    except Exception:
-        return None
-    for msg in msgs:
-        if msg.get_type() not in ("BAD_DATA",) and not msg.get_type().startswith("UNKNOWN"):
-            return msg
-    return None
 
 
 def _quat_diff(q_rec: Any, q_new: Any) -> float:

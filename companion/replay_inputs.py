@@ -3,8 +3,8 @@
 Perception depends only on the frames (and its own earlier results), never on the controller,
 so a replay runs it as a separate stage: :func:`perceive_log` reads a log's perception inputs
 and ``/control/step`` records and yields one :class:`Perceived` per step record, in log order;
-:class:`PerceptionWorker` runs that in a child process so perception and the controller use two
-cores. Inputs, newest format first:
+:mod:`companion.replay_stream` runs that in a child process (with the rest of the log's
+reading) so perception and the controller use two cores. Inputs, newest format first:
 
 - ``/perception/input`` (``logging.perception_input = "crop"`` or ``"full"``): what the detector
   read, with its place in the frame in the step record's ``input`` entry. The crop is pasted
@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
-import traceback
 from collections import deque
 from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -31,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from companion import CompanionError
-from companion.config import Config, config_from_dict
+from companion.config import Config
 from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP
 from companion.log.encode import decode_json
 from companion.log.reader import LogReader, image_from_raw
@@ -40,8 +38,6 @@ from companion.perception import Perception, PerceptionResult
 log = logging.getLogger(__name__)
 
 LOOKAHEAD = 3  # frames decoded ahead of the step that uses them
-_BATCH = 64  # results per message from the worker process
-_FIRST_BATCH = 2  # ... but the first message, which the replay's first step waits for
 
 
 class ReplayInputError(CompanionError):
@@ -223,72 +219,3 @@ def perceive_log(path: Path, cfg: Config) -> Iterator[Perceived]:
                 yield run(*pending.popleft())
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _worker_main(conn: Any, path: str, raw_cfg: dict[str, Any], source: str) -> None:
-    try:
-        cfg = config_from_dict(raw_cfg, source=source)
-        batch: list[Perceived] = []
-        size = _FIRST_BATCH  # the first results at once: the replay's first step waits for them
-        for p in perceive_log(Path(path), cfg):
-            batch.append(p)
-            if len(batch) >= size:
-                conn.send(("ok", batch))
-                batch, size = [], _BATCH
-        conn.send(("ok", batch))
-        conn.send(("done", None))
-    except CompanionError as exc:
-        conn.send(("error", str(exc)))
-    except BaseException:  # reported to the parent, which raises
-        conn.send(("error", traceback.format_exc()))
-    finally:
-        conn.close()
-
-
-class PerceptionWorker:
-    """:func:`perceive_log` in a child process; iterate for the results, in order.
-    ``with PerceptionWorker(path, cfg) as w: for p in w: ...``"""
-
-    def __init__(self, path: Path, cfg: Config) -> None:
-        # fork (fast: nothing to import again) when available; create the worker before the
-        # parent starts threads
-        methods = mp.get_all_start_methods()
-        ctx: Any = mp.get_context("fork" if "fork" in methods else "spawn")
-        self._conn, child = ctx.Pipe(duplex=False)
-        self._proc = ctx.Process(
-            target=_worker_main, args=(child, str(path), _plain(cfg.raw), cfg.source),
-            name="replay-perception", daemon=True)
-        self._proc.start()
-        child.close()
-
-    def __enter__(self) -> PerceptionWorker:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        if self._proc.is_alive():
-            self._proc.terminate()
-        self._proc.join(timeout=5.0)
-        self._conn.close()
-
-    def __iter__(self) -> Iterator[Perceived]:
-        while True:
-            try:
-                kind, payload = self._conn.recv()
-            except EOFError:
-                raise ReplayInputError("the perception worker stopped unexpectedly") from None
-            if kind == "done":
-                return
-            if kind == "error":
-                raise ReplayInputError(f"perception worker: {payload}")
-            yield from payload
-
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, Mapping):
-        return {k: _plain(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_plain(x) for x in v]
-    return v

@@ -37,7 +37,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--from-detections", action="store_true",
                    help="controller only: use the recorded detections instead of perception")
     p.add_argument("--in-process", action="store_true",
-                   help="run perception in this process (default: a second process)")
+                   help="read the log and run perception in this process (default: a "
+                        "second process, beside the controller)")
     p.add_argument("--out", type=Path, default=None, help="output dir (default out/replay)")
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=_run)
@@ -68,8 +69,15 @@ def _one(args: argparse.Namespace, overrides: list[str], out: Path, label: str,
     out.mkdir(parents=True, exist_ok=True)
     t0, c0 = time.monotonic(), _cpu_s()
     bar, cb = step_callback(label)
+    first: list[float] = []  # when the first step was done: the start-up's end
+
+    def progress(done: int, total: int) -> None:
+        if not first:
+            first.append(time.monotonic())
+        cb(done, total)
+
     try:
-        res = replay(args.log, out / "replay.mcap", args.config, overrides, progress=cb,
+        res = replay(args.log, out / "replay.mcap", args.config, overrides, progress=progress,
                      from_detections=args.from_detections,
                      workers=0 if args.in_process else 1, perceived=perceived)
     finally:
@@ -77,6 +85,8 @@ def _one(args: argparse.Namespace, overrides: list[str], out: Path, label: str,
     wall, cpu = time.monotonic() - t0, _cpu_s() - c0
     summary = res.summary()
     summary["wall_time_s"] = wall
+    # reading the config, building the controller (and the solver), the first step's inputs
+    summary["startup_s"] = first[0] - t0 if first else None
     summary["cpu_time_s"] = cpu  # this process and the perception worker
     summary["cpu_ms_per_step"] = cpu * 1e3 / res.steps if res.steps else None
     summary["load_1min"] = os.getloadavg()[0]

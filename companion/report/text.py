@@ -89,8 +89,11 @@ def replay_summary(s: dict[str, Any]) -> list[str]:
                  f"{_fmt(s.get('solve_ms_median'), '.1f', ' ms')}, p95 "
                  f"{_fmt(s.get('solve_ms_p95'), '.1f', ' ms')}")
     speed, per = s.get("speed_vs_real_time"), s.get("cpu_ms_per_step")
+    start = s.get("startup_s")
+    rate = "" if not speed else (f" ({speed:.1f}x real time" + (
+        "" if start is None else f", start-up {start:.1f} s included") + ")")
     lines.append(f"  {s['steps']} steps ({s['perception']}) in {s['wall_time_s']:.1f} s wall"
-                 f"{f' ({speed:.1f}x real time)' if speed else ''}, CPU "
+                 f"{rate}, CPU "
                  f"{s['cpu_time_s']:.1f} s"
                  + ("" if per is None else f" ({per:.2f} ms per step, start-up and both "
                     "processes included)")

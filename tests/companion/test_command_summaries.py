@@ -31,3 +31,9 @@ def test_replay_summary_is_rounded_with_a_verdict() -> None:
                                             max_quat_diff=0.0123456, first_difference_t_s=4.25)))
     assert "MISS  commands reproduced: 1194 of 1197 identical (max |dq| 0.0123" in bad
     assert "first difference at t = 4.25 s" in bad
+
+
+def test_replay_summary_says_the_start_up_beside_the_rate() -> None:
+    text = "\n".join(replay_summary(_summary(startup_s=0.6412)))
+    assert "(0.4x real time, start-up 0.6 s included)" in text
+    assert "(0.4x real time)" in "\n".join(replay_summary(_summary()))  # one from before
