@@ -105,7 +105,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                          "solves (bench/solver_parts.py)")
     ap.add_argument("--evict-mb", type=float, default=0.0,
                     help="with --log: MB written between two solves (default 0: warm caches)")
-    ap.add_argument("--linearisation", choices=("loops", "graph", "scalar"), default=None,
+    ap.add_argument("--linearisation", choices=("recursion", "loops", "graph", "scalar"),
+                    default=None,
                     help="with --log: fly this rmpc.rti_linearisation (default: the log's)")
     return ap.parse_args(argv)
 

@@ -221,7 +221,9 @@ class RmpcParams:
     # natural units, not squared; state box: state units) may be exceeded by the RTI plan
     # rolled out through the nonlinear model. docs/reference/solver.md says why this value.
     rti_tol: float = field(default=1.0e-6, metadata=checked(positive))
-    # solver = "rti": the linearisation's compiled form: "loops" (C loops over CasADi's stage
+    # solver = "rti": the linearisation's compiled form: "recursion" (the C loops below with
+    # H and g by a backward recursion over the stages: ~1/4 of the multiplications; the
+    # graph's numbers to ~1e-15), "loops" (C loops over CasADi's stage
     # Jacobians, ~40 KB of code), "graph" (CasADi's matrix operations, ~0.3 MB of code; the
     # same numbers as "loops" bit for bit) or "scalar" (the same numbers to ~1e-15 as ~66 k
     # scalar operations, ~73 s of CPU to compile). A log recorded before this key replays
@@ -241,7 +243,8 @@ class RmpcParams:
              ("linear", "box")),
             ("solve_isolation", self.solve_isolation, ("process", "none")),
             ("solve_time_clock", self.solve_time_clock, ("wall", "cpu")),
-            ("rti_linearisation", self.rti_linearisation, ("loops", "graph", "scalar")),
+            ("rti_linearisation", self.rti_linearisation,
+             ("recursion", "loops", "graph", "scalar")),
             ("recovery_rows", self.recovery_rows, ("own", "hard")),
         ):
             if value not in allowed:

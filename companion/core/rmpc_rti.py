@@ -41,7 +41,7 @@ import casadi as ca
 import daqp
 import numpy as np
 
-from companion.core import rmpc_daqp, rmpc_rti_gen, rmpc_rti_loops
+from companion.core import rmpc_daqp, rmpc_rti_gen, rmpc_rti_loops, rmpc_rti_recursion
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import (
     CompiledNlp,
@@ -112,10 +112,12 @@ def _lin_library(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesig
     """The compiled ``rti_lin`` of ``rmpc.rti_linearisation`` (``"loops"``: CasADi's stage
     functions and the C condensing around them, :mod:`companion.core.rmpc_rti_loops`, with
     its own gcc flags)."""
-    if rmpc.rti_linearisation == "loops":
-        return compiled_functions(lambda: rmpc_rti_loops.lin_source(rmpc, camera, terminal),
-                                  rmpc.cache_dir, "rti_lin", alias_key=key,
-                                  flags=rmpc_rti_loops.FLAGS)
+    if rmpc.rti_linearisation in ("loops", "recursion"):
+        driver = rmpc_rti_recursion.DRIVER if rmpc.rti_linearisation == "recursion" \
+            else rmpc_rti_loops.DRIVER
+        return compiled_functions(
+            lambda: rmpc_rti_loops.lin_source(rmpc, camera, terminal, driver),
+            rmpc.cache_dir, "rti_lin", alias_key=key, flags=rmpc_rti_loops.FLAGS)
     return compiled_functions(lambda: [rmpc_rti_gen.lin_function(rmpc, camera, terminal)],
                               rmpc.cache_dir, "rti_lin", alias_key=key)
 
@@ -140,8 +142,11 @@ class RtiSolver:
             code = hashlib.sha256(Path(rmpc_rti_gen.__file__).read_bytes()).hexdigest()
             if rmpc.rti_linearisation != "graph":  # (the same NLP: the form is in the key)
                 code += f":{rmpc.rti_linearisation}"
-            if rmpc.rti_linearisation == "loops":
+            if rmpc.rti_linearisation in ("loops", "recursion"):
                 code += hashlib.sha256(Path(rmpc_rti_loops.__file__).read_bytes()).hexdigest()
+            if rmpc.rti_linearisation == "recursion":
+                code += hashlib.sha256(
+                    Path(rmpc_rti_recursion.__file__).read_bytes()).hexdigest()
             key = problem_key(nlp, "rti", code)
             self.compiled = (_lin_library(rmpc, camera, terminal, key),
                              compiled_functions(
@@ -152,7 +157,7 @@ class RtiSolver:
                 val = ca.external("rti_val", str(self.compiled[1].library))
             except RuntimeError as exc:
                 raise RmpcBuildError(f"loading the RTI's functions: {exc}") from exc
-        else:  # ("loops" is C: without jit, the graph's function, the same numbers)
+        else:  # ("loops", "recursion" are C: without jit, the graph's function)
             lin = rmpc_rti_gen.lin_function(rmpc, camera, terminal)
             val = rmpc_rti_gen.val_function(rmpc, camera, terminal)
         self._lin = _Buffered(lin)

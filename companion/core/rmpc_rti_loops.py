@@ -189,10 +189,11 @@ def _dense(fn: ca.Function, name: str) -> ca.Function:
     return ca.Function(name, args, [ca.densify(o) for o in fn.call(args)], {"cse": True})
 
 
-def lin_source(rmpc: RmpcParams, camera: CameraParams,
-               terminal: TerminalDesign) -> tuple[list[ca.Function], str]:
+def lin_source(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign,
+               driver: str = DRIVER) -> tuple[list[ca.Function], str]:
     """The functions CasADi generates (one per kind of stage, the terminal one) and the C
-    appended after them (sizes, the stage table, :data:`DRIVER`)."""
+    appended after them (sizes, the stage table, ``driver``: :data:`DRIVER`, or
+    :data:`companion.core.rmpc_rti_recursion.DRIVER`)."""
     big_n = rmpc.horizon
     stage = _StageFunctions(rmpc, camera, terminal)
     kinds: dict[str, ca.Function] = {}
@@ -220,6 +221,6 @@ def lin_source(rmpc: RmpcParams, camera: CameraParams,
     tables = (f"static const int rti_ng[NH] = {{{', '.join(map(str, n_g))}}};\n"
               f"static const rti_stage_t rti_stage_fn[NH] = {{{', '.join(table)}}};\n"
               "#define rti_terminal_fn rti_loop_terminal\n")
-    typedef, _, body = DRIVER.partition("\n\n")
+    typedef, _, body = driver.partition("\n\n")
     return funcs, f"\n/* rti_lin: C loops (companion.core.rmpc_rti_loops) */\n{head}{typedef}\n" \
         f"{tables}\n{body}"
