@@ -98,9 +98,20 @@ class _Buffered:
             buf.set_res(i, a.data)
         self.fn = fn
 
+    def share(self, other: _Buffered, indices: tuple[int, ...]) -> None:
+        """Read the arguments ``indices`` from ``other``'s buffers (the same arrays: what one
+        function's caller writes there, the other reads without a copy)."""
+        for i in indices:
+            if self.args[i].size != other.args[i].size:
+                raise ValueError(f"{self.fn.name()}: argument {i} is not {other.fn.name()}'s")
+            self.args[i] = other.args[i]
+            self._buf.set_arg(i, self.args[i].data)
+
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        for dst, src in zip(self.args, args, strict=True):
-            dst[:] = src
+        """Copy ``args`` (all of them, or none: the buffers as they are) in, evaluate."""
+        if args:
+            for dst, src in zip(self.args, args, strict=True):
+                dst[:] = src
         self._buf._eval()
         if int(self._buf.ret()) != 0:
             raise RuntimeError(f"{self.fn.name()}: evaluation failed")
@@ -162,6 +173,10 @@ class RtiSolver:
             val = rmpc_rti_gen.val_function(rmpc, camera, terminal)
         self._lin = _Buffered(lin)
         self._val = _Buffered(val)
+        # (U, eta0, p): one set of arrays for both functions, written once per step
+        self._val.share(self._lin, (0, 1, 2))
+        self._u, self._eta0, self._par = self._lin.args[:3]
+        self._lo_x, self._hi_x = self._val.args[3:5]
         self.horizon = rmpc.horizon
         self.n_u = n_u = NU * rmpc.horizon
         self.n_state = n_s = NX * rmpc.horizon
@@ -188,6 +203,7 @@ class RtiSolver:
         self._direct = None if found is None else rmpc_daqp.DirectQp(
             *found, self._hess, self._grad, self._j_path, self._up, self._lo, self._sense)
         self._no_box = np.zeros(n_s)
+        self._x_lin = np.zeros(n_s)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
 
@@ -227,33 +243,41 @@ class RtiSolver:
         oscillate; the step then goes to the full NLP, whose result does not depend on how
         many QPs were tried). See the module docstring."""
         u_max, u_min = self.u_max, self._u_min
-        u = np.minimum(np.maximum(u_guess.ravel(), u_min), u_max)
+        # the plan u, eta0 and par in the compiled functions' own argument arrays (shared by
+        # both: no copy per call); the outcome gets a copy of u
+        u = self._u
+        np.minimum(np.maximum(u_guess.ravel(), u_min, out=u), u_max, out=u)
+        self._eta0[:] = eta0
+        self._par[:] = par
         iters, qps = 0, 0
         status, viol = "rti: no QP", math.inf
         for _ in range(self.cfg.rti_max_qp):
-            du, flag, it = self._qp(u, eta0, par, state_lo, state_hi)
+            du, flag, it = self._qp(u, self._eta0, self._par, state_lo, state_hi)
             qps += 1
             iters += it
             if flag not in DAQP_OPTIMAL:
                 eta = np.tile(eta0, (self.horizon + 1, 1))
                 return RtiOutcome(False, f"rti: QP {qps} failed (daqp exit flag {flag})",
-                                  eta, u.reshape(self.horizon, NU), math.nan, iters, qps,
-                                  math.inf)
+                                  eta, u.reshape(self.horizon, NU).copy(), math.nan, iters,
+                                  qps, math.inf)
             u += du
             np.minimum(np.maximum(u, u_min, out=u), u_max, out=u)
-            self._val(u, eta0, par, state_lo, state_hi)
+            self._lo_x[:] = state_lo  # (each time: rows() below writes no box there)
+            self._hi_x[:] = state_hi
+            self._val()
             previous, viol = viol, float(self._excess[0])
             if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
                 return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
-                                  self._states(eta0), u.reshape(self.horizon, NU),
+                                  self._states(eta0), u.reshape(self.horizon, NU).copy(),
                                   float(self._f[0]), iters, qps, viol)
-            worst = self._worst_row(u, eta0, par, state_lo, state_hi)
+            worst = self._worst_row(u.copy(), eta0, par, state_lo, state_hi)
             status = (f"rti: rejected after {qps} QP ({worst} exceeded by {viol:.3g} > "
                       f"rmpc.rti_tol = {self.cfg.rti_tol:g})")
             if qps >= 2 and not viol < previous:
                 break
-        return RtiOutcome(False, status, self._states(eta0), u.reshape(self.horizon, NU),
-                          float(self._f[0]), iters, qps, viol)
+        return RtiOutcome(False, status, self._states(eta0),
+                          u.reshape(self.horizon, NU).copy(), float(self._f[0]), iters, qps,
+                          viol)
 
     def _worst_row(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
                    state_lo: np.ndarray, state_hi: np.ndarray) -> str:
@@ -284,7 +308,10 @@ class RtiSolver:
         whole QP's: the QP is strictly convex, and a minimiser of its cost over a larger set
         that lies in the smaller one is the smaller one's minimiser."""
         self.calls += 1
-        self._lin(u, eta0, par)  # (copied into the function's own argument buffer)
+        if u is not self._u or eta0 is not self._eta0 or par is not self._par:
+            self._lin(u, eta0, par)  # (copied into the function's own argument buffers)
+        else:
+            self._lin()  # (step() wrote them there)
         up, lo = self._up, self._lo
         np.subtract(self.u_max, u, out=self._up_u)
         np.subtract(self._u_min, u, out=self._lo_u)
@@ -293,7 +320,7 @@ class RtiSolver:
         if flag == DAQP_INFEASIBLE:
             return du, flag, iters  # more rows cannot make an infeasible QP feasible
         if flag in DAQP_OPTIMAL:
-            x_lin = self._j_state @ du
+            x_lin = np.matmul(self._j_state, du, out=self._x_lin)
             x_lin += self._c_x
             if (x_lin <= state_hi).all() and (x_lin >= state_lo).all():
                 return du, flag, iters

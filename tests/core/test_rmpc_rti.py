@@ -259,9 +259,10 @@ def test_the_condensed_linearisation_is_the_rollouts(rti) -> None:  # type: igno
     assert np.min(np.linalg.eigvalsh(h)) > 0
 
 
-@pytest.mark.parametrize("form", ["loops", "graph", "scalar"])
+@pytest.mark.parametrize("form", ["recursion", "loops", "graph", "scalar"])
 def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti, form) -> None:  # type: ignore[no-untyped-def]
-    """rti_lin's H and g (rmpc.rti_linearisation "loops", the default: the condensed J_r's
+    """rti_lin's H and g (rmpc.rti_linearisation "recursion", the default: a backward
+    recursion over the stages in C; "loops": the condensed J_r's
     product as C loops; "graph": the same as CasADi's sparse product; "scalar": a backward
     recursion over stage blocks, as scalar code) are 2 J_r' J_r and
     2 J_r' r of the residuals of the whole rollout differentiated as one expression (no
@@ -272,8 +273,11 @@ def test_the_condensed_hessian_is_the_rollouts_gauss_newton(cfg, design, rti, fo
     from companion.core.rmpc_problem import NP_STAGE, NU
     from companion.core.rmpc_rti_gen import _StageFunctions
 
-    assert rti.cfg.rti_linearisation == "loops"  # (the default config's, compiled)
-    if form != "loops":  # (not compiled here: the same function, evaluated by CasADi)
+    assert rti.cfg.rti_linearisation == "recursion"  # (the default config's, compiled)
+    if form == "loops":  # (compiled: C)
+        rti = Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", rti_linearisation=form),
+                   cfg.camera, design)
+    elif form != "recursion":  # (not compiled here: the same function, evaluated by CasADi)
         rti = Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", rti_linearisation=form,
                                        jit=False), cfg.camera, design)
     solver, eta0, par, u, lo, hi = _paper_step(rti)

@@ -6,6 +6,7 @@ within 1e-9 and hands the same steps to the full NLP."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -84,3 +85,13 @@ def test_an_unknown_form_is_refused() -> None:
     cfg = load_config()
     with pytest.raises(ParamError, match="rti_linearisation"):
         dataclasses.replace(cfg.rmpc, rti_linearisation="recurse")
+
+
+def test_each_step_keeps_its_own_plan(pair) -> None:  # type: ignore[no-untyped-def]
+    """The step works in the compiled functions' argument arrays; the plans it hands out are
+    copies: a later step does not change an earlier one's."""
+    rec = pair[0]
+    rec.reset()
+    loop = closed_loop(rec, initial_error(*PAPER_POSE), 4, 1e-4, 1)
+    plans = [s.result.u_pred for s in loop]
+    assert not any(np.array_equal(a, b) for a, b in itertools.pairwise(plans))
