@@ -6,7 +6,6 @@ within 1e-9 and hands the same steps to the full NLP."""
 from __future__ import annotations
 
 import dataclasses
-import itertools
 
 import numpy as np
 import pytest
@@ -89,9 +88,17 @@ def test_an_unknown_form_is_refused() -> None:
 
 def test_each_step_keeps_its_own_plan(pair) -> None:  # type: ignore[no-untyped-def]
     """The step works in the compiled functions' argument arrays; the plans it hands out are
-    copies: a later step does not change an earlier one's."""
+    copies: a later step (another guess) does not change an earlier one's, and the same
+    inputs give the same plan."""
     rec = pair[0]
     rec.reset()
-    loop = closed_loop(rec, initial_error(*PAPER_POSE), 4, 1e-4, 1)
-    plans = [s.result.u_pred for s in loop]
-    assert not any(np.array_equal(a, b) for a, b in itertools.pairwise(plans))
+    res = [s.result for s in closed_loop(rec, initial_error(*PAPER_POSE), 5, 1e-4, 1)]
+    eta0 = res[-1].eta_pred[0]
+    par = np.append(res[-1].target.packed(), eta0[3])
+    lo, hi = rec._state_box(res[-1].target)
+    first = rec._rti.step(eta0, par, res[-1].u_pred, lo, hi)
+    kept = first.u.copy()
+    second = rec._rti.step(eta0, par, 0.5 * res[-1].u_pred, lo, hi)
+    assert not np.array_equal(second.u, kept)
+    assert np.array_equal(first.u, kept)
+    assert np.array_equal(rec._rti.step(eta0, par, res[-1].u_pred, lo, hi).u, kept)
