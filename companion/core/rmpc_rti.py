@@ -10,7 +10,9 @@ terminal rows, the same state box), linearised at the previous plan shifted by o
   code that builds the NLP's) and their Jacobian come from one compiled function, condensed
   from stage Jacobians (:mod:`companion.core.rmpc_rti_gen`; ``rmpc.rti_linearisation =
   "loops"``: the condensing as C loops, :mod:`companion.core.rmpc_rti_loops`, the same
-  numbers bit for bit; cached like the NLPs);
+  numbers bit for bit; ``"recursion"``: those loops with H and g by a backward recursion,
+  :mod:`companion.core.rmpc_rti_recursion`, the same numbers to round-off; cached like the
+  NLPs);
   a second one gives the rows by the NLP's own ``g``, the cost and their largest excess (the
   check);
 - DAQP (a dual active-set solver for small dense QPs) solves the QP in-process with a bounded
