@@ -242,7 +242,7 @@ class RmpcParams:
             ("solve_isolation", self.solve_isolation, ("process", "none")),
             ("solve_time_clock", self.solve_time_clock, ("wall", "cpu")),
             ("rti_linearisation", self.rti_linearisation, ("loops", "graph", "scalar")),
-            ("recovery_rows", self.recovery_rows, ("own", "hard")),
+            ("recovery_rows", self.recovery_rows, ("own", "hard", "own+terminal")),
         ):
             if value not in allowed:
                 raise ParamError(

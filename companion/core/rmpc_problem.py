@@ -96,6 +96,7 @@ class Layout:
     rows: tuple[Row, ...]
     equality: tuple[bool, ...]
     slack_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    goal_matrix: np.ndarray | None = None  # the "goal_set" row's matrix (build_nlp's goal)
 
 
 def tube_bound(rmpc: RmpcParams, n: int) -> float:
@@ -232,8 +233,11 @@ def centre(u: Any, rmpc: RmpcParams, camera: CameraParams, d: Any = None) -> tup
 def build_nlp(
     rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
     row_design: tuple[RmpcParams, TerminalDesign] | None = None,
+    goal: tuple[np.ndarray, float] | None = None,
 ) -> tuple[dict[str, ca.SX], Layout]:
-    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``: module docstring."""
+    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design`` and ``goal`` (soft copy
+    only: one more terminal row ``eta(N)' G eta(N) <= b``, kind ``"goal_set"``): module
+    docstring."""
     row_rmpc, row_terminal = row_design or (rmpc, terminal)
     big_n = rmpc.horizon
     q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)
@@ -266,8 +270,10 @@ def build_nlp(
                   d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
-        for group, kind, val, upper, corner in _path_items(row_rmpc, camera, row_terminal, n,
-                                                           x, u, x_next, d, vis_stage):
+        items = _path_items(row_rmpc, camera, row_terminal, n, x, u, x_next, d, vis_stage)
+        if goal is not None and soft and n == big_n:
+            items.append(("terminal", "goal_set", ca.bilin(goal[0], x, x), goal[1], -1))
+        for group, kind, val, upper, corner in items:
             s_idx: int | None = None
             if soft:
                 s = ca.SX.sym(f"sl_{kind}_{n}")
@@ -307,7 +313,8 @@ def build_nlp(
     nlp = {"x": ca.vertcat(*w), "p": par, "f": cost, "g": ca.vertcat(*g)}
     layout = Layout(horizon=big_n, soft=soft, n_w=n_w, n_g=n_g, x_index=x_index,
                     u_index=u_index, gap_index=gap_index, rows=tuple(rows),
-                    equality=tuple(equality), slack_index=np.array(slack_index, dtype=int))
+                    equality=tuple(equality), slack_index=np.array(slack_index, dtype=int),
+                    goal_matrix=None if goal is None or not soft else goal[0])
     return nlp, layout
 
 
