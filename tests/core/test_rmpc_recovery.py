@@ -277,9 +277,9 @@ def test_the_soft_copy_can_add_the_hard_terminal_set_to_its_own_rows(
 ) -> None:
     """rmpc.recovery_rows = "own+terminal": the soft copy keeps its own design's rows and adds
     one, the hard problem's terminal set at the soft terminal level, ``eta(N)' P_h eta(N)
-    (eps_s / eps_h)^2 <= eps_s^2`` (its slack in the soft terminal row's units). On a logged engagement state (circle at
-    1.5 m/s, 0.5 rad/s, the realistic world's limits) the plan ends nearer the hard problem's
-    terminal set than with "own" alone."""
+    (eps_s / eps_h)^2 <= eps_s^2`` (its slack in the soft terminal row's units). On a logged
+    engagement state (circle at 1.5 m/s, 0.5 rad/s, the realistic world's limits) the plan
+    ends nearer the hard problem's terminal set than with "own" alone."""
     import casadi as ca
 
     from companion.core.design import design_terminal
