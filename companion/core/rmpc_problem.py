@@ -45,7 +45,9 @@ braking at an admissible rate can bring it (``rmpc.velocity_box_return``; otherw
 copy would be infeasible at stage 1). A soft copy with its own weights
 (``rmpc.recovery_q_diag``, :func:`companion.core.rmpc_recovery.recovery_design`) relaxes its
 own design's rows, or with ``rmpc.recovery_rows = "hard"`` the hard problem's (``build_nlp``'s
-``row_design``: the cost stays the soft design's).
+``row_design``: the cost stays the soft design's); ``"own+terminal"`` adds to its own rows the
+hard problem's terminal set at its own terminal level (``build_nlp``'s ``goal``, a row of kind
+``"goal_set"`` at stage N: :func:`companion.core.rmpc_recovery.hard_terminal_row`).
 """
 
 from __future__ import annotations
