@@ -98,7 +98,6 @@ class Layout:
     rows: tuple[Row, ...]
     equality: tuple[bool, ...]
     slack_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
-    goal_matrix: np.ndarray | None = None  # the "goal_set" row's matrix (build_nlp's goal)
 
 
 def tube_bound(rmpc: RmpcParams, n: int) -> float:
@@ -237,9 +236,7 @@ def build_nlp(
     row_design: tuple[RmpcParams, TerminalDesign] | None = None,
     goal: tuple[np.ndarray, float] | None = None,
 ) -> tuple[dict[str, ca.SX], Layout]:
-    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design`` and ``goal`` (soft copy
-    only: one more terminal row ``eta(N)' G eta(N) <= b``, kind ``"goal_set"``): module
-    docstring."""
+    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``, ``goal``: module doc."""
     row_rmpc, row_terminal = row_design or (rmpc, terminal)
     big_n = rmpc.horizon
     q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)
@@ -248,7 +245,6 @@ def build_nlp(
     us = [ca.SX.sym(f"u{n}", NU) for n in range(big_n)]
     par = ca.SX.sym("p", NP_STAGE * big_n + 1 + (NP_SOFT_EXTRA if soft else 0))
     s4_ref = par[NP_STAGE * big_n]
-
     w: list[ca.SX] = []
     g: list[ca.SX] = []
     equality: list[bool] = []  # per g row: an equality (dynamics gap) or not
@@ -272,10 +268,8 @@ def build_nlp(
                   d: ca.SX | None = None) -> None:
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
-        items = _path_items(row_rmpc, camera, row_terminal, n, x, u, x_next, d, vis_stage)
-        if goal is not None and soft and n == big_n:
-            items.append(("terminal", "goal_set", ca.bilin(goal[0], x, x), goal[1], -1))
-        for group, kind, val, upper, corner in items:
+        for group, kind, val, upper, corner in _path_items(row_rmpc, camera, row_terminal, n,
+                                                           x, u, x_next, d, vis_stage, goal):
             s_idx: int | None = None
             if soft:
                 s = ca.SX.sym(f"sl_{kind}_{n}")
@@ -315,8 +309,7 @@ def build_nlp(
     nlp = {"x": ca.vertcat(*w), "p": par, "f": cost, "g": ca.vertcat(*g)}
     layout = Layout(horizon=big_n, soft=soft, n_w=n_w, n_g=n_g, x_index=x_index,
                     u_index=u_index, gap_index=gap_index, rows=tuple(rows),
-                    equality=tuple(equality), slack_index=np.array(slack_index, dtype=int),
-                    goal_matrix=None if goal is None or not soft else goal[0])
+                    equality=tuple(equality), slack_index=np.array(slack_index, dtype=int))
     return nlp, layout
 
 
@@ -335,10 +328,11 @@ def _input_rate(rmpc: RmpcParams, us: list[ca.SX], par: ca.SX) -> ca.SX:
 
 def _path_items(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, n: int,
                 x: ca.SX, u: ca.SX | None, x_next: ca.SX | None, d: ca.SX | None,
-                vis_stage: dict[int, int]) -> list[tuple[str, str, ca.SX, float, int]]:
+                vis_stage: dict[int, int], goal: tuple[np.ndarray, float] | None = None,
+                ) -> list[tuple[str, str, ca.SX, float, int]]:
     """Stage ``n``'s path rows before any slack: (group, kind, value, bound on the value,
     corner) in the order :func:`build_nlp` lays them out (tube, visibility; at n = N the
-    terminal set and terminal visibility)."""
+    terminal set, terminal visibility and ``goal``'s row ``eta' G eta <= b``, if any)."""
     big_n = rmpc.horizon
     p_tube = tube_matrix(rmpc, np.asarray(terminal.p, dtype=float))
     items: list[tuple[str, str, ca.SX, float, int]] = []
@@ -367,4 +361,6 @@ def _path_items(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign
     if rmpc.enable_terminal:
         pu, pn = image_point(x)
         items.append(("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2, -1))
+    if goal is not None:
+        items.append(("terminal", "goal_set", ca.bilin(goal[0], x, x), goal[1], -1))
     return items

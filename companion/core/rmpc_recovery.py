@@ -120,8 +120,8 @@ def slack_guess(lay: Layout, eta: np.ndarray, u: np.ndarray, target: TargetMotio
         img = pairs.get(row.stage, row.stage) if row.kind in ("visibility", "corner") \
             else row.stage
         d_n = target.disturbance(row.stage) if row.stage < len(u) else None
-        p_row = lay.goal_matrix if row.kind == "goal_set" else p_tube
-        assert p_row is not None
-        val = _row_value(row.kind, eta[img], u_n, p_row, rmpc, camera, d_n, row.corner)
+        val = _row_value(row.kind, eta[img], u_n, p_tube, rmpc, camera, d_n, row.corner)
+        if row.kind == "goal_set":  # hard_terminal_row's scale (p_tube: the hard rows')
+            val *= ((rmpc.recovery_eps or rmpc.eps) / rmpc.eps) ** 2
         out[i] = max(val - row.upper, 0.0) + 1e-3
     return out
