@@ -180,8 +180,9 @@ class RmpcParams:
     # Which tube, visibility and terminal rows the soft copy's slacks relax when it has its
     # own design (recovery_q_diag / recovery_eps): "own" (that design's P, eps and gamma) or
     # "hard" (the hard problem's: the slacks then measure how far the plan is from the hard
-    # problem's feasible set, whose reach ends recovery; the soft design keeps the cost).
-    # An old config without the key reads "own", as it flew.
+    # problem's feasible set, whose reach ends recovery; the soft design keeps the cost) or
+    # "own+terminal" (its own rows plus the hard problem's terminal set, scaled to its own
+    # terminal level: rmpc_recovery.hard_terminal_row). An old config reads "own", as it flew.
     recovery_rows: str = "own"
     # A second, loaded solver process on stand-by (solve_isolation = "process"): a timeout or
     # a lost solver process promotes it, so the next step solves instead of flying the
@@ -245,7 +246,7 @@ class RmpcParams:
             ("solve_time_clock", self.solve_time_clock, ("wall", "cpu")),
             ("rti_linearisation", self.rti_linearisation,
              ("recursion", "loops", "graph", "scalar")),
-            ("recovery_rows", self.recovery_rows, ("own", "hard")),
+            ("recovery_rows", self.recovery_rows, ("own", "hard", "own+terminal")),
         ):
             if value not in allowed:
                 raise ParamError(

@@ -22,7 +22,11 @@ from companion.core.nlp_buffer import NlpBuffer
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError, compiled_nlp
 from companion.core.rmpc_problem import NX, Layout, build_nlp
-from companion.core.rmpc_recovery import recovery_design, velocity_box_return
+from companion.core.rmpc_recovery import (
+    hard_terminal_row,
+    recovery_design,
+    velocity_box_return,
+)
 from companion.core.rmpc_types import (
     Evaluation,
     SolveBackend,
@@ -55,12 +59,17 @@ class NlpSolver:
     ) -> None:
         self._clock = clock
         row_design = None
+        goal: tuple[np.ndarray, float] | None = None
         if soft:
             # recovery_rows = "hard": the soft copy relaxes the hard problem's rows (only its
             # cost is its own design's), so its slacks measure the distance to the hard set
             row_design = (rmpc, terminal) if rmpc.recovery_rows == "hard" else None
+            hard_rmpc, hard_terminal = rmpc, terminal
             rmpc, terminal = recovery_design(rmpc, camera, terminal)
-        nlp, layout = build_nlp(rmpc, camera, terminal, soft, row_design)
+            # "own+terminal": its own rows and the hard problem's terminal set as one more row
+            goal = (hard_terminal_row(hard_rmpc, hard_terminal, rmpc)
+                    if rmpc.recovery_rows == "own+terminal" else None)
+        nlp, layout = build_nlp(rmpc, camera, terminal, soft, row_design, goal)
         self.layout: Layout = layout
         self.kind = "soft" if soft else "hard"
         self.solver_name = solver

@@ -45,7 +45,9 @@ braking at an admissible rate can bring it (``rmpc.velocity_box_return``; otherw
 copy would be infeasible at stage 1). A soft copy with its own weights
 (``rmpc.recovery_q_diag``, :func:`companion.core.rmpc_recovery.recovery_design`) relaxes its
 own design's rows, or with ``rmpc.recovery_rows = "hard"`` the hard problem's (``build_nlp``'s
-``row_design``: the cost stays the soft design's).
+``row_design``: the cost stays the soft design's); ``"own+terminal"`` adds to its own rows the
+hard problem's terminal set at its own terminal level (``build_nlp``'s ``goal``, a row of kind
+``"goal_set"`` at stage N: :func:`companion.core.rmpc_recovery.hard_terminal_row`).
 """
 
 from __future__ import annotations
@@ -232,8 +234,9 @@ def centre(u: Any, rmpc: RmpcParams, camera: CameraParams, d: Any = None) -> tup
 def build_nlp(
     rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
     row_design: tuple[RmpcParams, TerminalDesign] | None = None,
+    goal: tuple[np.ndarray, float] | None = None,
 ) -> tuple[dict[str, ca.SX], Layout]:
-    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``: module docstring."""
+    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``, ``goal``: module doc."""
     row_rmpc, row_terminal = row_design or (rmpc, terminal)
     big_n = rmpc.horizon
     q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)
@@ -242,7 +245,6 @@ def build_nlp(
     us = [ca.SX.sym(f"u{n}", NU) for n in range(big_n)]
     par = ca.SX.sym("p", NP_STAGE * big_n + 1 + (NP_SOFT_EXTRA if soft else 0))
     s4_ref = par[NP_STAGE * big_n]
-
     w: list[ca.SX] = []
     g: list[ca.SX] = []
     equality: list[bool] = []  # per g row: an equality (dynamics gap) or not
@@ -267,7 +269,7 @@ def build_nlp(
         """Add stage ``n``'s path rows (and slacks, appended to w right after x_n/u_n)."""
         nonlocal n_g, cost
         for group, kind, val, upper, corner in _path_items(row_rmpc, camera, row_terminal, n,
-                                                           x, u, x_next, d, vis_stage):
+                                                           x, u, x_next, d, vis_stage, goal):
             s_idx: int | None = None
             if soft:
                 s = ca.SX.sym(f"sl_{kind}_{n}")
@@ -326,10 +328,11 @@ def _input_rate(rmpc: RmpcParams, us: list[ca.SX], par: ca.SX) -> ca.SX:
 
 def _path_items(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, n: int,
                 x: ca.SX, u: ca.SX | None, x_next: ca.SX | None, d: ca.SX | None,
-                vis_stage: dict[int, int]) -> list[tuple[str, str, ca.SX, float, int]]:
+                vis_stage: dict[int, int], goal: tuple[np.ndarray, float] | None = None,
+                ) -> list[tuple[str, str, ca.SX, float, int]]:
     """Stage ``n``'s path rows before any slack: (group, kind, value, bound on the value,
     corner) in the order :func:`build_nlp` lays them out (tube, visibility; at n = N the
-    terminal set and terminal visibility)."""
+    terminal set, terminal visibility and ``goal``'s row ``eta' G eta <= b``, if any)."""
     big_n = rmpc.horizon
     p_tube = tube_matrix(rmpc, np.asarray(terminal.p, dtype=float))
     items: list[tuple[str, str, ca.SX, float, int]] = []
@@ -358,4 +361,6 @@ def _path_items(rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign
     if rmpc.enable_terminal:
         pu, pn = image_point(x)
         items.append(("terminal", "terminal_visibility", pu**2 + pn**2, terminal.gamma**2, -1))
+    if goal is not None:
+        items.append(("terminal", "goal_set", ca.bilin(goal[0], x, x), goal[1], -1))
     return items

@@ -19,6 +19,7 @@ from companion.core.rmpc_problem import (
     centre,
     corner_points,
     image_point,
+    tube_matrix,
     visibility_pairs,
 )
 from companion.core.rmpc_types import TargetMotion
@@ -73,12 +74,32 @@ def recovery_design(rmpc: RmpcParams, camera: CameraParams,
     return soft, design_terminal(soft, camera)
 
 
+def hard_terminal_row(hard: RmpcParams, hard_terminal: TerminalDesign,
+                      soft: RmpcParams) -> tuple[np.ndarray, float]:
+    """The hard problem's terminal set as one more row of the soft copy (``rmpc.recovery_rows
+    = "own+terminal"``): ``eta(N)' G eta(N) <= eps_s^2`` with ``G = P_h (eps_s / eps_h)^2``
+    (``P_h`` the hard rows' matrix, :func:`tube_matrix`): ``|eta(N)|_{P_h} <= eps_h`` written
+    at the soft design's terminal level, so its slack is in the units of the soft terminal
+    row's and weighs like it (``rmpc.recovery_tube_penalty``).
+
+    Why: the soft design's own rows measure the plan in their own metric, in which the hard
+    problem's terminal set (the row that keeps the hard problem infeasible in an engagement
+    behind a fast target) is far looser; with this row the plan also ends nearer that set, so
+    the hard problem becomes feasible sooner. In the hard problem's own units (``G = P_h``,
+    ``eps_h^2``) the row weighs ~7x more and the plan chases: fewer recovery steps, corners
+    out after the first second (docs/reference/visibility.md, "Engagement behind a fast
+    target")."""
+    g = tube_matrix(hard, np.asarray(hard_terminal.p, dtype=float))
+    scale = (soft.eps / hard.eps) ** 2
+    return g * scale, float(soft.eps**2)
+
+
 def _row_value(kind: str, eta: np.ndarray, u: np.ndarray | None, p_mat: np.ndarray,
                rmpc: RmpcParams, camera: CameraParams, d: np.ndarray | None = None,
                corner: int = -1) -> float:
     """The squared-form value of one path row (as in the NLP), evaluated with numpy
     (``eta``: the state the row's image is taken from)."""
-    if kind in ("tube", "terminal_set"):
+    if kind in ("tube", "terminal_set", "goal_set"):
         return float(eta @ p_mat @ eta)
     pu, pn = corner_points(eta, rmpc)[corner] if kind == "corner" else image_point(eta)
     if kind == "terminal_visibility":
@@ -100,5 +121,7 @@ def slack_guess(lay: Layout, eta: np.ndarray, u: np.ndarray, target: TargetMotio
             else row.stage
         d_n = target.disturbance(row.stage) if row.stage < len(u) else None
         val = _row_value(row.kind, eta[img], u_n, p_tube, rmpc, camera, d_n, row.corner)
+        if row.kind == "goal_set":  # hard_terminal_row's scale (p_tube: the hard rows')
+            val *= ((rmpc.recovery_eps or rmpc.eps) / rmpc.eps) ** 2
         out[i] = max(val - row.upper, 0.0) + 1e-3
     return out

@@ -270,3 +270,61 @@ def test_the_soft_copy_can_relax_the_hard_problems_rows(
         e_n = np.asarray(res.eta_pred)[-1]
         end[rows] = float(np.sqrt(e_n @ p_hard @ e_n))
     assert end["hard"] < 0.95 * end["own"], end  # measured 1.33 against 1.45
+
+
+def test_the_soft_copy_can_add_the_hard_terminal_set_to_its_own_rows(
+    cfg: Config, design: TerminalDesign
+) -> None:
+    """rmpc.recovery_rows = "own+terminal": the soft copy keeps its own design's rows and adds
+    one, the hard problem's terminal set at the soft terminal level, ``eta(N)' P_h eta(N)
+    (eps_s / eps_h)^2 <= eps_s^2`` (its slack in the soft terminal row's units). On a logged
+    engagement state (circle at 1.5 m/s, 0.5 rad/s, the realistic world's limits) the plan
+    ends nearer the hard problem's terminal set than with "own" alone."""
+    import casadi as ca
+
+    from companion.core.design import design_terminal
+    from companion.core.rmpc_nlp import NlpSolver
+    from companion.core.rmpc_problem import build_nlp
+    from companion.core.rmpc_recovery import hard_terminal_row, recovery_design
+
+    stiff = dataclasses.replace(cfg.rmpc, q_diag=(0.15, 0.15, 0.01, 1e-3, 0.05, 0.05, 3e-3),
+                                eps=0.4, recovery_q_diag=cfg.rmpc.q_diag, recovery_eps=0.15,
+                                u_max=(2.4, 2.4, 2.4, 0.838), jit=False)
+    hard_design = design_terminal(stiff, cfg.camera)
+    p_hard = tube_matrix(stiff, np.asarray(hard_design.p))
+    lays = {rows: NlpSolver(dataclasses.replace(stiff, recovery_rows=rows), cfg.camera,
+                            hard_design, soft=True, solver="ipopt").layout
+            for rows in ("own", "own+terminal")}
+    kinds = {rows: [(r.kind, r.stage, r.upper) for r in lay.rows] for rows, lay in lays.items()}
+    # the same rows as "own", plus the goal row at stage N (with its slack)
+    goal = [k for k in kinds["own+terminal"] if k[0] == "goal_set"]
+    assert goal == [("goal_set", stiff.horizon, pytest.approx(0.15**2))]
+    assert [k for k in kinds["own+terminal"] if k[0] != "goal_set"] == kinds["own"]
+    assert len(lays["own+terminal"].slack_index) == len(lays["own"].slack_index) + 1
+    # its value is the hard problem's terminal-set row (P_h, not the soft design's P), scaled
+    soft_p, soft_t = recovery_design(stiff, cfg.camera, hard_design)
+    assert not np.allclose(np.asarray(soft_t.p), np.asarray(hard_design.p))
+    nlp, lay = build_nlp(soft_p, cfg.camera, soft_t, True, None,
+                         hard_terminal_row(stiff, hard_design, soft_p))
+    row = next(r for r in lay.rows if r.kind == "goal_set")
+    w = np.random.default_rng(3).normal(size=lay.n_w) * 0.3
+    w[lay.slack_index] = 0.0
+    g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])(w, np.zeros(nlp["p"].shape[0]))
+    e_n = w[lay.x_index[-1]]
+    assert float(g[row.g_index]) == pytest.approx(float(e_n @ p_hard @ e_n) * (0.15 / 0.4) ** 2)
+    # without a soft design of its own the row is the hard terminal set itself
+    same = dataclasses.replace(stiff, recovery_q_diag=None, recovery_eps=None)
+    g_same, b_same = hard_terminal_row(same, hard_design, same)
+    assert np.allclose(g_same, p_hard) and b_same == pytest.approx(0.4**2)
+
+    eta0 = np.array([0.44, -0.48, 0.62, -0.31, -0.62, -0.35, -0.66])
+    v_a = 1.5 * np.array([np.cos(eta0[3]), np.sin(eta0[3])])
+    target = TargetMotion.constant(v_a, [0.0, 0.0], 0.5, cfg.rmpc.horizon)
+    end = {}
+    for rows in ("own", "own+terminal"):
+        p = dataclasses.replace(stiff, recovery_rows=rows, solver="nlp")
+        res = Rmpc(p, cfg.camera, hard_design).solve(eta0, target)
+        assert res.mode == "recovery", (rows, res.mode, res.status)
+        e_n = np.asarray(res.eta_pred)[-1]
+        end[rows] = float(np.sqrt(e_n @ p_hard @ e_n))
+    assert end["own+terminal"] < 0.99 * end["own"], end  # measured 1.432 against 1.454
