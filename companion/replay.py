@@ -30,7 +30,7 @@ from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP, TO
 from companion.control.timebase import TimeBase
 from companion.control.wiring import new_pipeline, new_store
 from companion.log import schemas as sch
-from companion.log.encode import decode_json
+from companion.log.encode import decode_json_object
 from companion.log.reader import LogReader
 from companion.log.writer import McapLogger
 from companion.perception import Perception, PerceptionResult
@@ -222,8 +222,8 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
 def _input_mode(reader: LogReader, log_path: Path, counts: dict[str, int]) -> str:
     """What perception replays from: "crop" or "frames"; a clear error when neither is
     logged."""
-    first = next((_json(m.raw) for m in reader.messages(topics=[TOPIC_STEP], decode=False)),
-                 None)
+    steps = reader.messages(topics=[TOPIC_STEP], decode=False)
+    first = next((decode_json_object(m.raw) for m in steps), None)
     mode = input_mode(counts, first)
     if mode == "none":
         want = TOPIC_FRAME if first is None or "input" not in first else TOPIC_INPUT
@@ -332,14 +332,6 @@ def _in_process_solves(cfg: Config) -> Config:
     if cfg.rmpc.solve_isolation == "none":
         return cfg
     return dataclasses.replace(cfg, rmpc=dataclasses.replace(cfg.rmpc, solve_isolation="none"))
-
-
-def _json(raw: bytes) -> dict[str, Any] | None:
-    try:
-        out = decode_json(raw)
-    except ValueError:
-        return None
-    return out if isinstance(out, dict) else None
 
 
 def _quat_diff(q_rec: Any, q_new: Any) -> float:

@@ -31,7 +31,7 @@ import numpy as np
 from companion import CompanionError
 from companion.config import Config
 from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP
-from companion.log.encode import decode_json
+from companion.log.encode import decode_json_object
 from companion.log.reader import LogReader, image_from_raw
 from companion.perception import Perception, PerceptionResult
 
@@ -91,14 +91,6 @@ def perceived_from_record(rec: Mapping[str, Any]) -> Perceived:
     return Perceived(status, reason, None, missing=reason == "no image")
 
 
-def _json(raw: bytes) -> dict[str, Any] | None:
-    try:
-        out = decode_json(raw)
-    except ValueError:
-        return None
-    return out if isinstance(out, dict) else None
-
-
 _DECODER = json.JSONDecoder()
 _INPUT_KEY = '"input":'
 
@@ -119,7 +111,7 @@ def _step_input(raw: bytes) -> dict[str, Any] | None:
                 return value
     except (UnicodeDecodeError, ValueError):
         pass
-    rec = _json(raw)
+    rec = decode_json_object(raw)
     inp = rec.get("input") if rec is not None else None
     return inp if isinstance(inp, dict) else None
 
@@ -152,8 +144,8 @@ def perceive_log(path: Path, cfg: Config) -> Iterator[Perceived]:
     """Perception of every step record of the log at ``path``, in log order (see module)."""
     with LogReader(path, verify=False) as reader:
         counts = {c.topic: c.count for c in reader.channels}
-        first = next((_json(m.raw) for m in reader.messages(topics=[TOPIC_STEP], decode=False)),
-                     None)
+        steps = reader.messages(topics=[TOPIC_STEP], decode=False)
+        first = next((decode_json_object(m.raw) for m in steps), None)
         mode = input_mode(counts, first)
         if mode == "none":
             raise ReplayInputError(
@@ -195,12 +187,12 @@ def perceive_log(path: Path, cfg: Config) -> Iterator[Perceived]:
                     continue
                 if mode == "crop":
                     inp = _step_input(m.raw)
-                    if inp is None and _json(m.raw) is None:
+                    if inp is None and decode_json_object(m.raw) is None:
                         continue
                     rec: dict[str, Any] = {"input": inp}
                     key = int(inp["log_time_ns"]) if inp is not None else None
                 else:
-                    whole = _json(m.raw)
+                    whole = decode_json_object(m.raw)
                     if whole is None:
                         continue
                     rec = whole

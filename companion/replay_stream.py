@@ -27,7 +27,7 @@ from companion.config import Config, config_from_dict
 from companion.control.recording import TOPIC_STEP, TOPIC_TRUTH
 from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import STAMPED_MESSAGES
-from companion.log.encode import decode_json
+from companion.log.encode import decode_json_object
 from companion.log.reader import LogReader
 from companion.perception import Perception, PerceptionResult
 from companion.replay_inputs import (
@@ -70,14 +70,6 @@ class StepInput(NamedTuple):
     corrupt_chunks: int = 0
 
 
-def _json(raw: bytes) -> dict[str, Any] | None:
-    try:
-        out = decode_json(raw)
-    except ValueError:
-        return None
-    return out if isinstance(out, dict) else None
-
-
 def _compact(rec: Mapping[str, Any]) -> dict[str, Any]:
     out = {k: rec.get(k) for k in STEP_KEYS if k in rec}
     rmpc = rec.get("rmpc")
@@ -112,7 +104,7 @@ class _Messages:
                 ) -> tuple[str, dict[str, Any], int, int] | None:
         if name not in USED_MESSAGES:  # neither the store nor the time base reads it
             return None
-        data = _json(raw_json) or {}
+        data = decode_json_object(raw_json) or {}
         fields, sysid = data.get("fields"), data.get("sysid")
         if (not isinstance(fields, dict) or not isinstance(sysid, int)
                 or any(v is None for v in fields.values())):
@@ -182,7 +174,7 @@ def _read(reader: LogReader, topics: list[str], perception: str,
 
     for topic, t_ns, raw in reader.raw_messages(topics):
         if topic == TOPIC_STEP:
-            data = _json(raw)
+            data = decode_json_object(raw)
             if data:
                 pending.append(data)
         elif topic == TOPIC_SAT:

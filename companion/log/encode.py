@@ -99,6 +99,16 @@ def decode_json(raw: bytes | str) -> Any:
         return json.loads(raw)
 
 
+def decode_json_object(raw: bytes | str) -> dict[str, Any] | None:
+    """The JSON object in ``raw``; None when it is not JSON or not an object (a damaged or
+    foreign record: the caller skips it)."""
+    try:
+        out = decode_json(raw)
+    except ValueError:
+        return None
+    return out if isinstance(out, dict) else None
+
+
 def encode_image(
     image: np.ndarray, encoding: str, log_time_ns: int, frame_id: str, jpeg_quality: int
 ) -> tuple[str, bytes]:
