@@ -90,8 +90,11 @@ class _Buffered:
     :class:`companion.core.rmpc_nlp.NlpSolver`), dense outputs."""
 
     def __init__(self, fn: ca.Function) -> None:
-        buf: Any = fn.buffer()[0]
-        self._buf = buf
+        buf, caller = fn.buffer()
+        self._buf: Any = buf
+        # CasADi's own fast caller of the buffer (buf._eval through a C partial: ~1 us less
+        # a call than the SWIG method; the same evaluation)
+        self._eval: Callable[[], None] = caller
         self.args = [np.zeros(fn.nnz_in(i)) for i in range(fn.n_in())]
         self.res = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
         for i, a in enumerate(self.args):
@@ -114,8 +117,8 @@ class _Buffered:
         if args:
             for dst, src in zip(self.args, args, strict=True):
                 dst[:] = src
-        self._buf._eval()
-        if int(self._buf.ret()) != 0:
+        self._eval()
+        if self._buf.ret() != 0:
             raise RuntimeError(f"{self.fn.name()}: evaluation failed")
         return self.res
 
@@ -191,9 +194,11 @@ class RtiSolver:
         self._hess = self._lin.res[0].reshape(n_u, n_u)
         self._grad = self._lin.res[1]
         self._c_x, self._c_p = self._lin.res[2][:n_s], self._lin.res[2][n_s:]
+        self._u_plan = self._u.reshape(rmpc.horizon, NU)  # (views made once, not per step)
         self._j_c = self._lin.res[3].reshape(self.n_c, n_u)  # J_c' column-major: J_c rows
         self._j_state, self._j_path = self._j_c[:n_s], self._j_c[n_s:]
         self._rows_c, self._f, self._excess, self._total = self._val.res
+        self._rows_x = self._rows_c[:n_s].reshape(rmpc.horizon, NX)
         # the QP's bounds, filled in place: [input box (DAQP's simple bounds), path rows]
         n_p = upper.size
         self._up, self._lo = np.zeros(n_u + n_p), np.full(n_u + n_p, -DAQP_INF)
@@ -206,6 +211,7 @@ class RtiSolver:
             *found, self._hess, self._grad, self._j_path, self._up, self._lo, self._sense)
         self._no_box = np.zeros(n_s)
         self._x_lin = np.zeros(n_s)
+        self._in_hi, self._in_lo = np.zeros(n_s, dtype=bool), np.zeros(n_s, dtype=bool)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
 
@@ -220,7 +226,7 @@ class RtiSolver:
     def _states(self, eta0: np.ndarray) -> np.ndarray:
         eta = np.empty((self.horizon + 1, NX))
         eta[0] = eta0
-        eta[1:] = self._rows_c[: self.n_state].reshape(self.horizon, NX)
+        eta[1:] = self._rows_x
         return eta
 
     def violation(self, eta: np.ndarray, path: np.ndarray, u: np.ndarray,
@@ -260,7 +266,7 @@ class RtiSolver:
             if flag not in DAQP_OPTIMAL:
                 eta = np.tile(eta0, (self.horizon + 1, 1))
                 return RtiOutcome(False, f"rti: QP {qps} failed (daqp exit flag {flag})",
-                                  eta, u.reshape(self.horizon, NU).copy(), math.nan, iters,
+                                  eta, self._u_plan.copy(), math.nan, iters,
                                   qps, math.inf)
             u += du
             np.minimum(np.maximum(u, u_min, out=u), u_max, out=u)
@@ -270,7 +276,7 @@ class RtiSolver:
             previous, viol = viol, float(self._excess[0])
             if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
                 return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
-                                  self._states(eta0), u.reshape(self.horizon, NU).copy(),
+                                  self._states(eta0), self._u_plan.copy(),
                                   float(self._f[0]), iters, qps, viol)
             worst = self._worst_row(u.copy(), eta0, par, state_lo, state_hi)
             status = (f"rti: rejected after {qps} QP ({worst} exceeded by {viol:.3g} > "
@@ -278,7 +284,7 @@ class RtiSolver:
             if qps >= 2 and not viol < previous:
                 break
         return RtiOutcome(False, status, self._states(eta0),
-                          u.reshape(self.horizon, NU).copy(), float(self._f[0]), iters, qps,
+                          self._u_plan.copy(), float(self._f[0]), iters, qps,
                           viol)
 
     def _worst_row(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
@@ -324,7 +330,11 @@ class RtiSolver:
         if flag in DAQP_OPTIMAL:
             x_lin = np.matmul(self._j_state, du, out=self._x_lin)
             x_lin += self._c_x
-            if (x_lin <= state_hi).all() and (x_lin >= state_lo).all():
+            # both sides in one reduction (count_nonzero: ~2 us less than two .all())
+            inside = np.logical_and(np.less_equal(x_lin, state_hi, out=self._in_hi),
+                                    np.greater_equal(x_lin, state_lo, out=self._in_lo),
+                                    out=self._in_hi)
+            if np.count_nonzero(inside) == inside.size:
                 return du, flag, iters
         # a state row binds (or the smaller QP failed): the whole QP
         self.full_qps += 1
