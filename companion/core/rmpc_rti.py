@@ -90,8 +90,9 @@ class _Buffered:
     :class:`companion.core.rmpc_nlp.NlpSolver`), dense outputs."""
 
     def __init__(self, fn: ca.Function) -> None:
-        buf, caller = fn.buffer()
-        self._buf: Any = buf
+        pair: Any = fn.buffer()
+        buf, caller = pair
+        self._buf = buf
         # CasADi's own fast caller of the buffer (buf._eval through a C partial: ~1 us less
         # a call than the SWIG method; the same evaluation)
         self._eval: Callable[[], None] = caller
