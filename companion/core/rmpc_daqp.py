@@ -85,7 +85,7 @@ class DirectQp:
         ``info["iterations"]``."""
         self._fn(*self._args)
         res = self._result
-        return self.x.copy(), int(res.exitflag), int(res.iter)
+        return self.x.copy(), res.exitflag, res.iter  # (c_int fields: Python ints)
 
 
 def direct(iter_limit: int) -> tuple[Any, _Settings] | None:

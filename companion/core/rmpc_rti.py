@@ -329,7 +329,8 @@ class RtiSolver:
         if flag == DAQP_INFEASIBLE:
             return du, flag, iters  # more rows cannot make an infeasible QP feasible
         if flag in DAQP_OPTIMAL:
-            x_lin = np.matmul(self._j_state, du, out=self._x_lin)
+            # (ndarray.dot: the same BLAS gemv as np.matmul, bit for bit, ~1 us less)
+            x_lin = self._j_state.dot(du, out=self._x_lin)
             x_lin += self._c_x
             # both sides in one reduction (count_nonzero: ~2 us less than two .all())
             inside = np.logical_and(np.less_equal(x_lin, state_hi, out=self._in_hi),
