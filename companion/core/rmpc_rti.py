@@ -199,7 +199,7 @@ class RtiSolver:
         self._j_c = self._lin.res[3].reshape(self.n_c, n_u)  # J_c' column-major: J_c rows
         self._j_state, self._j_path = self._j_c[:n_s], self._j_c[n_s:]
         self._rows_c, self._f, self._excess, self._total = self._val.res
-        self._rows_x = self._rows_c[:n_s].reshape(rmpc.horizon, NX)
+        self._rows_x_flat = self._rows_c[:n_s]  # (the states of stages 1..N, a view)
         # the QP's bounds, filled in place: [input box (DAQP's simple bounds), path rows]
         n_p = upper.size
         self._up, self._lo = np.zeros(n_u + n_p), np.full(n_u + n_p, -DAQP_INF)
@@ -222,13 +222,13 @@ class RtiSolver:
         rows (squared form, hard layout order) and the NLP's cost."""
         n_s = self.n_state
         self._val(u, eta0, par, self._no_box, self._no_box)  # (its excess is not read here)
-        return self._states(eta0), self._rows_c[n_s:].copy(), float(self._f[0])
+        return self._states(), self._rows_c[n_s:].copy(), float(self._f[0])
 
-    def _states(self, eta0: np.ndarray) -> np.ndarray:
-        eta = np.empty((self.horizon + 1, NX))
-        eta[0] = eta0
-        eta[1:] = self._rows_x
-        return eta
+    def _states(self) -> np.ndarray:
+        """The last evaluated rollout (N+1, 7): ``eta0`` as the functions read it (written to
+        their argument array by each caller) and the states of stages 1..N."""
+        # (one allocation and copy: ~0.6 us less than filling an empty array in two parts)
+        return np.concatenate((self._eta0, self._rows_x_flat)).reshape(self.horizon + 1, NX)
 
     def violation(self, eta: np.ndarray, path: np.ndarray, u: np.ndarray,
                   state_lo: np.ndarray, state_hi: np.ndarray) -> float:
@@ -277,14 +277,14 @@ class RtiSolver:
             previous, viol = viol, float(self._excess[0])
             if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
                 return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
-                                  self._states(eta0), self._u_plan.copy(),
+                                  self._states(), self._u_plan.copy(),
                                   float(self._f[0]), iters, qps, viol)
             worst = self._worst_row(u.copy(), eta0, par, state_lo, state_hi)
             status = (f"rti: rejected after {qps} QP ({worst} exceeded by {viol:.3g} > "
                       f"rmpc.rti_tol = {self.cfg.rti_tol:g})")
             if qps >= 2 and not viol < previous:
                 break
-        return RtiOutcome(False, status, self._states(eta0),
+        return RtiOutcome(False, status, self._states(),
                           self._u_plan.copy(), float(self._f[0]), iters, qps,
                           viol)
 
