@@ -5,29 +5,21 @@ appended C with a library's own flags (the flags name the library)."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 import pytest
 
-from companion.config import load_config
-from companion.core.design import design_terminal
 from companion.core.rmpc import Rmpc
 from companion.core.rmpc_cache import compiled_functions
 from companion.core.rmpc_scenario import closed_loop, initial_error
-
-PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
-EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
+from tests.core.rti_forms import PAPER_POSE, form_pair, linearisation_points
 
 
 @pytest.fixture(scope="module")
 def pair():  # type: ignore[no-untyped-def]
-    cfg = load_config()
-    design = design_terminal(cfg.rmpc, cfg.camera)
-    return tuple(Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", rti_linearisation=form),
-                      cfg.camera, design) for form in ("loops", "graph"))
+    return form_pair("loops", "graph")
 
 
 def _outputs(mpc: Rmpc, u: np.ndarray, eta0: np.ndarray, par: np.ndarray) -> list[np.ndarray]:
@@ -42,19 +34,7 @@ def test_the_loops_are_the_graph_bit_for_bit(pair) -> None:  # type: ignore[no-u
     loops, graph = pair
     assert loops.cfg.rti_linearisation == "loops" and graph.cfg.rti_linearisation == "graph"
     assert loops._rti.compiled[0].library != graph._rti.compiled[0].library
-    points = []
-    for pose in (PAPER_POSE, EDGE_POSE):
-        loops.reset()
-        for s in closed_loop(loops, initial_error(*pose), 30, 1e-4, 1):
-            r = s.result
-            points.append((r.u_pred.ravel(), r.eta_pred[0],
-                           np.append(r.target.packed(), r.eta_pred[0][3])))
-    rng = np.random.default_rng(7)
-    n_u, n_p = loops._rti.n_u, points[0][2].size
-    for scale in (1e-3, 0.1, 1.0, 3.0):
-        points.append((rng.normal(size=n_u) * scale, rng.normal(size=7) * scale,
-                       rng.normal(size=n_p) * scale))
-    points.append((np.zeros(n_u), np.zeros(7), np.zeros(n_p)))
+    points = linearisation_points(loops)
     for u, eta0, par in points:
         for a, b in zip(_outputs(loops, u, eta0, par), _outputs(graph, u, eta0, par),
                         strict=True):

@@ -11,13 +11,10 @@ import numpy as np
 import pytest
 
 from companion.config import load_config
-from companion.core.design import design_terminal
 from companion.core.params import ParamError
-from companion.core.rmpc import Rmpc
 from companion.core.rmpc_scenario import closed_loop, initial_error
+from tests.core.rti_forms import PAPER_POSE, form_pair, linearisation_points
 
-PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
-EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
 REL_TOL = 1e-12
 """H's entries within REL_TOL of H's largest; g's within REL_TOL of the Cauchy-Schwarz bound
 of each entry's terms, |g_i| = 2 |J_i' r| <= 2 sqrt(H_ii / 2) |r| (g vanishes near a
@@ -26,28 +23,7 @@ solution, so its own size is no scale: measured ~1e-15 of H's and ~1e-17 absolut
 
 @pytest.fixture(scope="module")
 def pair():  # type: ignore[no-untyped-def]
-    cfg = load_config()
-    design = design_terminal(cfg.rmpc, cfg.camera)
-    return tuple(Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", rti_linearisation=form),
-                      cfg.camera, design) for form in ("recursion", "graph"))
-
-
-def _points(mpc: Rmpc) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    points = []
-    for pose in (PAPER_POSE, EDGE_POSE):
-        mpc.reset()
-        for s in closed_loop(mpc, initial_error(*pose), 30, 1e-4, 1):
-            r = s.result
-            points.append((r.u_pred.ravel(), r.eta_pred[0],
-                           np.append(r.target.packed(), r.eta_pred[0][3])))
-    rng = np.random.default_rng(7)
-    assert mpc._rti is not None
-    n_u, n_p = mpc._rti.n_u, points[0][2].size
-    for scale in (1e-3, 0.1, 1.0, 3.0):
-        points.append((rng.normal(size=n_u) * scale, rng.normal(size=7) * scale,
-                       rng.normal(size=n_p) * scale))
-    points.append((np.zeros(n_u), np.zeros(7), np.zeros(n_p)))
-    return points
+    return form_pair("recursion", "graph")
 
 
 def test_the_recursion_is_the_graph_to_round_off(pair) -> None:  # type: ignore[no-untyped-def]
@@ -56,7 +32,7 @@ def test_the_recursion_is_the_graph_to_round_off(pair) -> None:  # type: ignore[
     at real closed loops' linearisation points and at random points."""
     rec, graph = pair
     assert rec._rti.compiled[0].library != graph._rti.compiled[0].library
-    for u, eta0, par in _points(rec):
+    for u, eta0, par in linearisation_points(rec):
         a = [x.copy() for x in rec._rti._lin(u, eta0, par)]
         b = [x.copy() for x in graph._rti._lin(u, eta0, par)]
         hess = b[0].reshape(a[0].size // b[1].size, -1)
