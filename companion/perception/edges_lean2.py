@@ -38,8 +38,10 @@ from companion.perception._types import FloatArray
 from companion.perception.edges import EdgeFit
 from companion.perception.edges_lean import (
     LeanSettings,
+    _edge_fit,
     _fit,
     _Frame,
+    _intersections,
     _Line,
     _on_line,
     edge_frames,
@@ -143,32 +145,9 @@ def refine_quad_lean2(gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanS
             lines = fitted
             if tracked and _converged(lines, u, _CONVERGED_PX):
                 break
-    return _corners_and_fits(frames, lines, scale)
-
-
-def _corners_and_fits(frames: list[_Frame], lines: list[_Line], scale: list[float]
-                      ) -> tuple[FloatArray, list[EdgeFit], list[float]] | None:
-    """:func:`~companion.perception.edges_lean._edge_fit` of each edge and
-    :func:`~companion.perception.edges_lean._intersections` of them, the intersections
-    computed from the same plain floats the fits' arrays hold (the same values, without
-    building the arrays and reading them back: ~10 us a frame)."""
-    pts, dirs = [], []
-    for (x0, y0, tx, ty, _), (cu, cv, cos, sin, *_) in zip(frames, lines, strict=True):
-        pts.append((x0 + cu * tx + cv * ty, y0 + cu * ty - cv * tx))
-        dirs.append((cos * tx + sin * ty, cos * ty - sin * tx))
-    corners = []
-    for i in range(4):
-        (p1x, p1y), (d1x, d1y) = pts[i - 1], dirs[i - 1]
-        (p2x, p2y), (d2x, d2y) = pts[i], dirs[i]
-        det = d2x * d1y - d1x * d2y
-        if abs(det) < 1e-6:
-            return None
-        rx, ry = p2x - p1x, p2y - p1y
-        t1 = (d2x * ry - rx * d2y) / det
-        corners.append((p1x + t1 * d1x, p1y + t1 * d1y))
-    fits = [EdgeFit(np.array(p), np.array(d), ln[4], ln[5])
-            for p, d, ln in zip(pts, dirs, lines, strict=True)]
-    return np.array(corners), fits, scale
+    fits = [_edge_fit(f, ln) for f, ln in zip(frames, lines, strict=True)]
+    out = _intersections(fits)
+    return None if out is None else (out, fits, scale)
 
 
 def _widen_reads(reads: list[float], frames: list[_Frame], scale: list[float], g: _Grid2,
