@@ -439,6 +439,36 @@ def test_pixels_to_metric_convention() -> None:
     np.testing.assert_allclose(pixels_to_metric(rand, model), core, rtol=1e-12, atol=1e-18)
 
 
+def test_pixels_to_metric_few_points_bit_identical() -> None:
+    """A detection's corners take the plain-float path; its values are the array path's bit
+    for bit (a replay of a log flown before must reproduce every command)."""
+    from companion.core.geometry import opencv_to_spec_pixel
+    from companion.perception import camera_model
+
+    model = camera_model(CAM)
+    rng = np.random.default_rng(3)
+    for n in (1, 4, 8, 9):
+        p = rng.uniform(0, W - 1, (n, 2))
+        u_px, n_px = opencv_to_spec_pixel(p[:, 0], p[:, 1], model.cx_px, model.cy_px)
+        ref = np.column_stack([model.focal_length_m * u_px / model.fy_px,
+                               model.focal_length_m * n_px / model.fx_px])
+        got = pixels_to_metric(p, model)
+        assert got.shape == ref.shape and got.dtype == np.float64
+        assert got.tobytes() == ref.tobytes()
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_detection_rejects_non_finite_corners(bad: float) -> None:
+    from companion.perception import Detection
+
+    c = np.array([[10.0, 10.0], [50.0, 10.0], [50.0, 40.0], [10.0, 40.0]])
+    d = Detection(c, 0.9, 1200.0)
+    assert d.corners_px.tobytes() == c.tobytes() and not d.corners_px.flags.writeable
+    c[2, 1] = bad
+    with pytest.raises(PerceptionError, match="non-finite"):
+        Detection(c, 0.9, 1200.0)
+
+
 def test_wrong_image_size_is_rejected() -> None:
     res = Perception(CAM, CFG.target).process(np.zeros((480, 640), np.uint8))
     assert res.status == "rejected" and "640x480" in res.reason
