@@ -65,9 +65,14 @@ log = logging.getLogger(__name__)
 LINE_SEARCH_STEPS = 8
 """Tries of the step along a QP's solution (1, 1/2, ..., 1/128) before giving up."""
 PROX_WEIGHT = 1.0e3
-"""The proximal (Levenberg-Marquardt) weight on the QP's input step (cost per (m/s^2)^2):
-measured on the edge loop's recovery steps (4 QPs) against 0, 10, 100: the commands nearest
-the soft NLP's (u(0) within 0.004-0.024) and the fewest DAQP iterations."""
+"""The proximal (Levenberg-Marquardt) weight on the first QP's input step (cost per
+(m/s^2)^2; later QPs: :data:`PROX_FACTOR`). Measured on the edge loop's recovery steps (4
+fixed-weight QPs) against 0, 10, 100: the commands nearest the soft NLP's and the fewest
+DAQP iterations."""
+PROX_FACTOR = 10.0
+"""How the proximal weight moves between a step's QPs (Levenberg-Marquardt)."""
+PROX_MIN = 1.0
+"""Its floor."""
 MERIT_TOL = 1e-4
 """A QP after the first only while the one before it brought the soft cost down by more than
 this (relative)."""
@@ -75,6 +80,10 @@ this (relative)."""
 SLACK_CURVATURE = 1e-6
 """``mu / w``: the slacks' quadratic term relative to their L1 weight (DAQP needs a positive
 definite Hessian; module docstring)."""
+
+
+_Found = tuple[np.ndarray, np.ndarray, np.ndarray, float, float]
+"""A line search's point: (u, eta, slack, soft cost, step length)."""
 
 
 @dataclass(frozen=True)
@@ -162,10 +171,10 @@ class SoftRti:
         par, u_prev, w_du = spar[:n_par], spar[n_par:n_par + NU], float(spar[n_par + NU])
         u = np.clip(np.ravel(u_guess), -self.u_max, self.u_max)
         plan = self.evaluate(u, eta0, par, w_du, u_prev)
-        merit0 = plan[2]
         iters, qps, moved, status = 0, 0, False, ""
+        prox = PROX_WEIGHT
         for _ in range(self.max_qp):
-            du, flag, it = self._qp(u, eta0, par, w_du, u_prev, state_lo, state_hi)
+            du, flag, it = self._qp(u, eta0, par, (w_du, u_prev, prox), state_lo, state_hi)
             qps += 1
             iters += it
             if flag not in DAQP_OPTIMAL:
@@ -173,13 +182,15 @@ class SoftRti:
                 break
             found, why = self._line_search(u, du, plan[2], (eta0, par, w_du, u_prev),
                                            (state_lo, state_hi))
-            if found is None:
-                status = f"QP {qps}: {why}"
-                break
-            u, plan, moved = found[0], found[1:], True
-            if plan[2] >= merit0 - MERIT_TOL * abs(merit0) and qps > 1:
+            if found is None:  # (a shorter step next: a stiffer proximal term)
+                status, prox = f"QP {qps}: {why}", prox * PROX_FACTOR
+                continue
+            previous = plan[2]
+            u, plan, moved = found[0], found[1:4], True
+            # Levenberg-Marquardt: a full step accepted, the model trusted more; cut, less
+            prox = max(prox / PROX_FACTOR, PROX_MIN) if found[4] == 1.0 else prox * PROX_FACTOR
+            if plan[2] >= previous - MERIT_TOL * abs(previous):
                 break  # (no more progress to speak of)
-            merit0 = plan[2] if qps > 1 else merit0
         eta, slack, merit = plan
         if moved:
             return SoftRtiOutcome(True, f"rti-soft: {qps} QP, {iters} QP iterations", eta,
@@ -190,10 +201,10 @@ class SoftRti:
     def _line_search(self, u: np.ndarray, du: np.ndarray, merit: float,
                      problem: tuple[np.ndarray, np.ndarray, float, np.ndarray],
                      box: tuple[np.ndarray, np.ndarray],
-                     ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, float] | None, str]:
+                     ) -> tuple[_Found | None, str]:
         """``u + a du`` for ``a = 1, 1/2, ...`` (:data:`LINE_SEARCH_STEPS` tries): the first
         whose rollout keeps the state box (within ``tol``), is finite and has a soft cost no
-        higher than ``merit``: (u, eta, slack, cost), or None and why not. Far from the soft
+        higher than ``merit``: (u, eta, slack, cost, a), or None and why not. Far from the soft
         optimum the full Gauss-Newton step overshoots: the L1 rows' curvature (their
         multipliers are the penalty weights, 1e3-1e4) is not in ``H``."""
         lo, hi = box
@@ -209,14 +220,14 @@ class SoftRti:
             elif excess > self.tol:
                 why = f"the state box exceeded by {excess:.3g} > rmpc.rti_tol = {self.tol:g}"
             elif cost <= merit:
-                return (cand, eta, slack, cost), ""
+                return (cand, eta, slack, cost, alpha), ""
             else:
                 why = f"soft cost {cost:.6g} > {merit:.6g} after {LINE_SEARCH_STEPS} halvings"
             alpha *= 0.5
         return None, why
 
-    def _qp(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray, w_du: float,
-            u_prev: np.ndarray, state_lo: np.ndarray,
+    def _qp(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
+            terms: tuple[float, np.ndarray, float], state_lo: np.ndarray,
             state_hi: np.ndarray) -> tuple[np.ndarray, int, int]:
         """One Gauss-Newton QP at ``u`` (module docstring): (dU, exit flag, iterations). Only
         the rows exceeded at ``u`` get a slack (the others stay hard in the QP: the step may
@@ -224,6 +235,7 @@ class SoftRti:
         of them made it ~400 iterations a QP); the state box's rows are always in (they
         bind in most recovery steps: measured)."""
         self.calls += 1
+        w_du, u_prev, prox = terms
         n_u, n_s = self.n_u, self.n_s
         hess, grad, c, j_c = self._lin(u, eta0, par)
         c_x, c_p = c[:n_s], c[n_s:]
@@ -235,7 +247,7 @@ class SoftRti:
         # a proximal term (vanishes at a fixed point, du = 0): without it the QP, whose only
         # curvature is the small tracking cost's while the slacks' weights are 1e3-1e4, is
         # nearly an LP whose steps the line search cut to 1/64 (measured; module docstring)
-        h[:n_u, :n_u] += PROX_WEIGHT * np.eye(n_u)
+        h[:n_u, :n_u] += prox * np.eye(n_u)
         f = np.concatenate([grad, self.weight[out]])
         if w_du:
             rate = self._rate_d @ u - self._rate_e @ u_prev
