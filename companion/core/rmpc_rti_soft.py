@@ -207,24 +207,34 @@ class SoftRti:
         higher than ``merit``: (u, eta, slack, cost, a), or None and why not. Far from the soft
         optimum the full Gauss-Newton step overshoots: the L1 rows' curvature (their
         multipliers are the penalty weights, 1e3-1e4) is not in ``H``."""
-        lo, hi = box
         why = "no step"
         alpha = 1.0
         for _ in range(LINE_SEARCH_STEPS):
             cand = np.clip(u + alpha * du, -self.u_max, self.u_max)
             eta, slack, cost = self.evaluate(cand, *problem)
-            states = eta[1:].ravel()
-            excess = float(max(np.max(states - hi), np.max(lo - states)))
-            if not (math.isfinite(cost) and np.isfinite(states).all()):
-                why = "a row or the cost not finite"
-            elif excess > self.tol:
-                why = f"the state box exceeded by {excess:.3g} > rmpc.rti_tol = {self.tol:g}"
-            elif cost <= merit:
+            why = self.refusal(eta, cost, merit, box)
+            if not why:
                 return (cand, eta, slack, cost, alpha), ""
-            else:
-                why = f"soft cost {cost:.6g} > {merit:.6g} after {LINE_SEARCH_STEPS} halvings"
             alpha *= 0.5
-        return None, why
+        return None, f"{why} after {LINE_SEARCH_STEPS} halvings"
+
+    def refusal(self, eta: np.ndarray, cost: float, bound: float,
+                box: tuple[np.ndarray, np.ndarray]) -> str:
+        """Why a rolled-out plan (``eta`` (N+1, 7) from :meth:`evaluate`, its soft ``cost``)
+        may not fly, or ``""``: a row or the cost not finite, the state box ``box`` (lo, hi;
+        N*7) exceeded by more than ``tol``, or the cost above ``bound`` (the guess's). The
+        dynamics hold by construction (the rollout), the input box by clipping and the soft
+        rows by the slacks :meth:`evaluate` computes (each the row's exact excess)."""
+        lo, hi = box
+        states = eta[1:].ravel()
+        if not (math.isfinite(cost) and np.isfinite(states).all()):
+            return "a row or the cost not finite"
+        excess = float(max(np.max(states - hi), np.max(lo - states)))
+        if not excess <= self.tol:
+            return f"the state box exceeded by {excess:.3g} > rmpc.rti_tol = {self.tol:g}"
+        if not cost <= bound:
+            return f"soft cost {cost:.6g} > {bound:.6g}"
+        return ""
 
     def _qp(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
             terms: tuple[float, np.ndarray, float], state_lo: np.ndarray,
