@@ -3,6 +3,10 @@ where their time goes and how far the two plans are apart.
 
     python bench/recovery_solver.py FLIGHT.mcap [FLIGHT.mcap ...]
 
+Three controllers: ``nlp`` (the soft NLP), ``rti`` (the soft RTI, the soft NLP behind it) and
+``rti+soft`` (the soft RTI, and ``rmpc.rti_infeasible_qp = "soft"``: a step whose hard QP is
+infeasible skips the full hard NLP).
+
 The flight's sequence of solves (its recorded ``(eta0, target)``, captured from a replay as
 ``bench/solver.py --log`` does) is solved again by two fresh controllers of the flight's
 config, in-process (``rmpc.solve_isolation = "none"``): one per value of the key. Both see the
@@ -43,9 +47,14 @@ def _timed(parts: dict[str, float], label: str, fn: Callable[..., Any]) -> Calla
     return wrapped
 
 
-def play(cfg: Any, calls: list[Any], recovery: str) -> list[dict[str, Any]]:
-    """Each solve of ``calls`` by a controller with ``rmpc.recovery_solver = recovery``."""
-    rm = dataclasses.replace(cfg.rmpc, recovery_solver=recovery, solve_isolation="none")
+VARIANTS = {"nlp": {"recovery_solver": "nlp"}, "rti": {"recovery_solver": "rti"},
+            "rti+soft": {"recovery_solver": "rti", "rti_infeasible_qp": "soft"}}
+"""The controllers compared: ``rmpc`` keys (``rti+soft``: also ``rmpc.rti_infeasible_qp``)."""
+
+
+def play(cfg: Any, calls: list[Any], keys: dict[str, str]) -> list[dict[str, Any]]:
+    """Each solve of ``calls`` by a controller with the ``rmpc`` ``keys``."""
+    rm = dataclasses.replace(cfg.rmpc, solve_isolation="none", **keys)
     design = design_terminal(rm, cfg.camera)
     mpc = Rmpc(rm, cfg.camera, design)
     parts: dict[str, float] = {}
@@ -77,32 +86,36 @@ def _q(a: list[float]) -> str:
 
 def report(log: Path) -> None:
     calls, cfg, _ = capture(log)
-    runs = {k: play(cfg, calls, k) for k in ("nlp", "rti")}
+    runs = {k: play(cfg, calls, keys) for k, keys in VARIANTS.items()}
     print(f"{log}: {sum(k == 'solve' for k, _ in calls)} solves")
     for key, steps in runs.items():
         rec = [s for s in steps if s["result"].mode == "recovery"]
         flown = [s for s in rec if "rti-soft: " in s["result"].status
                  and "; nlp: " not in s["result"].status.split("rti-soft: ")[-1]]
-        hard = [s.get("hard_nlp", 0.0) + s["total"] - s.get("hard_nlp", 0.0)
-                - s.get("soft_nlp", 0.0) - s.get("soft_rti", 0.0) for s in rec]
-        print(f"  recovery_solver = {key}: {len(rec)} recovery steps "
+        hard = [s["total"] - s.get("soft_nlp", 0.0) - s.get("soft_rti", 0.0) for s in rec]
+        print(f"  {key}: {len(rec)} recovery steps "
               f"({len(flown)} flew the soft RTI), "
               f"{sum(s['result'].mode == 'fallback' for s in steps)} fallbacks; "
               f"thread CPU ms median / p95: step {_q([s['total'] for s in rec])}, "
               f"hard attempts {_q(hard)}, soft NLP "
               f"{_q([s['soft_nlp'] for s in rec if 'soft_nlp' in s])}, soft RTI "
               f"{_q([s['soft_rti'] for s in rec if 'soft_rti' in s])}")
-    both = [(a, b) for a, b in zip(runs["nlp"], runs["rti"], strict=True)
+    for key in ("rti", "rti+soft"):
+        _compare(key, runs["nlp"], runs[key])
+
+
+def _compare(key: str, nlp: list[dict[str, Any]], other: list[dict[str, Any]]) -> None:
+    both = [(a, b) for a, b in zip(nlp, other, strict=True)
             if a["result"].mode == "recovery" and b["result"].mode == "recovery"]
-    if both:
-        du = [float(np.max(np.abs(a["result"].u0 - b["result"].u0))) for a, b in both]
-        ma, mb = np.array([a["margin"] for a, _ in both]), np.array([b["margin"] for _, b in both])
-        print(f"  on the {len(both)} steps both flew as recovery: |u0 rti - u0 nlp| max "
-              f"median {np.median(du):.3f}, p95 {np.percentile(du, 95):.3f}, max {max(du):.3f}; "
-              f"plan's least visibility margin (normalised image) nlp median "
-              f"{np.median(ma):+.4f} min {np.min(ma):+.4f}, rti median {np.median(mb):+.4f} "
-              f"min {np.min(mb):+.4f}; rti below nlp by > 0.01 on "
-              f"{int(np.sum(mb < ma - 0.01))} steps")
+    if not both:
+        return
+    du = [float(np.max(np.abs(a["result"].u0 - b["result"].u0))) for a, b in both]
+    ma, mb = np.array([a["margin"] for a, _ in both]), np.array([b["margin"] for _, b in both])
+    print(f"  {key} against nlp, on the {len(both)} steps both flew as recovery: |du0| "
+          f"median {np.median(du):.3f}, p95 {np.percentile(du, 95):.3f}, max {max(du):.3f}; "
+          f"plan's least visibility margin (normalised image) nlp median {np.median(ma):+.4f} "
+          f"min {np.min(ma):+.4f}, {key} median {np.median(mb):+.4f} min {np.min(mb):+.4f}; "
+          f"{key} below nlp by > 0.01 on {int(np.sum(mb < ma - 0.01))} steps")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -236,6 +236,12 @@ class RmpcParams:
     # "nlp"; needs recovery_rows = "own"). docs/reference/solver.md, "The soft copy's RTI".
     # A log recorded before this key replays with "nlp", as flown.
     recovery_solver: str = "nlp"
+    # solver = "rti": a step whose hard QP DAQP finds infeasible (the hard problem linearised at
+    # the guess has no solution) goes to "nlp" (the full hard NLP, then the soft copy if that
+    # fails: as before) or "soft" (the soft copy directly, the full hard NLP not tried: a
+    # linearisation's infeasibility is no proof, measured: the full NLP failed on every such
+    # step of the fast circle; docs/reference/solver.md, "The soft copy's RTI").
+    rti_infeasible_qp: str = "nlp"
 
     def __post_init__(self) -> None:
         if self.visibility_pairing not in ("spec", "causal"):
@@ -254,6 +260,7 @@ class RmpcParams:
              ("recursion", "loops", "graph", "scalar")),
             ("recovery_rows", self.recovery_rows, ("own", "hard", "own+terminal")),
             ("recovery_solver", self.recovery_solver, ("nlp", "rti")),
+            ("rti_infeasible_qp", self.rti_infeasible_qp, ("nlp", "soft")),
         ):
             if value not in allowed:
                 raise ParamError(

@@ -48,7 +48,7 @@ from companion.core.rmpc_recovery import (
 )
 from companion.core.rmpc_rti import RtiSolver
 from companion.core.rmpc_rti_soft import build as build_soft_rti
-from companion.core.rmpc_rti_soft import recovery_step
+from companion.core.rmpc_rti_soft import recovery_step, skip_hard_nlp
 from companion.core.rmpc_types import (
     ConstraintViolation,
     Evaluation,
@@ -202,6 +202,7 @@ class Rmpc:
             if isinstance(out, RmpcResult):
                 return out
             note, rti_iters, rti_time = out
+            certificate = skip_hard_nlp(self.cfg, note)
         if eta_g is None:  # the RTI reads only the inputs: the states for the NLP's guess
             eta_g = self._guess_states(e0, target, u_g)
         if self.backend is not None:
