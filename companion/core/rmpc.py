@@ -202,7 +202,8 @@ class Rmpc:
             if isinstance(out, RmpcResult):
                 return out
             note, rti_iters, rti_time = out
-            certificate = skip_hard_nlp(self.cfg, note)
+            if skip_hard_nlp(self.cfg, note):  # (rmpc.rti_infeasible_qp = "soft")
+                note, certificate = f"{note}not tried (rmpc.rti_infeasible_qp = 'soft'); ", ""
         if eta_g is None:  # the RTI reads only the inputs: the states for the NLP's guess
             eta_g = self._guess_states(e0, target, u_g)
         if self.backend is not None:
@@ -217,7 +218,7 @@ class Rmpc:
             except SolveAborted as exc:
                 return self._aborted(e0, target, note + str(exc), note + str(exc), rti_iters,
                                      math.nan)
-        else:  # provably infeasible: do not spend the solver's iterations on finding out
+        else:  # provably infeasible (or skipped): do not spend the solver's iterations on it
             ok, status, w, cost, iters, t_wall = False, certificate, np.zeros(0), 0.0, 0, 0.0
         status, iters, t_wall = note + status, iters + rti_iters, t_wall + rti_time
         hard_status = status

@@ -310,11 +310,9 @@ INFEASIBLE_QP = "(daqp exit flag -1)"
 """How the hard RTI's status names a QP DAQP found infeasible."""
 
 
-def skip_hard_nlp(rmpc: RmpcParams, note: str) -> str | None:
-    """Why the full hard NLP is not tried after the hard RTI's attempt ``note`` (its status),
-    or None: with ``rmpc.rti_infeasible_qp = "soft"`` a step whose hard QP was infeasible goes
+def skip_hard_nlp(rmpc: RmpcParams, note: str) -> bool:
+    """Whether the full hard NLP is not tried after the hard RTI's attempt ``note`` (its
+    status): with ``rmpc.rti_infeasible_qp = "soft"`` a step whose hard QP was infeasible goes
     to the soft copy directly (a linearisation's infeasibility is no proof: an option, off by
     default; docs/reference/solver.md)."""
-    if rmpc.rti_infeasible_qp == "soft" and INFEASIBLE_QP in note:
-        return "not solved (rmpc.rti_infeasible_qp = 'soft')"
-    return None
+    return rmpc.rti_infeasible_qp == "soft" and INFEASIBLE_QP in note

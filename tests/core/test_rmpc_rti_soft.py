@@ -141,8 +141,8 @@ def test_a_refused_soft_rti_step_is_the_soft_nlp_s(cfg, design) -> None:  # type
     flown = [s.result for s in loop if s.result.mode == "recovery"
              and "; nlp: " not in s.result.status.split("rti-soft: ")[-1]]
     assert flown and all("rti-soft: " in r.status for r in flown)
-    assert all(r.max_soft_violation >= 0.0 and np.all(np.abs(r.u_pred) <= np.asarray(cfg.rmpc.u_max))
-               for r in flown)
+    u_max = np.asarray(cfg.rmpc.u_max)
+    assert all(r.max_soft_violation >= 0.0 and np.all(np.abs(r.u_pred) <= u_max) for r in flown)
 
 
 def test_the_config_key_round_trips_and_old_logs_read_nlp() -> None:
@@ -160,3 +160,22 @@ def test_the_config_key_round_trips_and_old_logs_read_nlp() -> None:
     with pytest.raises((ConfigError, ParamError), match="recovery_rows"):
         config_from_dict({**doc, "rmpc": {**rm, "recovery_solver": "rti",
                                           "recovery_rows": "hard"}})
+
+
+def test_an_infeasible_hard_qp_may_skip_the_hard_nlp(cfg, design) -> None:  # type: ignore[no-untyped-def]
+    """rmpc.rti_infeasible_qp = "soft": a step whose hard QP DAQP found infeasible is not
+    handed to the full hard NLP (fewer hard NLP solves, the status says so) but recovers; the
+    default tries the hard NLP first, as before."""
+    counts = {}
+    for value in ("nlp", "soft"):
+        mpc = Rmpc(dataclasses.replace(cfg.rmpc, solver="rti", recovery_solver="rti",
+                                       rti_infeasible_qp=value), cfg.camera, design)
+        loop = closed_loop(mpc, initial_error(*EDGE_POSE), 12, RHO, 1)
+        skipped = [s.result for s in loop if "nlp: not tried (rmpc.rti_infeasible_qp = 'soft')"
+                   in s.result.status]
+        counts[value] = (mpc._hard.calls, len(skipped))
+        if value == "soft":
+            assert skipped and all(r.mode == "recovery" and "(daqp exit flag -1)" in r.status
+                                   for r in skipped)
+    assert counts["nlp"][1] == 0
+    assert counts["soft"][0] < counts["nlp"][0]
