@@ -2,10 +2,11 @@
 
 When the hard problem fails, :class:`companion.core.rmpc.Rmpc` solves the soft copy (the same
 rows with an L1-penalised slack each, :func:`companion.core.rmpc_problem.build_nlp` with
-``soft=True``). This module solves it the way :mod:`companion.core.rmpc_rti` solves the hard
-problem: one QP (at most ``rmpc.rti_max_qp``) linearised at the guess (the previous plan shifted
-by one stage), solved by DAQP, checked on the nonlinear rollout; a plan that fails the check
-goes to the soft NLP for that step (counted and logged by the caller).
+``soft=True``). With a warm start, this module solves it first the way
+:mod:`companion.core.rmpc_rti` solves the hard problem: Gauss-Newton QPs (at most
+``rmpc.rti_max_qp``) linearised at the guess (the previous plan shifted by one stage), solved
+by DAQP, each step checked on the nonlinear rollout; a step that finds no plan passing the
+check goes to the soft NLP (counted and logged by :func:`recovery_step`).
 
 - **The linearisation is the hard RTI's own**, compiled for the soft design
   (:func:`companion.core.rmpc_recovery.recovery_design`: its ``q_diag``, ``eps``, ``P``): an
@@ -13,26 +14,25 @@ goes to the soft NLP for that step (counted and logged by the caller).
   inputs ``U``, the Gauss-Newton ``H``, ``g`` of the quadratic cost, the states of stages 1..N,
   the path rows (the soft NLP's rows, in its order, before the slacks) and their Jacobian. The
   soft copy's input-rate term (``rmpc.recovery_input_rate_weight``) is quadratic in ``U``:
-  added exactly (:func:`rate_matrices`).
-- **The QP** in ``z = (dU, s)``, ``s`` the slacks themselves (the rows are linear in them)::
+  added exactly (:func:`rate_matrices`). Hence ``rmpc.recovery_rows = "own"`` only.
+- **The QP** in ``z = (dU, s)``, ``s`` the slacks of the rows the linearisation point exceeds
+  (the others stay hard in the QP)::
 
-      min 0.5 dU' H dU + g' dU + w' s + 0.5 mu |s|^2
+      min 0.5 dU' (H + mu_p I) dU + g' dU + w' s + 0.5 mu_s |s|^2
       s.t. c_p + J_p dU - s <= upper,  s >= 0,  |u + dU| <= u_max,  lo <= c_x + J_x dU <= hi
 
   ``w`` the soft NLP's slack weights (``recovery_penalty``, ``recovery_tube_penalty``); the
   state box ``lo``, ``hi`` is the soft NLP's own (its velocity box moved out by
-  :func:`~companion.core.rmpc_recovery.velocity_box_return`). DAQP needs a strictly convex QP:
-  ``mu = SLACK_CURVATURE w`` (a slack's marginal price ``w + mu s`` instead of ``w``: 1e-6
-  relative per unit of slack, far below the agreement the tests hold). As in the hard RTI the
-  state box's rows are left out first and added only when that solution breaks one.
-- **The check** (:meth:`SoftRti.step`): the new inputs are rolled out through the nonlinear
-  model (the compiled ``rti_val``: the NLP's own rows on the rollout); the dynamics are exact
-  by construction (single shooting), the input box by clipping; the state box must hold
-  within ``rmpc.rti_tol`` and every row and the cost be finite. The slacks flown are then the
-  rows' exact excesses on the rollout (``max(row - upper, 0)``: the soft rows hold exactly,
-  the tube included, and the slack is the least one), and the plan's soft cost (the NLP's
-  objective at that point) must be no higher than the guess's (the merit an L1-penalty SQP
-  accepts a step on): a Gauss-Newton step that made the plan worse is not flown.
+  :func:`~companion.core.rmpc_recovery.velocity_box_return`). ``mu_s = SLACK_CURVATURE w``:
+  DAQP needs a positive definite Hessian (a slack's marginal price ``w + mu_s s`` instead of
+  ``w``). ``mu_p``: a Levenberg-Marquardt weight (:data:`PROX_WEIGHT`, adapted between QPs).
+- **The line search and the check** (:meth:`SoftRti.refusal`): ``u + a dU``, ``a = 1, 1/2,
+  ...``, rolled out through the nonlinear model (the compiled ``rti_val``); the dynamics are
+  exact by construction, the input box by clipping; the state box must hold within
+  ``rmpc.rti_tol`` and every row and the cost be finite. The slacks are the rows' exact
+  excesses on the rollout (``max(row - upper, 0)``: every soft row holds exactly, the tube's
+  included), and the plan's soft cost (the NLP's objective there) must be no higher than the
+  plan it started from (the merit an L1-penalty SQP accepts a step on).
 
 docs/reference/solver.md ("The soft copy's RTI") has the design, what the check covers and
 the figures.
