@@ -144,8 +144,9 @@ class SoftRti:
         self.u_max = np.tile(np.asarray(rmpc.u_max, dtype=float), big_n)
         self._rate_d, self._rate_e = rate_matrices(rmpc)
         self._rate_h = self._rate_d.T @ self._rate_d
-        lin = self.rti._lin  # the hard RTI's compiled functions, for this design
-        self._lin, self._val = lin, self.rti._val
+        # the hard RTI's compiled linearisation, for this design (its check function is
+        # read through RtiSolver.rows)
+        self._lin = self.rti._lin
         self.calls = 0  # QPs solved (tests)
         self.accepted = 0  # steps whose plan flew (recovery_step)
         self.rejected = 0  # steps handed to the soft NLP
