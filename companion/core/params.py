@@ -230,6 +230,18 @@ class RmpcParams:
     # scalar operations, ~73 s of CPU to compile). A log recorded before this key replays
     # with "graph", the form it flew.
     rti_linearisation: str = "graph"
+    # How the soft (recovery) copy is solved when the hard problem fails: "nlp" (ipopt, the
+    # full soft NLP) or "rti" (one QP linearised at the shifted previous plan, by the hard
+    # RTI's functions compiled for the soft design; a plan its check rejects is solved as
+    # "nlp"; needs recovery_rows = "own"). docs/reference/solver.md, "The soft copy's RTI".
+    # A log recorded before this key replays with "nlp", as flown.
+    recovery_solver: str = "nlp"
+    # solver = "rti": a step whose hard QP DAQP finds infeasible (the hard problem linearised at
+    # the guess has no solution) goes to "nlp" (the full hard NLP, then the soft copy if that
+    # fails: as before) or "soft" (the soft copy directly, the full hard NLP not tried: a
+    # linearisation's infeasibility is no proof, measured: the full NLP failed on every such
+    # step of the fast circle; docs/reference/solver.md, "The soft copy's RTI").
+    rti_infeasible_qp: str = "nlp"
 
     def __post_init__(self) -> None:
         if self.visibility_pairing not in ("spec", "causal"):
@@ -247,6 +259,8 @@ class RmpcParams:
             ("rti_linearisation", self.rti_linearisation,
              ("recursion", "loops", "graph", "scalar")),
             ("recovery_rows", self.recovery_rows, ("own", "hard", "own+terminal")),
+            ("recovery_solver", self.recovery_solver, ("nlp", "rti")),
+            ("rti_infeasible_qp", self.rti_infeasible_qp, ("nlp", "soft")),
         ):
             if value not in allowed:
                 raise ParamError(
@@ -269,6 +283,9 @@ class RmpcParams:
             raise ParamError(f"rmpc.recovery_eps: must be > 0 (got {self.recovery_eps})")
         if self.solver not in ("nlp", "rti"):
             raise ParamError(f"rmpc.solver: {self.solver!r} is not 'nlp' or 'rti'")
+        if self.recovery_solver == "rti" and self.recovery_rows != "own":
+            raise ParamError("rmpc.recovery_solver = 'rti' needs rmpc.recovery_rows = 'own' "
+                             f"(got {self.recovery_rows!r})")
         if self.nlp_solver not in ("fatrop", "ipopt"):
             raise ParamError(f"rmpc.nlp_solver: {self.nlp_solver!r} is not 'fatrop' or 'ipopt'")
         if self.tube_h < 1:

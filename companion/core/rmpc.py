@@ -47,6 +47,8 @@ from companion.core.rmpc_recovery import (
     velocity_box_return,
 )
 from companion.core.rmpc_rti import RtiSolver
+from companion.core.rmpc_rti_soft import build as build_soft_rti
+from companion.core.rmpc_rti_soft import recovery_step, skip_hard_nlp
 from companion.core.rmpc_types import (
     ConstraintViolation,
     Evaluation,
@@ -137,6 +139,9 @@ class Rmpc:
             if self.groups
             else None
         )
+        # rmpc.recovery_solver = "rti": the soft copy's RTI, the soft NLP behind it
+        self.soft_rti = build_soft_rti(rmpc, camera, terminal,
+                                       self._soft.layout if self._soft else None)
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
         # sqrt((P^-1)_44): |eta|_P >= |se4| / this (see _infeasibility_certificate)
         self._se4_scale = float(np.sqrt(np.linalg.inv(np.asarray(terminal.p))[3, 3]))
@@ -197,6 +202,8 @@ class Rmpc:
             if isinstance(out, RmpcResult):
                 return out
             note, rti_iters, rti_time = out
+            if skip_hard_nlp(self.cfg, note):  # (rmpc.rti_infeasible_qp = "soft")
+                note, certificate = f"{note}not tried (rmpc.rti_infeasible_qp = 'soft'); ", ""
         if eta_g is None:  # the RTI reads only the inputs: the states for the NLP's guess
             eta_g = self._guess_states(e0, target, u_g)
         if self.backend is not None:
@@ -211,7 +218,7 @@ class Rmpc:
             except SolveAborted as exc:
                 return self._aborted(e0, target, note + str(exc), note + str(exc), rti_iters,
                                      math.nan)
-        else:  # provably infeasible: do not spend the solver's iterations on finding out
+        else:  # provably infeasible (or skipped): do not spend the solver's iterations on it
             ok, status, w, cost, iters, t_wall = False, certificate, np.zeros(0), 0.0, 0, 0.0
         status, iters, t_wall = note + status, iters + rti_iters, t_wall + rti_time
         hard_status = status
@@ -283,6 +290,17 @@ class Rmpc:
             else:
                 spar = np.concatenate([par, self._prev[1][0],
                                        [self.cfg.recovery_input_rate_weight]])
+            if self.soft_rti is not None and self._prev is not None:  # (a warm start only)
+                srti = recovery_step(self.soft_rti, e0, spar, u_g, (slbx, subx), slay,
+                                     self._clock)
+                iters, t_wall = iters + srti.qp_iterations, t_wall + self.soft_rti.last_time_s
+                if srti.ok:
+                    self._prev = (srti.eta, srti.u)
+                    return RmpcResult(True, "recovery", note + srti.status, hard_status,
+                                      srti.cost, iters, t_wall, _ro(srti.u[0]), _ro(srti.eta),
+                                      _ro(srti.u), float(np.max(srti.slack, initial=0.0)),
+                                      self.groups, target)
+                note += f"{srti.status}; nlp: "
             sw0 = self._pack(slay, eta_g, u_g)
             sw0[slay.slack_index] = slack_guess(slay, eta_g, u_g, target, self._p_tube, self.cfg,
                                                  self.camera)
