@@ -219,6 +219,11 @@ class MavUdpLink:
         c = self._c
         c["rx_datagrams"] += 1
         c["rx_bytes"] += len(data)
+        # one plain frame (a setpoint, every step in lockstep) without pymavlink's parser
+        msg = mavpack.unpack(data, mavlink2)
+        if msg is not None:
+            self._dispatch(msg, addr)
+            return
         parser = mavlink2.MAVLink(None)  # fresh per datagram (pitfalls.md)
         parser.robust_parsing = True
         try:

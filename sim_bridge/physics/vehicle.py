@@ -288,11 +288,6 @@ def initial_state(pos_ned_m: tuple[float, float, float] | Vec, roll_rad: float =
 
 
 # --------------------------------------------------------------------------------------------
-def _clamp(x: float, lim: float) -> float:
-    """``x`` limited to ``[-lim, lim]`` (scalar; np.clip costs ~5 us on a Python float)."""
-    return -lim if x < -lim else (lim if x > lim else float(x))
-
-
 class _Substate(NamedTuple):
     """The integrator's state between sub-steps (plain floats)."""
 
@@ -366,21 +361,18 @@ class VehicleModel:
 
     def step(self, s: VehicleState, cmd: AttitudeCommand, duration_s: float) -> VehicleState:
         """``round(duration_s / dt_s)`` sub-steps (at least one) with ``cmd`` held. The
-        sub-steps run on plain floats and only the last one becomes a :class:`VehicleState`
-        (a 20-fold saving of small numpy arrays per lockstep step); every operation is the one
-        the array form did, in the same order, so the result is the same to the bit. What the
-        held command fixes (the clipped tilt setpoint, the thrust, the lag's factor) is worked
-        out once per step: the same numbers each sub-step computed before."""
+        sub-steps run on plain floats in one loop (:meth:`_substeps`) and only the last one
+        becomes a :class:`VehicleState` (a 20-fold saving of small numpy arrays per lockstep
+        step); every operation is the one the array form did, in the same order, so the result
+        is the same to the bit. What the held command fixes (the clipped tilt setpoint, the
+        thrust, the lag's factor) is worked out once per step: the same numbers each sub-step
+        computed before."""
         n = max(1, round(duration_s / self.dt_s))
         pos, vel = s.pos_ned_m, s.vel_ned_m_s
         x = _Substate(s.t_s, float(pos[0]), float(pos[1]), float(pos[2]), float(vel[0]),
                       float(vel[1]), float(vel[2]), s.roll_rad, s.pitch_rad, s.yaw_rad,
                       s.on_ground)
-        held = self._held(cmd)
-        out: _Outputs | None = None
-        for _ in range(n):
-            x, out = self._substep(x, held)
-        assert out is not None
+        x, out = self._substeps(x, self._held(cmd), n)
         return VehicleState(t_s=x.t_s, pos_ned_m=np.array([x.px, x.py, x.pz]),
                             vel_ned_m_s=np.array([x.vx, x.vy, x.vz]), roll_rad=x.roll,
                             pitch_rad=x.pitch, yaw_rad=x.yaw,
@@ -397,53 +389,64 @@ class VehicleModel:
         return _Held(cmd, 1.0 - math.exp(-dt / p.attitude_tau_s),
                      min(1.0, max(0.0, cmd.thrust_norm)) if cmd.motors_on else 0.0, r_sp, p_sp)
 
-    def _attitude_step(self, x: _Substate, h: _Held) -> tuple[float, float, float]:
-        """The attitude's change over one sub-step (first-order tracking, rate-limited)."""
-        p, dt, cmd, alpha = self.params, self.dt_s, h.cmd, h.alpha
-        if not cmd.motors_on:
-            return 0.0, 0.0, 0.0
-        lim = p.max_tilt_rate_rad_s * dt
-        d_roll = _clamp(alpha * wrap_pi(h.roll_sp - x.roll), lim)
-        d_pitch = _clamp(alpha * wrap_pi(h.pitch_sp - x.pitch), lim)
-        ylim = p.max_yaw_rate_rad_s * dt
-        d_yaw = _clamp(alpha * wrap_pi(cmd.yaw_rad - x.yaw) + cmd.yaw_rate_ff_rad_s * dt, ylim)
-        return d_roll, d_pitch, d_yaw
-
-    def _substep(self, x: _Substate, h: _Held) -> tuple[_Substate, _Outputs]:
-        p, dt, alpha, thrust = self.params, self.dt_s, h.alpha, h.thrust
-        d_roll, d_pitch, d_yaw = self._attitude_step(x, h)
-        hover = self.true_hover_thrust(x.t_s)
-        if x.on_ground and (thrust <= hover or not h.cmd.motors_on):
-            # resting on the ground: no tipping over below lift-off thrust
-            d_roll, d_pitch = -x.roll * alpha, -x.pitch * alpha
-        roll, pitch, yaw = x.roll + d_roll, x.pitch + d_pitch, wrap_pi(x.yaw + d_yaw)
-        euler_rates = (d_roll / dt, d_pitch / dt, d_yaw / dt)
-
-        t_next = x.t_s + dt
-        dist = self.disturbance.accel_ned_m_s2(x.t_s)
-        dx, dy, dz = self._dist_floats(dist)
-        # specific thrust R(roll, pitch, yaw) [0, 0, c]: R's third column times c
-        c = -p.g_m_s2 * thrust / hover
-        cr, sr = math.cos(roll), math.sin(roll)
-        cp, sp = math.cos(pitch), math.sin(pitch)
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        sx, sy_, sz = (cy * sp * cr + sy * sr) * c, (sy * sp * cr - cy * sr) * c, (cp * cr) * c
-        drag = p.drag_per_s
-        ax = ((sx + 0.0) - drag * x.vx) + dx
-        ay = ((sy_ + 0.0) - drag * x.vy) + dy
-        az = ((sz + p.g_m_s2) - drag * x.vz) + dz
-        vx, vy, vz = x.vx + ax * dt, x.vy + ay * dt, x.vz + az * dt
-        px, py, pz = x.px + vx * dt, x.py + vy * dt, x.pz + vz * dt  # semi-implicit Euler
-        on_ground = False
-        if pz >= p.ground_z_m:
-            if az >= 0 or vz >= 0:
-                # pressed onto (or sinking into) the ground: it stops there, no sliding
-                if x.on_ground:
-                    px, py = x.px, x.py
-                pz = p.ground_z_m
-                vx = vy = vz = ax = ay = az = 0.0
-                on_ground = True
+    def _substeps(self, x: _Substate, h: _Held, n: int) -> tuple[_Substate, _Outputs]:
+        """``n`` sub-steps of ``dt_s`` from ``x``: first-order attitude tracking (rate-limited),
+        then semi-implicit Euler on the translation with the ground's contact. One loop on
+        local floats: the per-sub-step calls and tuples cost ~60 % of the physics' CPU (the
+        same operations in the same order as before, tests/sim/test_physics_substeps.py)."""
+        p, dt, cmd, alpha, thrust = self.params, self.dt_s, h.cmd, h.alpha, h.thrust
+        on = cmd.motors_on
+        roll_sp, pitch_sp, yaw_sp, ff_dt = h.roll_sp, h.pitch_sp, cmd.yaw_rad, \
+            cmd.yaw_rate_ff_rad_s * dt
+        lim, ylim = p.max_tilt_rate_rad_s * dt, p.max_yaw_rate_rad_s * dt
+        g, drag, ground_z = p.g_m_s2, p.drag_per_s, p.ground_z_m
+        hover_of, dist_of, floats_of = self.true_hover_thrust, \
+            self.disturbance.accel_ned_m_s2, self._dist_floats
+        pi, two_pi, cos, sin = math.pi, 2 * math.pi, math.cos, math.sin
+        t, px, py, pz, vx, vy, vz, roll, pitch, yaw, on_ground = x
+        d_roll = d_pitch = d_yaw = ax = ay = az = hover = 0.0
+        dist = None
+        for _ in range(n):
+            if on:  # wrap_pi and _clamp written out
+                d_roll = alpha * ((roll_sp - roll + pi) % two_pi - pi)
+                d_roll = -lim if d_roll < -lim else (lim if d_roll > lim else d_roll)
+                d_pitch = alpha * ((pitch_sp - pitch + pi) % two_pi - pi)
+                d_pitch = -lim if d_pitch < -lim else (lim if d_pitch > lim else d_pitch)
+                d_yaw = alpha * ((yaw_sp - yaw + pi) % two_pi - pi) + ff_dt
+                d_yaw = -ylim if d_yaw < -ylim else (ylim if d_yaw > ylim else d_yaw)
             else:
-                pz = p.ground_z_m
-        return (_Substate(t_next, px, py, pz, vx, vy, vz, roll, pitch, yaw, on_ground),
-                _Outputs(euler_rates, (ax, ay, az), thrust, dist, hover))
+                d_roll = d_pitch = d_yaw = 0.0
+            hover = hover_of(t)
+            if on_ground and (thrust <= hover or not on):
+                # resting on the ground: no tipping over below lift-off thrust
+                d_roll, d_pitch = -roll * alpha, -pitch * alpha
+            roll, pitch, yaw = roll + d_roll, pitch + d_pitch, (yaw + d_yaw + pi) % two_pi - pi
+            dist = dist_of(t)
+            dx, dy, dz = floats_of(dist)
+            t = t + dt
+            # specific thrust R(roll, pitch, yaw) [0, 0, c]: R's third column times c
+            c = -g * thrust / hover
+            cr, sr = cos(roll), sin(roll)
+            cp, sp = cos(pitch), sin(pitch)
+            cy, sy = cos(yaw), sin(yaw)
+            ax = (((cy * sp * cr + sy * sr) * c + 0.0) - drag * vx) + dx
+            ay = (((sy * sp * cr - cy * sr) * c + 0.0) - drag * vy) + dy
+            az = (((cp * cr) * c + g) - drag * vz) + dz
+            x_px, x_py = px, py
+            vx, vy, vz = vx + ax * dt, vy + ay * dt, vz + az * dt
+            px, py, pz = px + vx * dt, py + vy * dt, pz + vz * dt  # semi-implicit Euler
+            was_on_ground, on_ground = on_ground, False
+            if pz >= ground_z:
+                if az >= 0 or vz >= 0:
+                    # pressed onto (or sinking into) the ground: it stops there, no sliding
+                    if was_on_ground:
+                        px, py = x_px, x_py
+                    pz = ground_z
+                    vx = vy = vz = ax = ay = az = 0.0
+                    on_ground = True
+                else:
+                    pz = ground_z
+        assert dist is not None
+        return (_Substate(t, px, py, pz, vx, vy, vz, roll, pitch, yaw, on_ground),
+                _Outputs((d_roll / dt, d_pitch / dt, d_yaw / dt), (ax, ay, az), thrust, dist,
+                         hover))
