@@ -64,13 +64,15 @@ def test_no_frame_times_out() -> None:
 
 
 def test_a_stop_request_ends_the_wait_at_once() -> None:
-    # the wait would time out after 30 s (a TimeoutError, not StopRequested) if the stop
-    # request did not end it
+    # a frame comes 2 s after the stop request: the wait must have ended before it
     async def main() -> None:
         app, cam = _app(), _Frames()
-        asyncio.get_running_loop().call_later(0.05, app._stop.set)
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.05, app._stop.set)
+        loop.call_later(2.0, lambda: cam.pending is not None and not cam.pending.done()
+                        and cam.deliver("frame after the stop"))
         with pytest.raises(StopRequested):
-            await app._next_frame(cam, 30.0, wake_on_stop=True)
+            await app._next_frame(cam, 3600.0, wake_on_stop=True)
         assert cam.cancelled == 1
         with pytest.raises(StopRequested):  # already stopped: no wait at all
             await app._next_frame(cam, 30.0, wake_on_stop=True)
