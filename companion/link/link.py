@@ -439,8 +439,8 @@ class MavlinkLink(LinkCommands):
         if self.endpoint.kind == "udpin" and addr is not None and is_autopilot:
             if not self.guard_params.pin_source:
                 self._peer = (addr[0], addr[1])
-            elif self.guard.pinned(sysid) is not None:
-                self._peer = self.guard.pinned(sysid)
+            elif (pinned := self.guard.pinned(sysid)) is not None:
+                self._peer = pinned
             elif self._peer is None:
                 self._peer = (addr[0], addr[1])  # telemetry before the first HEARTBEAT
         self.counters["rx_accepted"] += 1
