@@ -238,10 +238,11 @@ class WriterThread:
             enc_s, enc_m = sch.encodings(schema_name)
             self._observe("add_channel", topic, schema_name, enc_s,
                           self._schema_text(schema_name), enc_m)
-        writer.add_message(cid, log_time=t, data=data, publish_time=t if pub is None else int(pub))
-        with self._lock:
-            self._written += 1
-        self._observe("message", topic, t, data)
+        writer.add_message(cid, t, data, t if pub is None else int(pub))
+        # only this thread writes the count (a reader's lock still sees it whole)
+        self._written += 1
+        if self.observer is not None:
+            self._observe("message", topic, t, data)
 
     def _observe(self, what: str, *args: Any) -> None:
         if self.observer is None:
