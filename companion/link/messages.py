@@ -69,3 +69,9 @@ def message_fields(msg: Any) -> dict[str, Any]:
         out[fname] = v
     return out
 
+
+def sent(msg: Any, raw: bytes, t_tx_ns: int, msgid: int, name: str) -> Sent:
+    """A :class:`Sent` equal to ``Sent(...)`` of the same values (see :func:`received`)."""
+    r = _new(Sent)
+    r.__dict__.update(msg=msg, raw=raw, t_tx_ns=t_tx_ns, msgid=msgid, name=name)
+    return r

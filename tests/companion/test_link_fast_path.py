@@ -254,3 +254,22 @@ def test_setpoint_packer_gives_pymavlink_bytes() -> None:
     msg = a.set_attitude_target_encode(5, 1, 1, 7, [1.0, 0.0, 0.0, 0.0], 0, 0, 0, 0.5)
     signed = wire.pack(msg, a)
     assert signed == bytes(msg.pack(b)) and signed[2] & 1 and len(signed) > 12 + 13
+
+
+def test_fast_constructors_give_the_dataclasses() -> None:
+    """``received`` / ``sent`` (no frozen ``__init__``) build what the dataclasses build:
+    equal, same repr, same hash, still frozen."""
+    import dataclasses
+
+    from companion.link.messages import Sent, received, sent
+
+    args = ("msg", b"\xfd\x01", 12, 1, 2, 30, "ATTITUDE", 7, False, {"roll": 0.5})
+    fast, slow = received(*args), Received(*args)
+    assert fast == slow and repr(fast) == repr(slow)
+    assert dataclasses.astuple(fast) == dataclasses.astuple(slow) == args
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fast.seq = 8  # type: ignore[misc]
+    sargs = ("msg", b"\xfd\x02", 13, 82, "SET_ATTITUDE_TARGET")
+    fs, ss = sent(*sargs), Sent(*sargs)
+    assert fs == ss and repr(fs) == repr(ss) and hash(fs) == hash(ss)
+    assert dataclasses.astuple(fs) == sargs
