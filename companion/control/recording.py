@@ -179,6 +179,9 @@ class RuntimeLog:
     def received(self, rx: Any, fields: Mapping[str, Any]) -> None:
         """An accepted MAVLink message (the order of the log is the order the store saw)."""
         t_log = self.clock.message_ns(rx.name, fields, rx.t_rx_ns)
+        if self._config_logged and self.clock.started:  # the flight's case: written now
+            self.logger.log_mavlink("in", rx, t_log)
+            return
         self.config()
         logger = self.logger
         self.at(t_log, lambda t: logger.log_mavlink("in", rx, t))
@@ -187,6 +190,9 @@ class RuntimeLog:
         """A sent MAVLink frame."""
         t_log = int(sent.t_tx_ns) if self.clock.mode == "receipt" else self.clock.now_ns()
         logger = self.logger
+        if self._config_logged and self.clock.started:  # the flight's case: written now
+            logger.log_mavlink("out", sent, t_log)
+            return
         self.at(t_log, lambda t: logger.log_mavlink("out", sent, t))
 
     def rejected(self, reason: str, raw: bytes, t_rx_ns: int) -> None:

@@ -144,10 +144,14 @@ def check_values(msg: Any, limits: ValueLimits) -> str | None:
     return check_fields(msg.get_type(), message_fields(msg), limits)
 
 
-def check_fields(name: str, fields: Mapping[str, Any], limits: ValueLimits) -> str | None:
+def check_fields(name: str, fields: Mapping[str, Any], limits: ValueLimits,
+                 all_finite: bool = False) -> str | None:
     """Reason a decoded message (``fields`` as :func:`~companion.link.messages.message_fields`
     gives them) is implausible (``non_finite``, ``quaternion_norm``, ``speed``,
-    ``angular_rate``), or None when it is fine."""
+    ``angular_rate``), or None when it is fine. ``all_finite``: the caller already knows
+    every float of it is finite (:func:`companion.link.wire.decode_checked`)."""
+    if all_finite:
+        return _plausible(name, fields, limits)
     allowed: frozenset[str] | set[str] = limits.nan_allowed.get(name, frozenset())
     if name == "FOLLOW_TARGET":
         caps = int(fields["est_capabilities"])

@@ -135,8 +135,12 @@ class SourceGuard:
             t_ns - p.last_valid_ns <= self.params.repin_after_s * 1e9)
 
     def trusted(self, addr: tuple[str, int], t_ns: int) -> bool:
-        return self.allowed(addr) or any(self._live(p, t_ns) and p.addr == addr
-                                         for p in self._pins)
+        if self._allowed and self.allowed(addr):
+            return True
+        for p in self._pins:  # noqa: SIM110 - every datagram: a plain loop, no generator
+            if p.addr == addr and self._live(p, t_ns):
+                return True
+        return False
 
     # -- admission --------------------------------------------------------------------------
 
@@ -166,7 +170,7 @@ class SourceGuard:
                         t_ns: int) -> bool:
         """After parsing: a frame of a pinned identity from elsewhere is refused (defence in
         depth behind :meth:`admit`)."""
-        if addr is None or not self.params.pin_source or self.allowed(addr):
+        if addr is None or not self.params.pin_source or (self._allowed and self.allowed(addr)):
             return True
         for p in self._pins:
             if p.sysid == sysid and (p.compid is None or p.compid == compid) \

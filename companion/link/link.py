@@ -37,7 +37,7 @@ from companion.link.endpoints import parse_connection_string
 from companion.link.errors import LinkError, NoPeerError
 from companion.link.filters import AllowRule, ValueLimits, default_allow_rules
 from companion.link.guard import GuardParams, SourceGuard
-from companion.link.messages import Received, Sent
+from companion.link.messages import Received, Sent, sent
 from companion.link.receive import ReceivePath, new_parser, reset_parser
 from companion.link.signing import SignatureVerifier, load_signing_key, signing_timestamp_now
 from companion.link.transport import (
@@ -439,8 +439,8 @@ class MavlinkLink(LinkCommands):
         if self.endpoint.kind == "udpin" and addr is not None and is_autopilot:
             if not self.guard_params.pin_source:
                 self._peer = (addr[0], addr[1])
-            elif self.guard.pinned(sysid) is not None:
-                self._peer = self.guard.pinned(sysid)
+            elif (pinned := self.guard.pinned(sysid)) is not None:
+                self._peer = pinned
             elif self._peer is None:
                 self._peer = (addr[0], addr[1])  # telemetry before the first HEARTBEAT
         self.counters["rx_accepted"] += 1
@@ -491,5 +491,5 @@ class MavlinkLink(LinkCommands):
         self.last_tx_ns = time.monotonic_ns()  # the frame left (its log record is made after)
         self._count("tx_frames")
         if self._on_tx is not None:
-            self._on_tx(Sent(msg, raw, self._clock_ns(), msg.get_msgId(), msg.get_type()))
+            self._on_tx(sent(msg, raw, self._clock_ns(), msg.get_msgId(), msg.get_type()))
         return raw

@@ -27,7 +27,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from companion.link import wire
 from companion.link.filters import AllowRule, ValueLimits, check_fields
 from companion.link.guard import GuardParams, SourceGuard
-from companion.link.messages import Received, message_fields
+from companion.link.messages import Received, message_fields, received
 from companion.link.px4 import MAVLINK2_MAGIC
 from companion.link.signing import SignatureVerifier
 
@@ -162,9 +162,9 @@ class ReceivePath:
         s = wire.spec(msgid)
         if s is None or not wire.crc_ok(data, h, s):
             return False
-        fields = wire.decode_fields(data, h, s)
+        fields, finite = wire.decode_checked(data, h, s)
         return self._checked(wire.LazyMessage(data), data, s.name, sysid, compid, msgid, h.seq,
-                             h.signed, fields, t_ns, addr)
+                             h.signed, fields, t_ns, addr, finite)
 
     def _not_allowed(self, sysid: int, compid: int, raw: bytes, t_ns: int) -> None:
         if self.from_known_system(sysid, compid):
@@ -176,9 +176,9 @@ class ReceivePath:
 
     def _checked(self, msg: Any, raw: bytes, name: str, sysid: int, compid: int, msgid: int,
                  seq: int, signed: bool, fields: dict[str, Any], t_ns: int,
-                 addr: tuple[str, int] | None) -> Received | None:
+                 addr: tuple[str, int] | None, all_finite: bool = False) -> Received | None:
         """The checks after decoding (source address, signature, duplicate, values), in
-        order, for both paths."""
+        order, for both paths (``all_finite``: every float is known finite)."""
         if not self.guard.frame_source_ok(sysid, compid, addr, t_ns):
             self.reject("spoofed_source", raw, t_ns)
             return None
@@ -192,14 +192,12 @@ class ReceivePath:
         if raw in recent:
             self.reject("duplicate", raw, t_ns)
             return None
-        why = check_fields(name, fields, self.limits)
+        why = check_fields(name, fields, self.limits, all_finite)
         if why is not None:
             self.reject(why, raw, t_ns)
             return None
         recent[raw] = None
         if len(recent) > _DEDUP_WINDOW:
             recent.popitem(last=False)
-        return Received(
-            msg=msg, raw=raw, t_rx_ns=t_ns, src_sysid=sysid, src_compid=compid, msgid=msgid,
-            name=name, seq=seq, signed=self.verifier is not None and signed, fields=fields,
-        )
+        return received(msg, raw, t_ns, sysid, compid, msgid, name, seq,
+                        self.verifier is not None and signed, fields)

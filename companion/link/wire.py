@@ -16,6 +16,9 @@ here (a byte-wise state machine in Python, then the decode); this ~4 us.
 
 from __future__ import annotations
 
+import math
+import operator
+import re
 import struct
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -62,7 +65,7 @@ def single_frame_header(data: bytes) -> Header | None:
 class _Spec:
     """A message type's decoding plan, built once from pymavlink's generated class."""
 
-    __slots__ = ("crc_extra", "name", "plan", "size", "unpacker")
+    __slots__ = ("crc_extra", "floats", "name", "plan", "size", "unpacker")
 
     def __init__(self, cls: Any) -> None:
         self.name: str = cls.msgname
@@ -76,6 +79,27 @@ class _Spec:
         for i, fname in enumerate(cls.fieldnames):
             order = orders[i]
             self.plan.append((fname, sum(lengths[:order]), lengths[order]))
+        #: the unpacked tuple's float items (as a tuple), None when there are none
+        self.floats: Callable[[tuple[Any, ...]], tuple[float, ...]] | None = _float_items(
+            cls.unpacker.format)
+
+
+def _float_items(fmt: str) -> Callable[[tuple[Any, ...]], tuple[float, ...]] | None:
+    """A getter of the float items (``f``, ``d``) of what ``struct`` format ``fmt`` unpacks
+    (a ``16s`` is one item, a ``4f`` four)."""
+    idx: list[int] = []
+    pos = 0
+    for count, code in re.findall(r"(\d*)([a-zA-Z?])", fmt):
+        n = 1 if code == "s" or not count else int(count)
+        if code in "fd":
+            idx.extend(range(pos, pos + n))
+        pos += n
+    if not idx:
+        return None
+    if len(idx) == 1:
+        i = idx[0]
+        return lambda t: (t[i],)
+    return operator.itemgetter(*idx)
 
 
 _SPECS: dict[int, _Spec | None] = {}
@@ -99,10 +123,26 @@ def crc_ok(data: bytes, h: Header, s: _Spec) -> bool:
 def decode_fields(data: bytes, h: Header, s: _Spec) -> dict[str, Any]:
     """The fields of a CRC-checked frame as :func:`message_fields` gives them for pymavlink's
     decoding (MAVLink 2 drops trailing zero bytes of the payload: they are put back)."""
+    return _fields(_unpacked(data, h, s), s)
+
+
+def decode_checked(data: bytes, h: Header, s: _Spec) -> tuple[dict[str, Any], bool]:
+    """:func:`decode_fields` and whether every float of the frame is finite (one sum of its
+    floats: NaN and inf survive a sum; a False may also be finite values whose sum
+    overflows, which the caller's value-by-value check then clears)."""
+    t = _unpacked(data, h, s)
+    get = s.floats
+    return _fields(t, s), get is None or math.isfinite(sum(get(t)))
+
+
+def _unpacked(data: bytes, h: Header, s: _Spec) -> tuple[Any, ...]:
     payload = data[HEADER_LEN:h.payload_end]
     if len(payload) < s.size:
         payload += bytes(s.size - len(payload))
-    t = s.unpacker.unpack_from(payload)
+    return s.unpacker.unpack_from(payload)
+
+
+def _fields(t: tuple[Any, ...], s: _Spec) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for fname, tip, n in s.plan:
         v = t[tip]
@@ -177,5 +217,5 @@ class LazyMessage:
         return repr(self._decoded())
 
 
-__all__ = ["Header", "LazyMessage", "crc_ok", "decode_fields", "pack", "single_frame_header",
-           "spec"]
+__all__ = ["Header", "LazyMessage", "crc_ok", "decode_checked", "decode_fields", "pack",
+           "single_frame_header", "spec"]

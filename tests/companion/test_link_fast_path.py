@@ -12,6 +12,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.link import MavlinkLink, Received, default_allow_rules, message_fields, wire
+from companion.link.filters import ValueLimits, check_fields
 from companion.link.receive import new_parser, reset_parser
 
 AP_SYS, AP_COMP, AGV_SYS, AGV_COMP = 1, 1, 42, 1
@@ -78,6 +79,38 @@ def test_fields_equal_pymavlink_decoding() -> None:
         assert s.name == name
         assert list(got) == list(want), name
         assert all(_same(got[k], want[k]) for k in want), (name, got, want)
+
+
+def _floats_finite(fields: dict[str, Any]) -> bool:
+    vals = [v for v in fields.values() if isinstance(v, float)]
+    vals += [x for v in fields.values() if isinstance(v, list) for x in v if isinstance(x, float)]
+    return all(math.isfinite(x) for x in vals)
+
+
+def test_decode_checked_knows_when_every_float_is_finite() -> None:
+    """The fast path's one-sum finiteness flag is the value-by-value answer, and the value
+    check given it answers as the full check (NaN where allowed, inf, NaN in an array)."""
+    mav = mavlink2.MAVLink(None, srcSystem=AP_SYS, srcComponent=AP_COMP)
+    extra = [mav.attitude_encode(4, 0, 0, 0, 0, 0, math.inf),
+             mav.attitude_target_encode(5, 7, [1.0, NAN, 0, 0], 0, 0, 0, 0.5),
+             mav.local_position_ned_encode(6, 1e38, 1e38, 0, 0, 0, -math.inf),
+             mav.follow_target_encode(7, 1, 1, 2, 3.0, [0, 0, 0], [NAN, 0, 0],
+                                      [1, 0, 0, 0], [0, 0, 0], [0, 0, 0], 0)]
+    frames = _frames() + [bytes(m.pack(mav)) for m in extra]
+    limits = ValueLimits()
+    flags = []
+    for frame in frames:
+        h = wire.single_frame_header(frame)
+        assert h is not None
+        s = wire.spec(h.msgid)
+        assert s is not None
+        fields, finite = wire.decode_checked(frame, h, s)
+        assert fields == wire.decode_fields(frame, h, s) or not finite
+        assert finite == _floats_finite(fields), s.name
+        assert check_fields(s.name, fields, limits, finite) == check_fields(s.name, fields,
+                                                                            limits), s.name
+        flags.append(finite)
+    assert flags.count(False) >= 6 and flags.count(True) >= 10
 
 
 def test_header_refuses_what_is_not_one_frame() -> None:
@@ -221,3 +254,22 @@ def test_setpoint_packer_gives_pymavlink_bytes() -> None:
     msg = a.set_attitude_target_encode(5, 1, 1, 7, [1.0, 0.0, 0.0, 0.0], 0, 0, 0, 0.5)
     signed = wire.pack(msg, a)
     assert signed == bytes(msg.pack(b)) and signed[2] & 1 and len(signed) > 12 + 13
+
+
+def test_fast_constructors_give_the_dataclasses() -> None:
+    """``received`` / ``sent`` (no frozen ``__init__``) build what the dataclasses build:
+    equal, same repr, same hash, still frozen."""
+    import dataclasses
+
+    from companion.link.messages import Sent, received, sent
+
+    args = ("msg", b"\xfd\x01", 12, 1, 2, 30, "ATTITUDE", 7, False, {"roll": 0.5})
+    fast, slow = received(*args), Received(*args)
+    assert fast == slow and repr(fast) == repr(slow)
+    assert dataclasses.astuple(fast) == dataclasses.astuple(slow) == args
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fast.seq = 8  # type: ignore[misc]
+    sargs = ("msg", b"\xfd\x02", 13, 82, "SET_ATTITUDE_TARGET")
+    fs, ss = sent(*sargs), Sent(*sargs)
+    assert fs == ss and repr(fs) == repr(ss) and hash(fs) == hash(ss)
+    assert dataclasses.astuple(fs) == sargs
