@@ -238,7 +238,7 @@ def test_a_bad_escape_stream_in_the_config_file_is_a_clear_error(override: str,
 
 
 def test_the_escape_stream_is_read_from_the_config_file() -> None:
-    assert load_config().offboard.preflight_escape_stream_s == 0.25
+    assert load_config().offboard.preflight_escape_stream_s == 0.15
     assert load_config(overrides=["offboard.preflight_escape_stream_s=0.5"]
                        ).offboard.preflight_escape_stream_s == 0.5
 
