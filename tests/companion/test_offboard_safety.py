@@ -350,3 +350,20 @@ def test_the_shipped_escape_stream_meets_px4s_10_hz_check(phase_s: float) -> Non
                     results.append(px4.handle_command(tick, 176, (1, 6, 0)).result)
             assert results[:1] == [ACCEPTED], (start_s, jitter_s, cmd_ahead_s, results)
             assert px4.mode is Mode.OFFBOARD
+
+
+def test_a_stream_in_float_frame_times_is_not_judged_one_step_short() -> None:
+    """Frame times are floats on the autopilot's clock: 37.55 - 37.40 is 0.1499999... s. A
+    0.15 s escape stream from 37.40 s is requested at 37.55 s, not a step later."""
+    cfg = OffboardConfig(preflight_stream_s=1.0, mode_retry_s=1.0, arm=False, exit_mode="hold",
+                         preflight_escape_stream_s=0.15)
+    m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
+    m.on_heartbeat(_hb(37.0, True, 3))
+    assert 37.55 - 37.40 < 0.15
+    acts = _stream(m, 37.40, 37.80, escaping=True)
+    assert acts == [(37.55, "set_mode")]
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
+    m.on_heartbeat(_hb(37.0, True, 3))
+    assert _stream(m, 37.40, 38.60, escaping=False) == [(38.4, "set_mode")]
