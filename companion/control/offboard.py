@@ -32,6 +32,9 @@ MAV_RESULT_IN_PROGRESS = 5
 #: default, commander's offboard check): a pause shorter than half of it (a stale frame, a slow
 #: step on a small computer) keeps the pre-flight stream running; a longer one restarts it.
 STREAM_GAP_S = 0.5
+#: A stream is measured in frame times (e.g. 37.55 - 37.40 = 0.1499999... s in floats): a
+#: microsecond of tolerance, so that it is not judged one step short
+STREAM_TOL_S = 1e-6
 #: MAV_LANDED_STATE: the values EXTENDED_SYS_STATE.landed_state takes
 LANDED_STATE_NAMES = {0: "UNDEFINED", 1: "ON_GROUND", 2: "IN_AIR", 3: "TAKEOFF", 4: "LANDING"}
 MAV_LANDED_STATE_IN_AIR = 2
@@ -165,10 +168,11 @@ class OffboardManager:
         st = self._status
         acts: list[Action] = []
         streamed = None if self._stream_start_s is None else t_s - self._stream_start_s
-        streamed_long_enough = streamed is not None and streamed >= self._cfg.preflight_stream_s
+        streamed_long_enough = (streamed is not None
+                                and streamed >= self._cfg.preflight_stream_s - STREAM_TOL_S)
         escape_s = self._cfg.preflight_escape_stream_s
         escaping = (streamed is not None and escape_s is not None and self._escaping
-                    and streamed >= escape_s)
+                    and streamed >= escape_s - STREAM_TOL_S)
         due = t_s - self._last_request_s >= self._cfg.mode_retry_s
         # With offboard.arm = false the pilot arms: OFFBOARD is asked for only once the
         # HEARTBEAT says armed (asked on the ground, PX4 would take our setpoints at the arming)

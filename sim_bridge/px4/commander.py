@@ -54,6 +54,13 @@ from sim_bridge.px4.modes import (
     Px4Params,
 )
 
+#: PX4's commander runs its health and arming checks, the offboard signal check among them
+#: (``offboardCheck.cpp``), at 10 Hz ("Run arming checks @ 10Hz" in ``Commander::run``), or at
+#: once after a status change; a DO_SET_MODE is judged against the last check's verdict
+#: (``canRun``), not against the setpoint that arrived a moment ago. So a request that follows
+#: the first setpoint by less than a check period may be refused.
+HEALTH_CHECK_PERIOD_S = 0.1
+
 
 class Px4:
     """The emulated autopilot's logic. Feed it setpoints and commands as they arrive, call
@@ -70,6 +77,9 @@ class Px4:
         self.landed = state.on_ground
         self.has_flown = not state.on_ground
         self.last_signal_t_s = -math.inf
+        #: the last health check's verdict on the offboard signal (:data:`HEALTH_CHECK_PERIOD_S`)
+        self.signal_checked = False
+        self._check_t_s = -math.inf
         self.signals = 0
         self.ignored_setpoints = 0
         self.offboard_losses = 0
@@ -98,6 +108,14 @@ class Px4:
 
     def setpoint_age_s(self, t_s: float) -> float:
         return t_s - self.last_signal_t_s
+
+    def _health_check(self, t_s: float) -> None:
+        """PX4's health checks when due (every :data:`HEALTH_CHECK_PERIOD_S`, or at once after
+        a status change: ``_check_t_s`` reset): they run before the commands of the same
+        commander cycle."""
+        if t_s >= self._check_t_s + HEALTH_CHECK_PERIOD_S - 1e-9:
+            self._check_t_s = t_s
+            self.signal_checked = self.signal_fresh(t_s)
 
     @property
     def base_mode(self) -> int:
@@ -160,11 +178,16 @@ class Px4:
         """A COMMAND_LONG addressed to the autopilot; ``params`` = param1..param7. An accepted
         command that changes the mode (or a DO_SET_MODE) ends a failsafe action."""
         del from_self
+        self._health_check(t_s)
         before = self.mode
         res = self._command(t_s, command, params)
         if res.result == ACCEPTED and (self.mode is not before or command == CMD_DO_SET_MODE):
             self.failsafe = False
         return res
+
+    def _status_changed(self) -> None:
+        """A mode or arming change: PX4 runs its checks again in the next commander cycle."""
+        self._check_t_s = -math.inf
 
     def _command(self, t_s: float, command: int, params: tuple[float, ...]) -> CommandResult:
         p1, p2, p3, _p4, _p5, _p6, p7 = (list(params) + [math.nan] * 7)[:7]
@@ -209,6 +232,7 @@ class Px4:
             if not forced and self.mode in (Mode.AUTO_LAND, Mode.AUTO_RTL):
                 return CommandResult(TEMPORARILY_REJECTED, "Arming denied: mode not armable")
             self.armed = True
+            self._status_changed()
             self._armed_t_s = t_s
             self.has_flown = not self.landed
             self._landed_since_t_s = t_s if self.landed else math.inf
@@ -247,7 +271,10 @@ class Px4:
             return CommandResult(TEMPORARILY_REJECTED, "Rejecting mode switch cmd")
         if target is self.mode:
             return CommandResult(ACCEPTED)
-        if target is Mode.OFFBOARD and self.armed and not self.signal_fresh(t_s):
+        # judged on the last health check's verdict (HEALTH_CHECK_PERIOD_S), and never on a
+        # signal lost since
+        if target is Mode.OFFBOARD and self.armed and not (self.signal_checked
+                                                           and self.signal_fresh(t_s)):
             return CommandResult(TEMPORARILY_REJECTED, "Switching to Offboard denied: no signal")
         if target is Mode.AUTO_TAKEOFF and not self.landed:
             return CommandResult(TEMPORARILY_REJECTED, "Takeoff denied: already flying")
@@ -261,6 +288,7 @@ class Px4:
     # ------------------------------------------------------------------ transitions
     def _switch(self, t_s: float, mode: Mode, why: str = "") -> None:
         if mode is not self.mode:
+            self._status_changed()
             self.events.append(f"{t_s:.3f} {self.mode.label} -> {mode.label}"
                                + (f" ({why})" if why else ""))
         self.mode = mode
@@ -277,6 +305,7 @@ class Px4:
             self._rate_att = None
 
     def _disarm(self, t_s: float, why: str) -> None:
+        self._status_changed()
         self.armed = False
         self.failsafe = False
         self.events.append(f"{t_s:.3f} disarmed ({why})")
@@ -289,6 +318,7 @@ class Px4:
         dt = max(0.0, t_s - self._t_s)
         self._t_s = t_s
         self._state = state
+        self._health_check(t_s)
         was_landed = self.landed
         self.landed = state.on_ground
         if not self.landed:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from companion import ConfigError
@@ -238,7 +239,7 @@ def test_a_bad_escape_stream_in_the_config_file_is_a_clear_error(override: str,
 
 
 def test_the_escape_stream_is_read_from_the_config_file() -> None:
-    assert load_config().offboard.preflight_escape_stream_s == 0.25
+    assert load_config().offboard.preflight_escape_stream_s == 0.15
     assert load_config(overrides=["offboard.preflight_escape_stream_s=0.5"]
                        ).offboard.preflight_escape_stream_s == 0.5
 
@@ -307,3 +308,62 @@ def test_reengage_waits_for_the_air_too() -> None:
         m.on_streamed(2.0 + 0.05 * i)
         assert m.step(2.0 + 0.05 * i) == []
     assert m.held is not None and "ON_GROUND" in m.held
+
+
+@pytest.mark.parametrize("phase_s", [0.0, 0.002, 0.005, 0.008])
+def test_the_shipped_escape_stream_meets_px4s_10_hz_check(phase_s: float) -> None:
+    """The shipped ``preflight_escape_stream_s`` against the emulated PX4, which judges a
+    DO_SET_MODE on its last health check, run at 10 Hz in a 10 ms commander loop
+    (docs/reference/px4-offboard.md section 2): whatever the phase of PX4's loop and checks
+    against our 20 Hz stream, with the camera's latency 15 ms longer for the first frame than
+    for the rest (a stream measured in frame time, sent 30 ms shorter) and the request up to
+    10 ms faster on the link than the first setpoint, the first request
+    is accepted (a refused one waits mode_retry_s, 1 s, while the target escapes)."""
+    from sim_bridge.physics.vehicle import initial_state
+    from sim_bridge.px4 import ACCEPTED, AttitudeTarget, Mode, Px4, Px4Params
+
+    cfg = load_config().offboard
+    sp = AttitudeTarget(7, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.5)
+    for start_s in np.arange(0.0, 0.1, 0.01):  # the stream's start against PX4's check grid
+        for jitter_s, cmd_ahead_s in ((0.0, 0.0), (0.0, 0.01), (0.015, 0.0), (0.015, 0.01)):
+            px4 = Px4(Px4Params(), initial_state((0, 0, -3.0)), armed=True)
+            m = OffboardManager(cfg)
+            m.on_landed_state(IN_AIR)
+            m.on_heartbeat(_hb(0.0, True, 3))
+            arrivals: list[tuple[float, str]] = []  # (time at PX4, what)
+            for k in range(40):  # frames every 50 ms; the first setpoint sent late, the rest early
+                t = 1.0 + start_s + 0.05 * k  # the frame's time: what the stream is measured in
+                sent = t + 0.06 + (jitter_s if k == 0 else -jitter_s)  # the camera's latency
+                m.on_streamed(t)
+                m.on_controller(True)
+                arrivals.append((sent + 0.002, "sp"))
+                arrivals += [(sent + 0.002 - cmd_ahead_s, "cmd") for a in m.step(t)
+                             if a.kind == "set_mode"]
+            results, tick = [], 0.0 + phase_s  # PX4's commander loop: checks, then commands
+            for t_px4, what in sorted(arrivals):
+                while tick < t_px4:
+                    px4.update(tick, px4._state)
+                    tick = round(tick + 0.01, 9)
+                if what == "sp":
+                    px4.on_attitude_target(t_px4, sp)
+                else:
+                    results.append(px4.handle_command(tick, 176, (1, 6, 0)).result)
+            assert results[:1] == [ACCEPTED], (start_s, jitter_s, cmd_ahead_s, results)
+            assert px4.mode is Mode.OFFBOARD
+
+
+def test_a_stream_in_float_frame_times_is_not_judged_one_step_short() -> None:
+    """Frame times are floats on the autopilot's clock: 37.55 - 37.40 is 0.1499999... s. A
+    0.15 s escape stream from 37.40 s is requested at 37.55 s, not a step later."""
+    cfg = OffboardConfig(preflight_stream_s=1.0, mode_retry_s=1.0, arm=False, exit_mode="hold",
+                         preflight_escape_stream_s=0.15)
+    m = OffboardManager(cfg)
+    m.on_landed_state(IN_AIR)
+    m.on_heartbeat(_hb(37.0, True, 3))
+    assert 37.55 - 37.40 < 0.15
+    acts = _stream(m, 37.40, 37.80, escaping=True)
+    assert acts == [(37.55, "set_mode")]
+    m = OffboardManager(OffboardConfig(1.0, 1.0, False, "hold"))
+    m.on_landed_state(IN_AIR)
+    m.on_heartbeat(_hb(37.0, True, 3))
+    assert _stream(m, 37.40, 38.60, escaping=False) == [(38.4, "set_mode")]

@@ -84,6 +84,27 @@ def test_offboard_applies_setpoints_only_in_offboard() -> None:
     assert math.isclose(r.s.roll_rad, 0.2, abs_tol=1e-3)
 
 
+def test_offboard_is_judged_on_the_last_10_hz_health_check() -> None:
+    """PX4 judges a DO_SET_MODE on its last health check (10 Hz, Commander::run): a request
+    in the same moment as the first setpoint is refused, one after a check has seen it is
+    accepted; never on a signal lost since that check."""
+    r = Rig()
+    r.run(0.3)  # hovering, no setpoint yet: the checks at 0, 0.1, 0.2, 0.3 saw none
+    r.px4.on_attitude_target(r.t + 0.01, att())
+    assert r.px4.handle_command(r.t + 0.02, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
+    assert r.px4.handle_command(r.t + 0.09, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
+    assert r.px4.mode is Mode.POSCTL
+    # the next check (0.1 s after the last) sees the setpoint: the request is accepted
+    assert r.px4.handle_command(r.t + 0.1, 176, (1, 6, 0)).result == ACCEPTED
+    assert r.px4.mode is Mode.OFFBOARD
+    # a verdict of "fresh" does not outlive the signal itself
+    r2 = Rig(com_of_loss_t_s=0.5)
+    r2.px4.on_attitude_target(0.0, att())
+    r2.px4.update(0.45, r2.s)
+    assert r2.px4.signal_checked  # the check at 0.45 s saw a fresh signal; it is lost at 0.5 s
+    assert r2.px4.handle_command(0.52, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
+
+
 @pytest.mark.parametrize(("act", "mode", "armed"), [
     (0, Mode.POSCTL, True), (1, Mode.ALTCTL, True), (2, Mode.STABILIZED, True),
     (3, Mode.AUTO_RTL, True), (4, Mode.AUTO_LAND, True), (5, Mode.AUTO_LOITER, True),
