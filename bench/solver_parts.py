@@ -101,7 +101,7 @@ class _Timers:
 
 
 PARTS = ("Rmpc wrapper", "guess", "certificate", "state box", "linearisation (rti_lin)",
-         "DAQP", "QP glue (numpy)", "check (rti_val)", "step glue")
+         "DAQP", "QP glue (numpy)", "check (rti_val)", "step glue", "C QP (rti_qp)")
 
 
 def _instrument(mpc: Rmpc, t: _Timers) -> None:
@@ -117,6 +117,9 @@ def _instrument(mpc: Rmpc, t: _Timers) -> None:
     rti.step = t.wrap(rti.step, "step glue")
     rti._qp = t.wrap(rti._qp, "QP glue (numpy)")
     rti._daqp = t.wrap(rti._daqp, "DAQP")
+    cstep = getattr(rti, "_cstep", None)  # (one QP in one foreign call: its parts untimed)
+    if cstep is not None:
+        cstep.run = t.wrap(cstep.run, "C QP (rti_qp)")
     for attr, label in (("_lin", "linearisation (rti_lin)"), ("_val", "check (rti_val)")):
         if hasattr(rti, attr):
             setattr(rti, attr, t.wrap(getattr(rti, attr), label))
