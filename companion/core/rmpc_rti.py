@@ -216,20 +216,24 @@ class RtiSolver:
         found = rmpc_daqp.direct(QP_ITER_LIMIT)
         self._direct = None if found is None else rmpc_daqp.DirectQp(
             *found, self._hess, self._grad, self._j_path, self._up, self._lo, self._sense)
-        # one QP as one foreign call (rmpc_rti_cstep: the same arithmetic, without Python
-        # between the parts); None: the graph form, no compiler, or no DAQP C entry
-        self._cstep: rmpc_rti_cstep.CStep | None = None
-        if self.compiled is not None and self._direct is not None \
-                and rmpc.rti_linearisation in ("loops", "recursion"):
-            self._cstep = rmpc_rti_cstep.CStep(
-                self.compiled[0].library, self.compiled[1].library, self._direct,
-                self._lin.args, self._lin.res, val, self._val.args, self._val.res,
-                (self.u_max, self._u_min, self.path_upper, self._up, self._lo))
+        self._cstep = self._c_step(val)
         self._no_box = np.zeros(n_s)
         self._x_lin = np.zeros(n_s)
         self._in_hi, self._in_lo = np.zeros(n_s, dtype=bool), np.zeros(n_s, dtype=bool)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
+
+    def _c_step(self, val: ca.Function) -> rmpc_rti_cstep.CStep | None:
+        """One QP as one foreign call (:mod:`companion.core.rmpc_rti_cstep`: the same
+        arithmetic, without Python between the parts); None: the graph form, no compiler,
+        or no DAQP C entry (the step's Python then)."""
+        if self.compiled is None or self._direct is None \
+                or self.cfg.rti_linearisation not in ("loops", "recursion"):
+            return None
+        return rmpc_rti_cstep.CStep(
+            self.compiled[0].library, self.compiled[1].library, self._direct,
+            self._lin.args, self._lin.res, val, self._val.args, self._val.res,
+            (self.u_max, self._u_min, self.path_upper, self._up, self._lo))
 
     def rows(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray) -> tuple[np.ndarray,
                                                                                np.ndarray, float]:

@@ -68,6 +68,10 @@ class CStep:
         for a in (*lin_args, *lin_res, *val_args, *val_res, *bounds):
             if a.dtype != np.float64 or not a.flags.c_contiguous:
                 raise ValueError("CStep: the arrays must be C-contiguous float64")
+        n_u, n_p = lin_args[0].size, lin_res[2].size - val_args[3].size  # (C: NUA, NC - NS)
+        if {u_max.size, u_min.size} != {n_u} or path_upper.size != n_p \
+                or {up.size, lo.size} != {n_u + n_p}:
+            raise ValueError("CStep: the bounds' sizes are not the library's")
         # rti_val's work arrays (CasADi's generated code uses arg/res beyond n_in/n_out)
         self._val_arg = (ct.c_void_p * max(int(val.sz_arg()), len(val_args)))(
             *(_address(a) for a in val_args))
@@ -75,6 +79,11 @@ class CStep:
             *(_address(a) for a in val_res))
         self._val_iw = np.zeros(max(int(val.sz_iw()), 1), dtype=np.int64)
         self._val_w = np.zeros(max(int(val.sz_w()), 1))
+        # the table rti_qp reads: 0-2 rti_lin's arguments (U, eta0, p), 3-6 its outputs
+        # (H, g, c, J_c'), 7 unused, 8-11 daqp_quadprog and its result, problem and
+        # settings, 12-16 u_max, u_min, path_upper, the QP's upper and lower bounds, 17-18
+        # the state box (rti_val's arguments 3, 4), 19-23 rti_val, its arg and res tables,
+        # its iw and w
         slots: list[int | None] = [
             *(_address(a) for a in lin_args), *(_address(a) for a in lin_res), None,
             *qp.pointers(),
@@ -92,12 +101,3 @@ class CStep:
         self.run: Callable[[int], int] = functools.partial(fn, ct.addressof(self._table))
         """``run(clip)``: one QP (``clip``: first clip the inputs to the box, the step's
         first QP); the return code of the module docstring."""
-
-
-def available(lin_library: Path) -> bool:
-    """Whether the library exports ``rti_qp`` (the ``"loops"`` and ``"recursion"`` ones)."""
-    try:
-        return hasattr(ct.CDLL(str(lin_library)), "rti_qp")
-    except OSError:
-        return False
-
