@@ -21,6 +21,10 @@ terminal rows, the same state box), linearised at the previous plan shifted by o
   of them (linearised): the QP is strictly convex, so a solution of the smaller QP that keeps
   the left-out rows is the solution of the whole one (:meth:`RtiSolver._qp`).
 
+With a compiled ``"loops"`` or ``"recursion"`` library, a QP's linearisation, bounds, DAQP,
+state-box test, update and check are one foreign call (:mod:`companion.core.rmpc_rti_cstep`,
+the same numbers bit for bit).
+
 Every plan is then rolled out through the nonlinear model and every hard row evaluated
 (:meth:`RtiSolver.step`): a row exceeded by more than ``rmpc.rti_tol`` (natural units),
 or a QP that failed, re-linearises at the QP's solution (up to ``rmpc.rti_max_qp`` QPs, and
