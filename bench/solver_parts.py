@@ -8,8 +8,9 @@ plain (the total per step, wall and this thread's CPU time), once with the parts
 timers (exclusive CPU time of each part: the guess, the infeasibility certificate, the state
 box, the compiled linearisation, DAQP, the QP's numpy glue, the compiled check, the step's
 glue, and the rest of ``Rmpc.solve``; with the C step, ``rti_qp``, one call for a QP's
-linearisation, DAQP, glue and check, which are then not timed apart). The timers add ~1 us per wrapped call; the plain run
-is the figure to compare with the target, the parts say where it goes.
+linearisation, DAQP, glue and check, which are then not timed apart). The timers add ~1 us
+per wrapped call; the plain run is the figure to compare with the target, the parts say
+where it goes.
 """
 
 from __future__ import annotations
