@@ -234,10 +234,14 @@ class RtiSolver:
         if self.compiled is None or self._direct is None \
                 or self.cfg.rti_linearisation not in ("loops", "recursion"):
             return None
-        return rmpc_rti_cstep.CStep(
-            self.compiled[0].library, self.compiled[1].library, self._direct,
-            self._lin.args, self._lin.res, val, self._val.args, self._val.res,
-            (self.u_max, self._u_min, self.path_upper, self._up, self._lo))
+        try:
+            return rmpc_rti_cstep.CStep(
+                self.compiled[0].library, self.compiled[1].library, self._direct,
+                self._lin.args, self._lin.res, val, self._val.args, self._val.res,
+                (self.u_max, self._u_min, self.path_upper, self._up, self._lo))
+        except (OSError, AttributeError) as exc:  # (no rti_qp: the Python step's numbers
+            log.warning("the RTI's C step not used (%s): the Python step", exc)  # are equal)
+            return None
 
     def rows(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray) -> tuple[np.ndarray,
                                                                                np.ndarray, float]:
