@@ -16,8 +16,9 @@ table built here once:
    call as :meth:`~companion.core.rmpc_daqp.DirectQp.solve`);
 4. the state box, linearised, ``lo <= J_x du + c_x <= hi``: the Python step decides it on
    numpy's product (BLAS: its summation order is the library's). Here a row passes only if
-   it holds with a margin of ``1e-12 (sum |J_x du| + |c_x|)``, ~70 times any summation
-   order's rounding (``2 gamma_64 sum |J_x du|`` plus the addition's), so that numpy's
+   it holds with a margin of ``1e-12 (sum |J_x du| + |c_x|) + 1e-300``, ~70 times any
+   summation order's rounding (``2 gamma_64 sum |J_x du|`` plus the addition's; the
+   absolute term: products below the normal range, which round absolutely), so that numpy's
    number passes too; a failed QP, or any row not clearly inside, returns to Python, which
    decides exactly as before (the whole QP with the state box's rows, or its failure);
 5. ``U += du`` clipped to the input box (``np.maximum`` then ``np.minimum``: a NaN stays);

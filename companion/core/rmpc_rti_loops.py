@@ -221,7 +221,7 @@ CASADI_SYMBOL_EXPORT int rti_qp(void* const* t, int clip) {
       a += fabs(p);
     }
     xl = d + cv[i];
-    m = 1e-12 * (a + fabs(cv[i]));
+    m = 1e-12 * (a + fabs(cv[i])) + 1e-300; /* (+: products below the normal range) */
     if (!(xl + m <= hix[i] && xl - m >= lox[i])) return 1;
   }
   for (i = 0; i < NUA; ++i) {
