@@ -80,6 +80,22 @@ class DirectQp:
         self._args = (ct.byref(self._result), ct.byref(self._problem), ct.byref(settings))
         self._fn = fn
 
+    def pointers(self) -> tuple[int, int, int, int]:
+        """The addresses of ``daqp_quadprog`` and of its result, problem and settings structs
+        (the arguments of :meth:`solve`'s call, for a caller in C:
+        :mod:`companion.core.rmpc_rti_cstep`)."""
+        fn = ct.cast(self._fn, ct.c_void_p).value
+        if fn is None:
+            raise ValueError("DirectQp: daqp_quadprog has no address")
+        return (fn, ct.addressof(self._result), ct.addressof(self._problem),
+                ct.addressof(self._settings))
+
+    @property
+    def result(self) -> _Result:
+        """DAQP's result struct (``exitflag``, ``iter``) of the last QP, whoever called DAQP
+        on these structs."""
+        return self._result
+
     def solve(self) -> tuple[np.ndarray, int, int]:
         """(solution, exit flag, iterations): ``daqp.solve``'s ``x``, ``exitflag`` and
         ``info["iterations"]``."""

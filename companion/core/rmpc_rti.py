@@ -21,6 +21,10 @@ terminal rows, the same state box), linearised at the previous plan shifted by o
   of them (linearised): the QP is strictly convex, so a solution of the smaller QP that keeps
   the left-out rows is the solution of the whole one (:meth:`RtiSolver._qp`).
 
+With a compiled ``"loops"`` or ``"recursion"`` library, a QP's linearisation, bounds, DAQP,
+state-box test, update and check are one foreign call (:mod:`companion.core.rmpc_rti_cstep`,
+the same numbers bit for bit).
+
 Every plan is then rolled out through the nonlinear model and every hard row evaluated
 (:meth:`RtiSolver.step`): a row exceeded by more than ``rmpc.rti_tol`` (natural units),
 or a QP that failed, re-linearises at the QP's solution (up to ``rmpc.rti_max_qp`` QPs, and
@@ -43,7 +47,13 @@ import casadi as ca
 import daqp
 import numpy as np
 
-from companion.core import rmpc_daqp, rmpc_rti_gen, rmpc_rti_loops, rmpc_rti_recursion
+from companion.core import (
+    rmpc_daqp,
+    rmpc_rti_cstep,
+    rmpc_rti_gen,
+    rmpc_rti_loops,
+    rmpc_rti_recursion,
+)
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import (
     CompiledNlp,
@@ -210,11 +220,28 @@ class RtiSolver:
         found = rmpc_daqp.direct(QP_ITER_LIMIT)
         self._direct = None if found is None else rmpc_daqp.DirectQp(
             *found, self._hess, self._grad, self._j_path, self._up, self._lo, self._sense)
+        self._cstep = self._c_step(val)
         self._no_box = np.zeros(n_s)
         self._x_lin = np.zeros(n_s)
         self._in_hi, self._in_lo = np.zeros(n_s, dtype=bool), np.zeros(n_s, dtype=bool)
         self.calls = 0  # QPs solved (tests)
         self.full_qps = 0  # QPs solved again with the state box's rows (tests, bench)
+
+    def _c_step(self, val: ca.Function) -> rmpc_rti_cstep.CStep | None:
+        """One QP as one foreign call (:mod:`companion.core.rmpc_rti_cstep`: the same
+        arithmetic, without Python between the parts); None: the graph form, no compiler,
+        or no DAQP C entry (the step's Python then)."""
+        if self.compiled is None or self._direct is None \
+                or self.cfg.rti_linearisation not in ("loops", "recursion"):
+            return None
+        try:
+            return rmpc_rti_cstep.CStep(
+                self.compiled[0].library, self.compiled[1].library, self._direct,
+                self._lin.args, self._lin.res, val, self._val.args, self._val.res,
+                (self.u_max, self._u_min, self.path_upper, self._up, self._lo))
+        except (OSError, AttributeError) as exc:  # (no rti_qp: the Python step's numbers
+            log.warning("the RTI's C step not used (%s): the Python step", exc)  # are equal)
+            return None
 
     def rows(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray) -> tuple[np.ndarray,
                                                                                np.ndarray, float]:
@@ -255,13 +282,27 @@ class RtiSolver:
         # the plan u, eta0 and par in the compiled functions' own argument arrays (shared by
         # both: no copy per call); the outcome gets a copy of u
         u = self._u
-        np.minimum(np.maximum(u_guess.ravel(), u_min, out=u), u_max, out=u)
+        cstep = self._cstep
+        if cstep is None:
+            np.minimum(np.maximum(u_guess.ravel(), u_min, out=u), u_max, out=u)
+        else:
+            u[:] = u_guess.ravel()  # (rti_qp clips it on the first QP)
         self._eta0[:] = eta0
         self._par[:] = par
+        self._lo_x[:] = state_lo  # (rti_val's box; rows() writes no box there: again below)
+        self._hi_x[:] = state_hi
         iters, qps = 0, 0
         status, viol = "rti: no QP", math.inf
         for _ in range(self.cfg.rti_max_qp):
-            du, flag, it = self._qp(u, self._eta0, self._par, state_lo, state_hi)
+            if cstep is not None:  # (u, eta0, par in the functions' arrays: written above)
+                self.calls += 1
+                code = cstep.run(qps == 0)
+                flag, it = cstep.result.exitflag, cstep.result.iter
+                if code:  # (DAQP failed, or the state box is for numpy to decide)
+                    du, flag, it = self._c_rest(code, flag, it, state_lo, state_hi)
+            else:
+                code = 1
+                du, flag, it = self._qp(u, self._eta0, self._par, state_lo, state_hi)
             qps += 1
             iters += it
             if flag not in DAQP_OPTIMAL:
@@ -269,17 +310,18 @@ class RtiSolver:
                 return RtiOutcome(False, f"rti: QP {qps} failed (daqp exit flag {flag})",
                                   eta, self._u_plan.copy(), math.nan, iters,
                                   qps, math.inf)
-            u += du
-            np.minimum(np.maximum(u, u_min, out=u), u_max, out=u)
-            self._lo_x[:] = state_lo  # (each time: rows() below writes no box there)
-            self._hi_x[:] = state_hi
-            self._val()
+            if code:  # (else rti_qp added du, clipped and checked)
+                u += du
+                np.minimum(np.maximum(u, u_min, out=u), u_max, out=u)
+                self._val()
             previous, viol = viol, float(self._excess[0])
             if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
                 return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
                                   self._states(), self._u_plan.copy(),
                                   float(self._f[0]), iters, qps, viol)
             worst = self._worst_row(u.copy(), eta0, par, state_lo, state_hi)
+            self._lo_x[:] = state_lo
+            self._hi_x[:] = state_hi
             status = (f"rti: rejected after {qps} QP ({worst} exceeded by {viol:.3g} > "
                       f"rmpc.rti_tol = {self.cfg.rti_tol:g})")
             if qps >= 2 and not viol < previous:
@@ -287,6 +329,16 @@ class RtiSolver:
         return RtiOutcome(False, status, self._states(),
                           self._u_plan.copy(), float(self._f[0]), iters, qps,
                           viol)
+
+    def _c_rest(self, code: int, flag: int, iters: int, state_lo: np.ndarray,
+                state_hi: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """After ``rti_qp`` returned ``code`` (not 0): raise on a failed evaluation, else the
+        rest of :meth:`_qp` on the C entry's QP solution (a copy, as ``DirectQp.solve``)."""
+        if code < 0:
+            raise RuntimeError(f"rti_qp: {'rti_lin' if code == -1 else 'rti_val'}: "
+                               "evaluation failed")
+        assert self._direct is not None
+        return self._qp_box(self._direct.x.copy(), flag, iters, state_lo, state_hi)
 
     def _worst_row(self, u: np.ndarray, eta0: np.ndarray, par: np.ndarray,
                    state_lo: np.ndarray, state_hi: np.ndarray) -> str:
@@ -326,6 +378,14 @@ class RtiSolver:
         np.subtract(self._u_min, u, out=self._lo_u)
         np.subtract(self.path_upper, self._c_p, out=self._up_p)
         du, flag, iters = self._daqp(self._j_path, up, lo)
+        return self._qp_box(du, flag, iters, state_lo, state_hi)
+
+    def _qp_box(self, du: np.ndarray, flag: int, iters: int, state_lo: np.ndarray,
+                state_hi: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """The rest of :meth:`_qp` after the QP without the state box's rows (its solution
+        ``du``, exit flag, iterations): that solution if it keeps the state box, else the
+        whole QP's."""
+        up, lo = self._up, self._lo
         if flag == DAQP_INFEASIBLE:
             return du, flag, iters  # more rows cannot make an infeasible QP feasible
         if flag in DAQP_OPTIMAL:

@@ -178,6 +178,62 @@ CASADI_SYMBOL_EXPORT int rti_lin_work(casadi_int* sz_arg, casadi_int* sz_res,
   if (sz_w) *sz_w = 0;
   return 0;
 }
+
+/* One QP of the RTI step without Python between its parts (companion.core.rmpc_rti_cstep:
+   the table's layout, why each part is the Python step's arithmetic bit for bit) */
+typedef int (*rti_val_t)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
+typedef void (*rti_daqp_t)(void*, void*, void*);
+typedef struct { /* DAQPResult of daqp 0.11.0 (companion.core.rmpc_daqp._Result) */
+  casadi_real *x, *lam, fval, soft_slack;
+  int exitflag, iter, nodes;
+  casadi_real solve_time, setup_time;
+} rti_daqp_result_t;
+
+CASADI_SYMBOL_EXPORT int rti_qp(void* const* t, int clip) {
+  casadi_real *U = (casadi_real*)t[0], *cv = (casadi_real*)t[5], *Jc = (casadi_real*)t[6];
+  const casadi_real *umax = (const casadi_real*)t[12], *umin = (const casadi_real*)t[13],
+      *pup = (const casadi_real*)t[14], *lox = (const casadi_real*)t[17],
+      *hix = (const casadi_real*)t[18];
+  casadi_real *up = (casadi_real*)t[15], *lo = (casadi_real*)t[16];
+  rti_daqp_result_t* qp = (rti_daqp_result_t*)t[9];
+  const casadi_real* du;
+  int i, k;
+  for (i = 0; clip && i < NUA; ++i) { /* the guess into the input box (as below) */
+    if (U[i] < umin[i]) U[i] = umin[i];
+    if (U[i] > umax[i]) U[i] = umax[i];
+  }
+  if (rti_lin((const casadi_real**)t, (casadi_real**)t + 3, 0, 0, 0)) return -1;
+  for (i = 0; i < NUA; ++i) { up[i] = umax[i] - U[i]; lo[i] = umin[i] - U[i]; }
+  for (i = NS; i < NC; ++i) up[NUA + i - NS] = pup[i - NS] - cv[i];
+  ((rti_daqp_t)t[8])(t[9], t[10], t[11]);
+  if (qp->exitflag != 1 && qp->exitflag != 2) return 1;
+  du = qp->x;
+  /* the state box, linearised: only a row inside by far more than any summation order's
+     rounding of J_x du + c_x passes here; the others are decided by the Python step */
+  for (i = 0; i < NS; ++i) {
+    const casadi_real* J = Jc + i * NUA;
+    casadi_real d = 0., a = 0., xl, m;
+    /* (stage i / NX + 1's row depends on the inputs up to that stage: the rest are the
+       +0 rti_rows writes, +-0 terms, which change neither sum) */
+    for (k = 0; k < NU * (i / NX + 1); ++k) {
+      casadi_real p = J[k] * du[k];
+      d += p;
+      a += fabs(p);
+    }
+    xl = d + cv[i];
+    m = 1e-12 * (a + fabs(cv[i])) + 1e-300; /* (+: products below the normal range) */
+    if (!(xl + m <= hix[i] && xl - m >= lox[i])) return 1;
+  }
+  for (i = 0; i < NUA; ++i) {
+    casadi_real v = U[i] + du[i];
+    if (v < umin[i]) v = umin[i]; /* np.maximum, np.minimum: NaN stays */
+    if (v > umax[i]) v = umax[i];
+    U[i] = v;
+  }
+  if (((rti_val_t)t[19])((const casadi_real**)t[20], (casadi_real**)t[21],
+                         (casadi_int*)t[22], (casadi_real*)t[23], 0)) return -2;
+  return 0;
+}
 """
 """The condensing (module docstring); :func:`lin_source` defines its sizes and tables."""
 

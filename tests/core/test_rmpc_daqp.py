@@ -25,7 +25,7 @@ def pair():  # type: ignore[no-untyped-def]
     design = design_terminal(cfg.rmpc, cfg.camera)
     direct, package = (Rmpc(cfg.rmpc, cfg.camera, design) for _ in range(2))
     assert direct._rti is not None and package._rti is not None
-    package._rti._direct = None  # daqp.solve
+    package._rti._direct = package._rti._cstep = None  # daqp.solve
     return direct, package
 
 
@@ -40,26 +40,40 @@ def test_every_qp_is_daqp_solves_bit_for_bit(pair) -> None:  # type: ignore[no-u
     direct = pair[0]
     rti = direct._rti
     seen: list[tuple[int, int]] = []
-    solve = rti._direct.solve
+    cstep = rti._cstep  # (the default form's QPs go through rti_qp, which calls DAQP in C)
+    assert cstep is not None
+    run = cstep.run
 
-    def both() -> tuple[np.ndarray, int, int]:
-        mine = solve()
+    def check() -> None:
+        res = rti._direct.result
         x, _, flag, info = daqp.solve(rti._hess, rti._grad, rti._j_path, rti._up, rti._lo,
                                       rti._sense, iter_limit=QP_ITER_LIMIT)
-        assert np.array_equal(mine[0], np.asarray(x))
-        assert mine[1:] == (int(flag), int(info["iterations"]))
-        seen.append(mine[1:])
-        return mine
+        assert np.array_equal(rti._direct.x, np.asarray(x))
+        assert (res.exitflag, res.iter) == (int(flag), int(info["iterations"]))
+        seen.append((res.exitflag, res.iter))
 
-    rti._direct.solve = both
+    def both(clip: int) -> int:
+        code = run(clip)
+        check()
+        return code
+
+    cstep.run = both
     try:
         for pose in POSES:
             direct.reset()
             closed_loop(direct, initial_error(*pose), 60, 1e-4, 1)
+        # and through DirectQp.solve (the step without the C entry's rti_qp)
+        rti._cstep = None
+        solve = rti._direct.solve
+        rti._direct.solve = lambda: (solve(), check())[0]
+        direct.reset()
+        closed_loop(direct, initial_error(*POSES[1]), 60, 1e-4, 1)
     finally:
-        del rti._direct.solve
+        rti._cstep = cstep
+        cstep.run = run
+        rti._direct.__dict__.pop("solve", None)
     flags = {flag for flag, _ in seen}
-    assert {1, -1} <= flags and len(seen) > 100
+    assert {1, -1} <= flags and len(seen) > 150
     assert max(it for _, it in seen) > 1
 
 
