@@ -53,7 +53,7 @@ hard problem's terminal set at its own terminal level (``build_nlp``'s ``goal``,
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -63,6 +63,9 @@ from companion.core.dynamics import S_REF, euler_step, input_error
 from companion.core.geometry import attitude_from_accel, visible_area_centre
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.terminal import TerminalDesign, tilt_limits
+
+if TYPE_CHECKING:
+    from companion.core.rmpc_memo import Nlp
 
 NX = 7
 NU = 4
@@ -235,8 +238,25 @@ def build_nlp(
     rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
     row_design: tuple[RmpcParams, TerminalDesign] | None = None,
     goal: tuple[np.ndarray, float] | None = None,
+) -> tuple[Nlp, Layout]:
+    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``, ``goal``: module doc.
+    The expressions are built when first read: a problem built before (the same arguments,
+    the same code) gets its layout and graph digest from ``rmpc.cache_dir``
+    (:mod:`companion.core.rmpc_memo`)."""
+    from companion.core.rmpc_memo import memoized_nlp
+
+    def build() -> tuple[dict[str, ca.SX], Layout]:
+        return _expressions(rmpc, camera, terminal, soft, row_design, goal)
+
+    return memoized_nlp(build, rmpc.cache_dir, (rmpc, camera, terminal, soft, row_design, goal))
+
+
+def _expressions(
+    rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
+    row_design: tuple[RmpcParams, TerminalDesign] | None,
+    goal: tuple[np.ndarray, float] | None,
 ) -> tuple[dict[str, ca.SX], Layout]:
-    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``, ``goal``: module doc."""
+    """:func:`build_nlp`'s expressions, derived now."""
     row_rmpc, row_terminal = row_design or (rmpc, terminal)
     big_n = rmpc.horizon
     q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)
