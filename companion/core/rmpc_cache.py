@@ -35,6 +35,7 @@ from typing import Any
 import casadi as ca
 
 from companion.core.errors import CoreError
+from companion.core.rmpc_memo import graph_digest
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +75,6 @@ def problem_key(nlp: Mapping[str, Any], tag: str, options: str) -> str:
     when the problem was built before), ``tag``, the solver ``options`` (their ``repr``), the
     CasADi version, the oracle functions and the flags: what the generated source is a
     function of."""
-    from companion.core.rmpc_memo import graph_digest
-
     h = hashlib.sha256(b"graph-digest\0" + graph_digest(nlp).encode())
     for part in (tag, options, str(getattr(ca, "__version__", "?")), " ".join(ORACLE_FUNCTIONS),
                  " ".join(COMPILER_FLAGS)):

@@ -30,7 +30,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from companion.core.rmpc_problem import Layout, Row
+from companion.core.rmpc_layout import Layout, Row
 
 log = logging.getLogger(__name__)
 

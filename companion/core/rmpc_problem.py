@@ -52,8 +52,7 @@ hard problem's terminal set at its own terminal level (``build_nlp``'s ``goal``,
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -62,45 +61,16 @@ from companion.core._backend import is_symbolic, xp
 from companion.core.dynamics import S_REF, euler_step, input_error
 from companion.core.geometry import attitude_from_accel, visible_area_centre
 from companion.core.params import CameraParams, RmpcParams
+from companion.core.rmpc_layout import Layout as Layout  # (re-exported: its users import it here)
+from companion.core.rmpc_layout import Row as Row
+from companion.core.rmpc_memo import Nlp, memoized_nlp
 from companion.core.terminal import TerminalDesign, tilt_limits
-
-if TYPE_CHECKING:
-    from companion.core.rmpc_memo import Nlp
 
 NX = 7
 NU = 4
 NP_STAGE = 8
 GROUPS = ("tube", "visibility", "terminal")
 NP_SOFT_EXTRA = NU + 1  # soft copy only: u_prev (4), w_du
-
-
-@dataclass(frozen=True)
-class Row:
-    """One soft-able path-constraint row: group, stage, g index, bound on g, slack index."""
-
-    group: str
-    kind: str  # "tube", "visibility", "corner", "terminal_set", "terminal_visibility"
-    stage: int
-    g_index: int
-    upper: float
-    slack_index: int | None
-    corner: int = -1  # which target corner a "corner" row keeps in view
-
-
-@dataclass(frozen=True)
-class Layout:
-    """Index bookkeeping of one NLP (hard or soft)."""
-
-    horizon: int
-    soft: bool
-    n_w: int
-    n_g: int
-    x_index: np.ndarray  # (N+1, 7) indices into w
-    u_index: np.ndarray  # (N, 4)
-    gap_index: np.ndarray  # (N, 7) indices into g
-    rows: tuple[Row, ...]
-    equality: tuple[bool, ...]
-    slack_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 def tube_bound(rmpc: RmpcParams, n: int) -> float:
@@ -243,8 +213,6 @@ def build_nlp(
     The expressions are built when first read: a problem built before (the same arguments,
     the same code) gets its layout and graph digest from ``rmpc.cache_dir``
     (:mod:`companion.core.rmpc_memo`)."""
-    from companion.core.rmpc_memo import memoized_nlp
-
     def build() -> tuple[dict[str, ca.SX], Layout]:
         return _expressions(rmpc, camera, terminal, soft, row_design, goal)
 
