@@ -1,12 +1,14 @@
 """Replay speed against the flight's own duration (issue: logs a user can keep and replay).
 
-    python bench/replay.py [LOG.mcap] [--duration 60] [--json]
+    python bench/replay.py [LOG.mcap] [--duration 60] [--json] [--write-log]
 
 Without a log it first flies the paper scenario for ``--duration`` simulated seconds (lockstep,
 the config's logging: crops of what perception read by default) and replays that. Three ways:
 exact (perception in a second process, the default of ``companion replay``), exact in one
-process, and ``--from-detections`` (controller only). For each: wall time, CPU time (this
-process and the perception worker, getrusage), steady CPU per step, the ratio to the flight's
+process, and ``--from-detections`` (controller only), comparing only as ``companion replay``
+does without ``--out`` (``--write-log``: writing the replay's log too, as with it). For each:
+wall time, CPU time (this process and the perception worker, getrusage), steady CPU per step,
+the ratio to the flight's
 duration (targets: exact >= 20x, from detections >= 100x), the start-up (the call to the first
 step: reading the config, the terminal design, the NLP build or solver load, the perception
 worker) and whether every command matched. CPU of a child process (the perception worker, a
@@ -85,6 +87,8 @@ def main() -> int:
     ap.add_argument("log", type=Path, nargs="?")
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--write-log", action="store_true",
+                    help="write the replay's log, as `companion replay --out DIR` does")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for the flight (when no LOG is given)")
     args = ap.parse_args()
@@ -98,10 +102,15 @@ def main() -> int:
     flight_s = ((ch.last_log_time_ns or 0) - (ch.first_log_time_ns or 0)) * 1e-9
     out: dict[str, Any] = {"log": str(log), "log_bytes": log.stat().st_size,
                            "flight_s": flight_s, "load_1min_before": os.getloadavg()[0]}
-    # as `companion replay` runs: writing the replay's log (its report reads it)
-    out["exact_worker"] = measure(log, flight_s, tmp / "exact.mcap", workers=1)
-    out["exact_in_process"] = measure(log, flight_s, tmp / "one.mcap", workers=0)
-    out["from_detections"] = measure(log, flight_s, tmp / "fd.mcap", from_detections=True)
+    # as `companion replay` runs: without --out, comparing only; with it (--write-log here)
+    # writing the replay's log too (its report reads it)
+    def log_to(name: str) -> Path | None:
+        return tmp / name if args.write_log else None
+
+    out["writes_log"] = args.write_log
+    out["exact_worker"] = measure(log, flight_s, log_to("exact.mcap"), workers=1)
+    out["exact_in_process"] = measure(log, flight_s, log_to("one.mcap"), workers=0)
+    out["from_detections"] = measure(log, flight_s, log_to("fd.mcap"), from_detections=True)
     out["load_1min_after"] = os.getloadavg()[0]
     out["targets"] = {"exact": 20.0, "from_detections": 100.0}
     if args.json:

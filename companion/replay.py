@@ -20,22 +20,24 @@ import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, load_config, with_overrides
-from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP, TOPIC_TRUTH
 from companion.control.timebase import TimeBase
+from companion.control.topics import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP, TOPIC_TRUTH
 from companion.control.wiring import new_pipeline, new_store
 from companion.log import schemas as sch
 from companion.log.encode import decode_json_object
 from companion.log.reader import LogReader
-from companion.log.writer import McapLogger
 from companion.perception import Perception, PerceptionResult
 from companion.replay_inputs import Perceived, ReplayInputError, input_mode
 from companion.replay_stream import StepInput, StreamWorker, perception_result, step_inputs
+
+if TYPE_CHECKING:  # (loaded when a replay writes its log: the MCAP writer's imports)
+    from companion.log.writer import McapLogger
 
 log = logging.getLogger(__name__)
 
@@ -201,6 +203,8 @@ def _replay(reader: LogReader, log_path: Path, out_path: Path | None, config: Pa
     try:
         rp = _Replayer(cfg, log_path, res, timer, progress, counts.get(TOPIC_STEP, 0))
         if out_path is not None:
+            from companion.log.writer import McapLogger
+
             writer = McapLogger(out_path, flush_interval_s=5.0, queue_size=1 << 16)
             writer.open()
             writer.log_config(0, "", dict(cfg.raw), cfg.source)

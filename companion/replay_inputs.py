@@ -30,7 +30,7 @@ import numpy as np
 
 from companion import CompanionError
 from companion.config import Config
-from companion.control.recording import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP
+from companion.control.topics import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP
 from companion.log.encode import decode_json_object
 from companion.log.reader import LogReader, image_from_raw
 from companion.perception import Perception, PerceptionResult

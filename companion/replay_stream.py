@@ -20,13 +20,12 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink2
 
 from companion import CompanionError
 from companion.config import Config, config_from_dict
-from companion.control.recording import TOPIC_STEP, TOPIC_TRUTH
 from companion.control.telemetry import TelemetryStore
 from companion.control.timebase import STAMPED_MESSAGES
+from companion.control.topics import TOPIC_STEP, TOPIC_TRUTH
 from companion.log.encode import decode_json_object
 from companion.log.reader import LogReader
 from companion.perception import Perception, PerceptionResult
@@ -84,8 +83,15 @@ class _Messages:
     def __init__(self) -> None:
         self.queue: deque[tuple[str, int, bytes]] = deque()
         self.seen = 0
-        self.parser = mavlink2.MAVLink(None)
-        self.parser.robust_parsing = True
+        self.parser: Any = None  # made when a logged message must be decoded from its bytes
+
+    def _raw_parser(self) -> Any:
+        if self.parser is None:  # (pymavlink's dialect: ~0.05-0.15 s to import)
+            from pymavlink.dialects.v20 import common as mavlink2
+
+            self.parser = mavlink2.MAVLink(None)
+            self.parser.robust_parsing = True
+        return self.parser
 
     def ready(self, rec: Mapping[str, Any]) -> bool:
         return self.seen + len(self.queue) >= int(rec.get("rx_count", 0))
@@ -109,7 +115,7 @@ class _Messages:
         if (not isinstance(fields, dict) or not isinstance(sysid, int)
                 or any(v is None for v in fields.values())):
             # the logged fields lost something (JSON has no NaN): decode the raw bytes
-            msg = _decode_raw(self.parser, base64.b64decode(data.get("raw_b64", "")))
+            msg = _decode_raw(self._raw_parser(), base64.b64decode(data.get("raw_b64", "")))
             if msg is None:
                 return None
             fields, name, sysid = msg.to_dict(), msg.get_type(), msg.get_srcSystem()

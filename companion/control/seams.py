@@ -17,14 +17,17 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from types import TracebackType
-from typing import Protocol, Self, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, Self, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion.camera import CameraFrame
 from companion.core.rmpc import RmpcResult, TargetMotion
 from companion.perception import PerceptionResult
+
+if TYPE_CHECKING:  # (the camera package loads asyncio and the capture back-ends: a replay
+    # needs neither)
+    from companion.camera import CameraFrame
 
 
 @runtime_checkable

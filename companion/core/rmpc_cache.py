@@ -11,9 +11,11 @@ that is renamed atomically, so concurrent processes never load a half-written li
 
 Generating the source only to find its key costs ~1 s of CPU per library (CasADi derives the
 Hessian and Jacobians first): too much for a replay that starts many times. So a cheaper
-*problem key* (the serialized NLP expression graph, the solver's options, the CasADi version and
-the flags: ~10 ms) names a small alias file ``rmpc_<tag>_<problem key>.alias`` holding the
-library's file name, written once the library exists. A later start with the same problem
+*problem key* (the digest of the serialized NLP expression graph, the solver's options, the
+CasADi version and the flags: ~10 ms, or nothing for a problem built before, whose digest
+:mod:`companion.core.rmpc_memo` keeps) names a small alias file
+``rmpc_<tag>_<problem key>.alias`` holding the library's file name, written once the library
+exists. A later start with the same problem
 reads the alias and loads the library without generating anything. The generated source
 depends only on what the problem key hashes, so the alias can only point to the library that
 generating would have found; a missing or dangling alias falls back to generating.
@@ -25,13 +27,15 @@ import hashlib
 import logging
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 
 from companion.core.errors import CoreError
+from companion.core.rmpc_memo import graph_digest
 
 log = logging.getLogger(__name__)
 
@@ -65,13 +69,13 @@ def cache_key(source: str, flags: tuple[str, ...] = COMPILER_FLAGS) -> str:
     return h.hexdigest()[:24]
 
 
-def problem_key(nlp: dict[str, ca.SX], tag: str, options: str) -> str:
-    """SHA-256 (first 24 hex digits) of the NLP's expression graph (x, p -> f, g, serialized),
-    ``tag``, the solver ``options`` (their ``repr``), the CasADi version, the oracle functions
-    and the flags: what the generated source is a function of."""
-    h = hashlib.sha256()
-    oracle = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]])
-    h.update(oracle.serialize().encode())
+def problem_key(nlp: Mapping[str, Any], tag: str, options: str) -> str:
+    """SHA-256 (first 24 hex digits) of the NLP's expression graph (the digest of x, p -> f,
+    g serialized: :func:`companion.core.rmpc_memo.graph_digest`, known without the graph
+    when the problem was built before), ``tag``, the solver ``options`` (their ``repr``), the
+    CasADi version, the oracle functions and the flags: what the generated source is a
+    function of."""
+    h = hashlib.sha256(b"graph-digest\0" + graph_digest(nlp).encode())
     for part in (tag, options, str(getattr(ca, "__version__", "?")), " ".join(ORACLE_FUNCTIONS),
                  " ".join(COMPILER_FLAGS)):
         h.update(b"\0" + part.encode())
@@ -79,7 +83,7 @@ def problem_key(nlp: dict[str, ca.SX], tag: str, options: str) -> str:
 
 
 def compiled_nlp(solver: ca.Function | Callable[[], ca.Function], cache_dir: str, tag: str,
-                 nlp: dict[str, ca.SX] | None = None, options: str = "") -> CompiledNlp:
+                 nlp: Mapping[str, Any] | None = None, options: str = "") -> CompiledNlp:
     """The shared library holding ``solver``'s oracle functions, compiling it on a cache miss.
 
     ``solver`` is an ``nlpsol`` built from symbolic expressions (not yet compiled), or a

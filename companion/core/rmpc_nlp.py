@@ -87,15 +87,17 @@ class NlpSolver:
         self.compiled: CompiledNlp | None = None
         if rmpc.jit:
             # the symbolic solver is built only if the source must be generated (cache miss)
-            self.compiled = compiled_nlp(lambda: ca.nlpsol(name, solver, nlp, opts),
-                                         rmpc.cache_dir, f"{solver}_{self.kind}", nlp=nlp,
-                                         options=repr(sorted(opts.items())))
+            # (the expressions too: a problem built before knows its layout and digest,
+            # companion/core/rmpc_memo.py)
+            self.compiled = compiled_nlp(
+                lambda: ca.nlpsol(name, solver, nlp.expressions(), opts), rmpc.cache_dir,
+                f"{solver}_{self.kind}", nlp=nlp, options=repr(sorted(opts.items())))
             try:
                 self.solver = ca.nlpsol(name, solver, str(self.compiled.library), opts)
             except RuntimeError as exc:
                 raise RmpcBuildError(f"loading {self.compiled.library}: {exc}") from exc
         else:
-            self.solver = ca.nlpsol(name, solver, nlp, opts)
+            self.solver = ca.nlpsol(name, solver, nlp.expressions(), opts)
         # bounds templates (the parts that never change)
         nw, ng = layout.n_w, layout.n_g
         self.lbx = np.full(nw, -np.inf)

@@ -52,7 +52,6 @@ hard problem's terminal set at its own terminal level (``build_nlp``'s ``goal``,
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any
 
 import casadi as ca
@@ -62,6 +61,9 @@ from companion.core._backend import is_symbolic, xp
 from companion.core.dynamics import S_REF, euler_step, input_error
 from companion.core.geometry import attitude_from_accel, visible_area_centre
 from companion.core.params import CameraParams, RmpcParams
+from companion.core.rmpc_layout import Layout as Layout  # (re-exported: its users import it here)
+from companion.core.rmpc_layout import Row as Row
+from companion.core.rmpc_memo import Nlp, memoized_nlp
 from companion.core.terminal import TerminalDesign, tilt_limits
 
 NX = 7
@@ -69,35 +71,6 @@ NU = 4
 NP_STAGE = 8
 GROUPS = ("tube", "visibility", "terminal")
 NP_SOFT_EXTRA = NU + 1  # soft copy only: u_prev (4), w_du
-
-
-@dataclass(frozen=True)
-class Row:
-    """One soft-able path-constraint row: group, stage, g index, bound on g, slack index."""
-
-    group: str
-    kind: str  # "tube", "visibility", "corner", "terminal_set", "terminal_visibility"
-    stage: int
-    g_index: int
-    upper: float
-    slack_index: int | None
-    corner: int = -1  # which target corner a "corner" row keeps in view
-
-
-@dataclass(frozen=True)
-class Layout:
-    """Index bookkeeping of one NLP (hard or soft)."""
-
-    horizon: int
-    soft: bool
-    n_w: int
-    n_g: int
-    x_index: np.ndarray  # (N+1, 7) indices into w
-    u_index: np.ndarray  # (N, 4)
-    gap_index: np.ndarray  # (N, 7) indices into g
-    rows: tuple[Row, ...]
-    equality: tuple[bool, ...]
-    slack_index: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 def tube_bound(rmpc: RmpcParams, n: int) -> float:
@@ -235,8 +208,23 @@ def build_nlp(
     rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
     row_design: tuple[RmpcParams, TerminalDesign] | None = None,
     goal: tuple[np.ndarray, float] | None = None,
+) -> tuple[Nlp, Layout]:
+    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``, ``goal``: module doc.
+    The expressions are built when first read: a problem built before (the same arguments,
+    the same code) gets its layout and graph digest from ``rmpc.cache_dir``
+    (:mod:`companion.core.rmpc_memo`)."""
+    def build() -> tuple[dict[str, ca.SX], Layout]:
+        return _expressions(rmpc, camera, terminal, soft, row_design, goal)
+
+    return memoized_nlp(build, rmpc.cache_dir, (rmpc, camera, terminal, soft, row_design, goal))
+
+
+def _expressions(
+    rmpc: RmpcParams, camera: CameraParams, terminal: TerminalDesign, soft: bool,
+    row_design: tuple[RmpcParams, TerminalDesign] | None,
+    goal: tuple[np.ndarray, float] | None,
 ) -> tuple[dict[str, ca.SX], Layout]:
-    """The NLP ``{x, p, f, g}`` (SX) and its layout; ``row_design``, ``goal``: module doc."""
+    """:func:`build_nlp`'s expressions, derived now."""
     row_rmpc, row_terminal = row_design or (rmpc, terminal)
     big_n = rmpc.horizon
     q, r = np.diag(rmpc.q_diag), np.diag(rmpc.r_diag)

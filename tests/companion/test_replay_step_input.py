@@ -39,3 +39,10 @@ def test_records_the_shortcut_cannot_read_fall_back_to_the_whole_record() -> Non
     # not JSON at all
     assert _step_input(b'{"t_s": 1, "input": {"x0": ') is None
     assert _step_input(b"\xff\xfe") is None
+
+
+def test_the_replay_reads_the_channels_the_recording_writes() -> None:
+    from companion.control import recording, topics
+
+    for name in topics.__all__:
+        assert getattr(topics, name) == getattr(recording, name), name

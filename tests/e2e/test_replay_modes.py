@@ -94,6 +94,20 @@ def test_from_detections_reproduces_every_command(crop_flight: Path, tmp_path: P
     assert not changed["identical"] and changed["max_thrust_diff"] > 1e-3
 
 
+def test_without_out_the_replay_compares_and_writes_nothing(crop_flight: Path,
+                                                            tmp_path: Path) -> None:
+    """No ``--out``: every command still compared and the verdict printed, no log, no report
+    (the replay's log is written only when asked for: ``--out``)."""
+    p = subprocess.run([sys.executable, "-m", "companion", "replay", str(crop_flight),
+                        "--from-detections"], capture_output=True, text=True, timeout=300,
+                       cwd=tmp_path)
+    assert p.returncode == 0, p.stdout + p.stderr
+    n = len(_steps(crop_flight))
+    assert f"PASS  commands reproduced: {n} of {n} identical" in p.stdout
+    assert "report:" not in p.stdout
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_sweep_gives_results_side_by_side(crop_flight: Path, tmp_path: Path) -> None:
     """Two keys swept: every combination. The hover thrust configured 10 % off changes the
     commands much more without PX4's thrust learnt before OFFBOARD than with it."""
