@@ -57,8 +57,10 @@ from sim_bridge.px4.modes import (
 #: PX4's commander runs its health and arming checks, the offboard signal check among them
 #: (``offboardCheck.cpp``), at 10 Hz ("Run arming checks @ 10Hz" in ``Commander::run``), or at
 #: once after a status change; a DO_SET_MODE is judged against the last check's verdict
-#: (``canRun``), not against the setpoint that arrived a moment ago. So a request that follows
-#: the first setpoint by less than a check period may be refused.
+#: (``canRun``). A setpoint that arrives while that verdict is "signal lost" is such a change
+#: (``Commander::offboardControlCheck``: "Run arming checks immediately to allow for offboard
+#: mode activation"), so a request that follows the first setpoint is judged on a check that
+#: has seen it; one that overtakes it is refused.
 HEALTH_CHECK_PERIOD_S = 0.1
 
 
@@ -164,6 +166,8 @@ class Px4:
             return False
         self.last_signal_t_s = t_s
         self.signals += 1
+        if not self.signal_checked:  # PX4 re-runs its checks at once (HEALTH_CHECK_PERIOD_S)
+            self._status_changed()
         if self.mode is Mode.OFFBOARD:
             if sp.uses_attitude:
                 self._rate_att = None

@@ -313,8 +313,9 @@ def test_reengage_waits_for_the_air_too() -> None:
 @pytest.mark.parametrize("phase_s", [0.0, 0.002, 0.005, 0.008])
 def test_the_shipped_escape_stream_meets_px4s_10_hz_check(phase_s: float) -> None:
     """The shipped ``preflight_escape_stream_s`` against the emulated PX4, which judges a
-    DO_SET_MODE on its last health check, run at 10 Hz in a 10 ms commander loop
-    (docs/reference/px4-offboard.md section 2): whatever the phase of PX4's loop and checks
+    DO_SET_MODE on its last health check, run at 10 Hz in a 10 ms commander loop and at once
+    when a setpoint arrives while the signal is lost (docs/reference/px4-offboard.md section 2):
+    whatever the phase of PX4's loop and checks
     against our 20 Hz stream, with the camera's latency 15 ms longer for the first frame than
     for the rest (a stream measured in frame time, sent 30 ms shorter) and the request up to
     10 ms faster on the link than the first setpoint, the first request

@@ -84,18 +84,17 @@ def test_offboard_applies_setpoints_only_in_offboard() -> None:
     assert math.isclose(r.s.roll_rad, 0.2, abs_tol=1e-3)
 
 
-def test_offboard_is_judged_on_the_last_10_hz_health_check() -> None:
-    """PX4 judges a DO_SET_MODE on its last health check (10 Hz, Commander::run): a request
-    in the same moment as the first setpoint is refused, one after a check has seen it is
-    accepted; never on a signal lost since that check."""
+def test_offboard_is_judged_on_the_last_health_check() -> None:
+    """PX4 judges a DO_SET_MODE on its last health check (10 Hz, Commander::run), but a
+    setpoint arriving while that check said "signal lost" makes it check again at once
+    (Commander::offboardControlCheck): a request right behind the first setpoint is accepted,
+    one that overtakes it is refused, and never on a signal lost since the check."""
     r = Rig()
     r.run(0.3)  # hovering, no setpoint yet: the checks at 0, 0.1, 0.2, 0.3 saw none
+    assert r.px4.handle_command(r.t + 0.005, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
+    assert not r.px4.signal_checked
     r.px4.on_attitude_target(r.t + 0.01, att())
-    assert r.px4.handle_command(r.t + 0.02, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
-    assert r.px4.handle_command(r.t + 0.09, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
-    assert r.px4.mode is Mode.POSCTL
-    # the next check (0.1 s after the last) sees the setpoint: the request is accepted
-    assert r.px4.handle_command(r.t + 0.1, 176, (1, 6, 0)).result == ACCEPTED
+    assert r.px4.handle_command(r.t + 0.01, 176, (1, 6, 0)).result == ACCEPTED
     assert r.px4.mode is Mode.OFFBOARD
     # a verdict of "fresh" does not outlive the signal itself
     r2 = Rig(com_of_loss_t_s=0.5)
@@ -103,6 +102,13 @@ def test_offboard_is_judged_on_the_last_10_hz_health_check() -> None:
     r2.px4.update(0.45, r2.s)
     assert r2.px4.signal_checked  # the check at 0.45 s saw a fresh signal; it is lost at 0.5 s
     assert r2.px4.handle_command(0.52, 176, (1, 6, 0)).result == TEMPORARILY_REJECTED
+    # a fresh verdict is not re-checked by every setpoint: only the 10 Hz checks renew it
+    r3 = Rig(com_of_loss_t_s=0.5)
+    r3.px4.on_attitude_target(0.0, att())
+    r3.px4.update(0.0, r3.s)
+    check_t_s = r3.px4._check_t_s
+    r3.px4.on_attitude_target(0.05, att())
+    assert r3.px4._check_t_s == check_t_s
 
 
 @pytest.mark.parametrize(("act", "mode", "armed"), [
