@@ -5,6 +5,7 @@ forms at (real closed loops' linearisation points, random points, zero)."""
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -47,3 +48,18 @@ def linearisation_points(mpc: Rmpc) -> list[Point]:
                        rng.normal(size=n_p) * scale))
     points.append((np.zeros(n_u), np.zeros(7), np.zeros(n_p)))
     return points
+
+
+def halfway_state_bounds(solver: Any, du: np.ndarray, lo: np.ndarray,
+                         hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` with the bound of the state row that the linearised step ``du`` moves most
+    (from the solver's last linearisation) moved half-way towards it: a box the step leaves."""
+    c_x = solver._c_x.copy()
+    x_lin = c_x + solver._j_state @ du
+    i = int(np.argmax(np.abs(x_lin - c_x)))
+    lo2, hi2 = lo.copy(), hi.copy()
+    if x_lin[i] > c_x[i]:
+        hi2[i] = 0.5 * (x_lin[i] + c_x[i])
+    else:
+        lo2[i] = 0.5 * (x_lin[i] + c_x[i])
+    return lo2, hi2

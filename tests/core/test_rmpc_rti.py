@@ -15,6 +15,7 @@ from companion.config import ConfigError, config_from_dict, load_config, read_do
 from companion.core.design import design_terminal
 from companion.core.rmpc import Rmpc, RmpcResult, check_solution
 from companion.core.rmpc_scenario import closed_loop, initial_error
+from tests.core.rti_forms import halfway_state_bounds
 
 PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
 EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
@@ -192,17 +193,10 @@ def test_the_qp_without_the_state_box_is_the_whole_qp(rti) -> None:  # type: ign
                                    atol=1e-10)
     # a box the step leaves: the state that moves most may only move half as far
     solver._lin(u, eta0, par)
-    c_x = solver._c_x.copy()
-    x_lin = c_x + solver._j_state @ du
-    i = int(np.argmax(np.abs(x_lin - c_x)))
-    hi2, lo2 = hi.copy(), lo.copy()
-    if x_lin[i] > c_x[i]:
-        hi2[i] = 0.5 * (x_lin[i] + c_x[i])
-    else:
-        lo2[i] = 0.5 * (x_lin[i] + c_x[i])
+    lo2, hi2 = halfway_state_bounds(solver, du, lo, hi)
     du2, flag2, _ = solver._qp(u, eta0, par, lo2, hi2)
     assert flag2 == 1 and solver.full_qps == full0 + 1
-    x2 = c_x + solver._j_state @ du2
+    x2 = solver._c_x + solver._j_state @ du2
     assert np.all(x2 <= hi2 + 1e-9) and np.all(x2 >= lo2 - 1e-9)
     np.testing.assert_allclose(du2, _whole_qp(solver, u, eta0, par, lo2, hi2), rtol=0,
                                atol=1e-10)

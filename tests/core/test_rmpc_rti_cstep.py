@@ -16,6 +16,7 @@ from companion.core.design import design_terminal
 from companion.core.rmpc import Rmpc, RmpcResult
 from companion.core.rmpc_rti import RtiOutcome, RtiSolver
 from companion.core.rmpc_scenario import closed_loop, initial_error
+from tests.core.rti_forms import halfway_state_bounds
 
 PAPER_POSE = ((-0.2, 0.4, -3.2), np.pi / 8)
 EDGE_POSE = ((-1.0, 0.0, -3.2), np.pi / 4)
@@ -135,14 +136,7 @@ def test_a_state_box_the_step_leaves_is_decided_in_python(mpc: Rmpc) -> None:
     # the state row the QP moves most (linearised), its bound moved half-way in
     u = np.clip(guess.ravel(), -solver.u_max, solver.u_max)
     du = solver._qp(u, eta0, par, lo, hi)[0]
-    c_x = solver._c_x.copy()
-    x_lin = c_x + solver._j_state @ du
-    i = int(np.argmax(np.abs(x_lin - c_x)))
-    hi2, lo2 = hi.copy(), lo.copy()
-    if x_lin[i] > c_x[i]:
-        hi2[i] = 0.5 * (x_lin[i] + c_x[i])
-    else:
-        lo2[i] = 0.5 * (x_lin[i] + c_x[i])
+    lo2, hi2 = halfway_state_bounds(solver, du, lo, hi)
     with_c, without, codes, full = _both(solver, (eta0, par, guess, lo2, hi2))
     assert codes[0] == 1 and full >= 1
     assert _same_outcome(with_c, without)
