@@ -319,9 +319,11 @@ def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
             if sim_rc is not None:
                 wall = time.monotonic() - t0
                 emulator_cpu_s = _children_cpu_s() - children0
-                # the flight is over: the companion stops at once (it would otherwise
-                # wait for frames that will not come)
-                if sim_rc == 0 and comp.poll() is None:
+                # the flight is over, ended or failed: the companion stops at once (it would
+                # otherwise wait for frames that will not come, or take another flight's: an
+                # emulator that could not bind its probed port exits 2 while the companion
+                # may have connected to whoever holds that port)
+                if comp.poll() is None:
                     comp.send_signal(signal.SIGTERM)
                 return _Ended(sim_rc, comp.wait(timeout=30.0), wall, emulator_cpu_s)
             if comp_rc is not None:  # the companion stopped: at the end, or early?
