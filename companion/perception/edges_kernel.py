@@ -240,7 +240,8 @@ def _compiled(directory: Path, text: str) -> Path | None:
     library = directory / f"perception_lean2_{_source_key(text)}.so"
     if library.exists():
         return library
-    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+    env_cc = os.environ.get("CC")
+    cc = shutil.which(env_cc) if env_cc else shutil.which("gcc") or shutil.which("cc")
     if not cc:
         _log.info("compiled edges: no C compiler; the numpy path")
         return None
