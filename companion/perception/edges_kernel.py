@@ -32,6 +32,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -75,59 +76,53 @@ class Lean2Refiner:
 
     def __init__(self, kernel: Lean2Kernel) -> None:
         self.kernel = kernel
-        self._out = np.zeros(_OUT)
-        self._scale = np.zeros(4)
-        self._reads = np.zeros(4)
-        self._work = np.zeros(0, dtype=np.uint8)
-        self._params: dict[tuple[object, ...], tuple[npt.NDArray[np.int64],
-                                                    npt.NDArray[np.float64],
-                                                    npt.NDArray[np.float32]]] = {}
+        # the call's fixed buffers and their addresses (a ctypes address costs ~1 us a read)
+        self._out, self._scale, self._reads, self._corners = (np.zeros(_OUT), np.zeros(4),
+                                                              np.zeros(4), np.zeros((4, 2)))
+        self._at = [int(a.ctypes.data) for a in (self._out, self._scale, self._reads,
+                                                 self._corners)]
+        self._params: dict[tuple[object, ...], tuple[list[npt.NDArray[Any]], list[int]]] = {}
         self.calls = 0
         self.fallbacks = 0
 
-    def _grid_params(self, s: LeanSettings) -> tuple[npt.NDArray[np.int64],
-                                                     npt.NDArray[np.float64],
-                                                     npt.NDArray[np.float32]]:
+    def _grid_params(self, s: LeanSettings) -> list[int]:
+        """The addresses of the grid's integers, floats, priorities and work bytes."""
         key = (s.profile_half_px, s.profile_step_px, s.samples_per_edge, s.min_contrast,
                s.passes)
         p = self._params.get(key)
         if p is None:
             g = _grid(s)
-            gi = np.array([g.k, s.samples_per_edge, g.in_rows.start, g.in_rows.stop,
-                           g.out_rows.start, g.out_rows.stop, s.passes, self.kernel.block],
-                          dtype=np.int64)
-            gd = np.array([g.k0, g.step, g.k0 / g.step, s.profile_half_px, s.min_contrast,
-                           float(g.in_norm)])
-            prio = np.ascontiguousarray(g.prio.reshape(-1), dtype=np.float32)
-            need = 4 * g.k * s.samples_per_edge
-            if self._work.size < need:
-                self._work = np.zeros(need, dtype=np.uint8)
-            p = self._params[key] = (gi, gd, prio)
-        return p
+            arrays: list[npt.NDArray[Any]] = [
+                np.array([g.k, s.samples_per_edge, g.in_rows.start, g.in_rows.stop,
+                          g.out_rows.start, g.out_rows.stop, s.passes, self.kernel.block],
+                         dtype=np.int64),
+                np.array([g.k0, g.step, g.k0 / g.step, s.profile_half_px, s.min_contrast,
+                          float(g.in_norm)]),
+                np.ascontiguousarray(g.prio.reshape(-1), dtype=np.float32),
+                np.zeros(4 * g.k * s.samples_per_edge, dtype=np.uint8)]
+            p = self._params[key] = (arrays, [int(a.ctypes.data) for a in arrays])
+        return p[1]
 
     def __call__(self, gray: npt.NDArray[np.uint8], corners: FloatArray, s: LeanSettings,
                  scale: list[float] | None = None, reads: list[float] | None = None
                  ) -> Refined | None:
         self.calls += 1
-        if gray.ndim != 2 or gray.dtype != np.uint8 or gray.strides[1] != 1:
+        if (gray.ndim != 2 or gray.dtype != np.uint8 or gray.strides[1] != 1
+                or np.shape(corners) != (4, 2)):
             self.fallbacks += 1
             return refine_quad_lean2(gray, corners, s, scale, reads)
-        gi, gd, prio = self._grid_params(s)
-        c = np.ascontiguousarray(corners, dtype=np.float64)
-        if c.shape != (4, 2):
-            self.fallbacks += 1
-            return refine_quad_lean2(gray, corners, s, scale, reads)
+        gi, gd, prio, work = self._grid_params(s)
+        out, at_scale, at_reads, at_corners = self._at
+        self._corners[...] = corners
         if scale is not None:
             self._scale[:] = scale
         if reads is not None:
             self._reads[:] = reads
         rows, cols = gray.shape
         rc = self.kernel.refine_fn(
-            gray.ctypes.data, gray.strides[0], rows, cols, c.ctypes.data, gi.ctypes.data,
-            gd.ctypes.data, prio.ctypes.data, self.kernel.dgemv,
-            None if scale is None else self._scale.ctypes.data,
-            None if reads is None else self._reads.ctypes.data, self._work.ctypes.data,
-            self._out.ctypes.data)
+            gray.ctypes.data, gray.strides[0], rows, cols, at_corners, gi, gd, prio,
+            self.kernel.dgemv, None if scale is None else at_scale,
+            None if reads is None else at_reads, work, out)
         if rc < 0:  # not emulated here: the numpy path from the start (reads untouched)
             self.fallbacks += 1
             return refine_quad_lean2(gray, corners, s, scale, reads)

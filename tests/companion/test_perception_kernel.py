@@ -6,6 +6,7 @@ these checks; without a compiler (or with the key off) the numpy path runs.
 
 from __future__ import annotations
 
+import ctypes
 import math
 import shutil
 
@@ -137,9 +138,13 @@ def test_a_broken_kernel_fails_the_checks(tmp_path) -> None:  # type: ignore[no-
         pytest.skip("no C compiler")
     src = KERNEL_SOURCE.read_text()
     mutations = [
-        ("float r = fma32(b, f1 - f0, f0);", "float r = b * (f1 - f0) + f0;"),
-        ("sx = fma32(m0, fx, vx);", "sx = m0 * fx + vx;"),
-        ("sx = fma32(fx, m0, mx) + m2;", "sx = fx * m0 + (mx + m2);"),
+        # the warp (its AVX2 path, which this machine runs, and the scalar tail)
+        ("__m256 r = _mm256_fmadd_ps(b, _mm256_sub_ps(f1, f0), f0);",
+         "__m256 r = _mm256_add_ps(_mm256_mul_ps(b, _mm256_sub_ps(f1, f0)), f0);"),
+        ("__m256 sx = _mm256_fmadd_ps(vm0, fx, vx),",
+         "__m256 sx = _mm256_add_ps(_mm256_mul_ps(vm0, fx), vx),"),
+        ("sx = __builtin_fmaf(fx, m0, mx) + m2;", "sx = fx * m0 + (mx + m2);"),
+        # the analysis and the fits
         ("if (gemv) {", "if (0) {"),
         ("res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));",
          "res = (((r[0] + r[1]) + r[2]) + r[3]) + ((r[4] + r[5]) + (r[6] + r[7]));"),
@@ -173,3 +178,24 @@ def test_the_key_turns_the_kernel_off() -> None:
     assert load_config().perception.compiled_edges is True  # config/paper.toml
     with pytest.raises(Exception, match="compiled_edges"):
         load_config(overrides=["perception.compiled_edges=3"])
+
+
+@pytest.mark.parametrize("path", [1, 2, 3])
+def test_every_warp_path_is_cv2s(kernel, path: int) -> None:  # type: ignore[no-untyped-def]
+    """The software fma, the scalar loop on the fma instruction and AVX2 (a CPU takes the
+    first it can run: each must give cv2's bytes; a path this CPU lacks is skipped)."""
+    lib = ctypes.CDLL(str(kernel.library))
+    fn = lib.lean2_warp_path
+    fn.restype = ctypes.c_int
+    vp, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    fn.argtypes = [i32, vp, i64, i32, i32, vp, i32, i32, i32, vp]
+    probe = np.zeros((4, 4), dtype=np.uint8)
+    out = np.zeros((2, 2), dtype=np.uint8)
+    m = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5]])
+    if fn(path, probe.ctypes.data, 4, 4, 4, m.ctypes.data, 2, 2, 16, out.ctypes.data) == -2:
+        pytest.skip(f"warp path {path} is not on this CPU")
+
+    def one(*args: object) -> int:
+        return int(fn(path, *args))
+
+    assert warp_matches(one, kernel.block, probes=600, adversarial=15, seed=9)
