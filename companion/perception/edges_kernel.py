@@ -10,9 +10,11 @@ numpy's ``@`` calls, ``cv2.warpAffine``'s float bilinear sampling as OpenCV 5 co
 
 Built once with the system's C compiler (``$CC``, else ``gcc``, else ``cc``) into the RMPC's
 cache directory (``~/.cache/rmpc-ibvs``), named by the hash of the source and the flags, and
-loaded with ctypes. Before a process uses it, :func:`lean2_kernel` checks it on this machine:
+loaded with ctypes. Before it is first used, :func:`lean2_kernel` checks it on this machine:
 its warp against ``cv2.warpAffine`` (random matrices, images, sizes, reads off the image) and
-whole refinements against the numpy path (rendered quads, tracked and not). Without a
+whole refinements against the numpy path (rendered quads, tracked and not); a passed check is
+recorded beside the library, keyed by what it depends on (OpenCV's and numpy's versions, the
+BLAS file, the CPU's features), so later processes skip it. Without a
 compiler, without numpy's BLAS symbol, or on any difference, the numpy path is used (logged
 once): the same numbers either way, only slower. ``[perception] compiled_edges = false``
 keeps the numpy path.
@@ -34,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -182,10 +185,11 @@ def _source_key(text: str) -> str:
 
 
 def _load_checked(directory: Path, text: str) -> Lean2Kernel | None:
-    dgemv = numpy_dgemv()
-    if dgemv is None:
+    found = numpy_dgemv()
+    if found is None:
         _log.info("compiled edges: numpy's cblas_dgemv not found; the numpy path")
         return None
+    dgemv, blas_path = found
     library = _compiled(directory, text)
     if library is None:
         return None
@@ -195,22 +199,57 @@ def _load_checked(directory: Path, text: str) -> Lean2Kernel | None:
     vp, i64, i32 = ct.c_void_p, ct.c_int64, ct.c_int
     refine_fn.argtypes = [vp, i64, i32, i32, vp, vp, vp, vp, vp, vp, vp, vp, vp]
     warp_fn.argtypes = [vp, i64, i32, i32, vp, i32, i32, i32, vp]
-    block = next((b for b in _BLOCKS if warp_matches(warp_fn, b)), None)
-    if block is None:
+    # the checks passed before on this library, OpenCV, numpy, BLAS and CPU: their result
+    marker = library.with_name(f"{library.name}.{_environment_key(blas_path)}.checked")
+    try:
+        block = int(marker.read_text())
+        if block in _BLOCKS:
+            return Lean2Kernel(library, refine_fn, warp_fn, dgemv, block)
+    except (OSError, ValueError):
+        pass
+    checked = next((b for b in _BLOCKS if warp_matches(warp_fn, b)), None)
+    if checked is None:
         _log.warning("compiled edges: the warp differs from cv2.warpAffine here; the numpy path")
         return None
-    kernel = Lean2Kernel(library, refine_fn, warp_fn, dgemv, block)
+    kernel = Lean2Kernel(library, refine_fn, warp_fn, dgemv, checked)
     mismatch = refine_mismatch(Lean2Refiner(kernel))
     if mismatch:
         _log.warning("compiled edges: %s differs from the numpy path; the numpy path", mismatch)
         return None
-    _log.debug("compiled edges: %s (warp block %d)", library, block)
+    _log.debug("compiled edges: %s (warp block %d)", library, checked)
+    tmp = marker.with_name(f"{marker.name}.tmp{os.getpid()}")
+    try:
+        tmp.write_text(f"{checked}\n")
+        os.replace(tmp, marker)
+    except OSError as exc:  # a read-only cache: checked again by the next process
+        _log.debug("compiled edges: check not recorded: %s", exc)
     return kernel
 
 
-def numpy_dgemv() -> int | None:
+def _environment_key(blas_path: str) -> str:
+    """What the checks' result depends on besides the library: OpenCV's and numpy's
+    versions, the BLAS file numpy loaded, the CPU's features (OpenCV's and the kernel's
+    dispatch)."""
+    h = hashlib.sha256()
+    try:
+        st = os.stat(blas_path)
+        blas = f"{blas_path}:{st.st_size}:{st.st_mtime_ns}"
+    except OSError:
+        blas = blas_path
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as info:
+            flags = next((ln for ln in info if ln.startswith(("flags", "Features"))), "")
+    except OSError:
+        pass
+    for part in (cv2.__version__, np.__version__, blas, flags, platform.machine()):
+        h.update(b"\0" + part.encode())
+    return h.hexdigest()[:16]
+
+
+def numpy_dgemv() -> tuple[int, str] | None:
     """The address of the ``cblas_dgemv`` numpy's matmul calls (its bundled OpenBLAS, found
-    among the loaded libraries), or None."""
+    among the loaded libraries) and that library's path, or None."""
     try:
         with open("/proc/self/maps") as maps:
             paths = {line.split(None, 5)[5].strip() for line in maps
@@ -225,7 +264,9 @@ def numpy_dgemv() -> int | None:
         for name in _DGEMV_NAMES:
             fn = getattr(lib, name, None)
             if fn is not None:
-                return ct.cast(fn, ct.c_void_p).value
+                address = ct.cast(fn, ct.c_void_p).value
+                if address:
+                    return address, path
     return None
 
 
