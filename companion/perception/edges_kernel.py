@@ -137,10 +137,11 @@ class Lean2Refiner:
 
 
 def _unpack(o: list[float]) -> Refined:
-    corners = np.array(o[0:8]).reshape(4, 2)
-    fits = [EdgeFit(np.array(o[8 + 2 * i:10 + 2 * i]), np.array(o[16 + 2 * i:18 + 2 * i]),
-                    o[24 + i], o[28 + i]) for i in range(4)]
-    return corners, fits, o[32:36]
+    """The corners, the fits (their points and directions: rows of one array, numpy's
+    per-call cost) and the blur scales from the kernel's output."""
+    a = np.array(o[0:24]).reshape(3, 4, 2)
+    fits = [EdgeFit(a[1, i], a[2, i], o[24 + i], o[28 + i]) for i in range(4)]
+    return a[0], fits, o[32:36]
 
 
 Lean2Refine = Callable[[npt.NDArray[np.uint8], FloatArray, LeanSettings, "list[float] | None",
