@@ -8,7 +8,8 @@ any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one
     python bench/perception.py --flight LOG.mcap [--frames 600] [--methods lean2,lean2c] [--json]
     python bench/perception.py --cases [--poses 200] [--reps 3] [--where roi,frame] [--json]
 
-``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``:
+``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``;
+``lean2c`` is "lean2" through the compiled kernel, ``lean2`` its numpy path:
 "profiles", the detector before 2026-11-28, "lean" and "lean2") on the same frames,
 interleaved: CPU per frame (``time.process_time``, single thread, each frame ``--reps`` times)
 and the worst corner error per frame (median / p95 / max px) for the clean poses and the
@@ -339,8 +340,11 @@ def _cases(poses: int, seed: int, reps: int, as_json: bool, places: list[str]) -
 
     limit_opencv_threads()
     cfg = load_config()
+    # "lean2": numpy's path, "lean2c": the same through the compiled kernel
     dets = {m: RectangleDetector(cfg.target.length_m, cfg.target.width_m,
-                                 settings=RectangleSettings(edges=m)) for m in EDGE_METHODS}
+                                 settings=RectangleSettings(edges=m.rstrip("c"),
+                                                            compiled=m == "lean2c"))
+            for m in (*EDGE_METHODS, "lean2c")}
     scenes = _case_frames(poses, seed)
     out: dict[str, Any] = {"poses": poses, "reps": reps, "loadavg_1min": os.getloadavg()[0],
                            "cases": {}}
