@@ -7,6 +7,7 @@ these checks; without a compiler (or with the key off) the numpy path runs.
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 import shutil
 
@@ -131,19 +132,38 @@ def test_a_tracked_sequence_is_the_same_with_and_without_the_kernel(
     assert compiled == plain
 
 
-def test_a_broken_kernel_fails_the_checks(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def _warp_path(kernel, path: int) -> ctypes._CFuncPtr | None:  # type: ignore[no-untyped-def]
+    """The kernel's warp through ``path`` (1 software fma, 2 scalar fma, 3 AVX2) as a
+    ``lean2_warp``-like function, or None when this CPU lacks it."""
+    lib = ctypes.CDLL(str(kernel.library))
+    fn = lib.lean2_warp_path
+    fn.restype = ctypes.c_int
+    vp, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    fn.argtypes = [i32, vp, i64, i32, i32, vp, i32, i32, i32, vp]
+    probe = np.zeros((4, 4), dtype=np.uint8)
+    out = np.zeros((2, 2), dtype=np.uint8)
+    m = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5]])
+    if fn(path, probe.ctypes.data, 4, 4, 4, m.ctypes.data, 2, 2, 16, out.ctypes.data) == -2:
+        return None
+    return functools.partial(fn, path)  # type: ignore[return-value]
+
+
+def test_a_broken_kernel_fails_the_checks(kernel, tmp_path) -> None:  # type: ignore[no-untyped-def]
     """Each change below alters the numbers (an operation rounded otherwise, another
-    summation order, another comparison): the checks must see it."""
-    if not HAVE_CC:
-        pytest.skip("no C compiler")
+    summation order, another comparison): the checks must see it. The warp's changes are
+    made in the path this CPU runs (AVX2, else the scalar body)."""
     src = KERNEL_SOURCE.read_text()
+    if _warp_path(kernel, 3) is not None:
+        warp_mutations = [
+            ("__m256 r = _mm256_fmadd_ps(b, _mm256_sub_ps(f1, f0), f0);",
+             "__m256 r = _mm256_add_ps(_mm256_mul_ps(b, _mm256_sub_ps(f1, f0)), f0);"),
+            ("__m256 sx = _mm256_fmadd_ps(vm0, fx, vx),",
+             "__m256 sx = _mm256_add_ps(_mm256_mul_ps(vm0, fx), vx),"),
+            ("sx = __builtin_fmaf(fx, m0, mx) + m2;", "sx = fx * m0 + (mx + m2);")]
+    else:
+        warp_mutations = [("float r = FMA(b, f1 - f0, f0);", "float r = b * (f1 - f0) + f0;")]
     mutations = [
-        # the warp (its AVX2 path, which this machine runs, and the scalar tail)
-        ("__m256 r = _mm256_fmadd_ps(b, _mm256_sub_ps(f1, f0), f0);",
-         "__m256 r = _mm256_add_ps(_mm256_mul_ps(b, _mm256_sub_ps(f1, f0)), f0);"),
-        ("__m256 sx = _mm256_fmadd_ps(vm0, fx, vx),",
-         "__m256 sx = _mm256_add_ps(_mm256_mul_ps(vm0, fx), vx),"),
-        ("sx = __builtin_fmaf(fx, m0, mx) + m2;", "sx = fx * m0 + (mx + m2);"),
+        *warp_mutations,
         # the analysis and the fits
         ("if (gemv) {", "if (0) {"),
         ("res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));",
@@ -184,18 +204,7 @@ def test_the_key_turns_the_kernel_off() -> None:
 def test_every_warp_path_is_cv2s(kernel, path: int) -> None:  # type: ignore[no-untyped-def]
     """The software fma, the scalar loop on the fma instruction and AVX2 (a CPU takes the
     first it can run: each must give cv2's bytes; a path this CPU lacks is skipped)."""
-    lib = ctypes.CDLL(str(kernel.library))
-    fn = lib.lean2_warp_path
-    fn.restype = ctypes.c_int
-    vp, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    fn.argtypes = [i32, vp, i64, i32, i32, vp, i32, i32, i32, vp]
-    probe = np.zeros((4, 4), dtype=np.uint8)
-    out = np.zeros((2, 2), dtype=np.uint8)
-    m = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5]])
-    if fn(path, probe.ctypes.data, 4, 4, 4, m.ctypes.data, 2, 2, 16, out.ctypes.data) == -2:
+    one = _warp_path(kernel, path)
+    if one is None:
         pytest.skip(f"warp path {path} is not on this CPU")
-
-    def one(*args: object) -> int:
-        return int(fn(path, *args))
-
     assert warp_matches(one, kernel.block, probes=600, adversarial=15, seed=9)
