@@ -5,10 +5,11 @@ dark box sides, bright top, exact area coverage) over random poses (1.5-5 m, til
 any yaw). Times are ``perf_counter`` around one call on a mono8 image, after one warm-up call.
 
     python bench/perception.py [--poses 100] [--seed 1] [--json]
-    python bench/perception.py --flight LOG.mcap [--frames 600] [--json]
+    python bench/perception.py --flight LOG.mcap [--frames 600] [--methods lean2,lean2c] [--json]
     python bench/perception.py --cases [--poses 200] [--reps 3] [--where roi,frame] [--json]
 
-``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``:
+``--cases`` compares the rectangle detector's edge methods (``[perception] rectangle_edges``;
+``lean2c`` is "lean2" through the compiled kernel, ``lean2`` its numpy path:
 "profiles", the detector before 2026-11-28, "lean" and "lean2") on the same frames,
 interleaved: CPU per frame (``time.process_time``, single thread, each frame ``--reps`` times)
 and the worst corner error per frame (median / p95 / max px) for the clean poses and the
@@ -81,6 +82,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--flight", type=Path, default=None, help="time a flight log's frames")
     ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--methods", default="lean2,lean2c",
+                    help="--flight: edge methods, of profiles, lean, lean2 (numpy) and lean2c "
+                         "(lean2 through the compiled kernel)")
     ap.add_argument("--cases", action="store_true", help="edge methods on degraded cases")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--where", default="roi",
@@ -91,7 +95,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.flight is not None:
-        return _flight(args.flight, args.frames, args.json)
+        return _flight(args.flight, args.frames, args.json, args.methods.split(","))
     if args.cases:
         return _cases(args.poses, args.seed, args.reps, args.json, args.where.split(","))
     out = _poses(args.poses, args.seed)
@@ -241,18 +245,20 @@ def _flight_frames(path: Path, n: int) -> tuple[list[Any], list[Any]]:
     return frames, truth
 
 
-def _flight(path: Path, n: int, as_json: bool) -> int:
+def _flight(path: Path, n: int, as_json: bool, methods: list[str]) -> int:
     cfg = load_config()
     frames, truth = _flight_frames(path, n)
-    from companion.perception.rectangle import EDGE_METHODS, RectangleSettings
+    from companion.perception.rectangle import RectangleSettings
 
     # every edge method on the same frames, interleaved frame by frame (the machine's load
-    # drifts alike for all), each with its own region-of-interest tracking
+    # drifts alike for all), each with its own region-of-interest tracking; "lean2c" is
+    # "lean2" through the compiled kernel (docs/reference/perception.md), "lean2" numpy's
     runs = {m: Perception(cfg.camera, cfg.target, detector=RectangleDetector(
-        cfg.target.length_m, cfg.target.width_m, settings=RectangleSettings(edges=m)))
-        for m in EDGE_METHODS}
+        cfg.target.length_m, cfg.target.width_m, settings=RectangleSettings(
+            edges=m.rstrip("c"), compiled=m == "lean2c"))) for m in methods}
     times: dict[str, list[float]] = {m: [] for m in runs}
     found: dict[str, list[Any]] = {m: [] for m in runs}
+    bits: dict[str, list[Any]] = {m: [] for m in runs}  # corners and quality, to compare
     cpu: dict[str, list[float]] = {m: [] for m in runs}
     for img in frames:
         for m, perception in runs.items():
@@ -261,7 +267,12 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
             cpu[m].append(1e3 * (time.thread_time() - c0))
             times[m].append(dt)
             found[m].append(res.corners_px)
+            bits[m].append((None if res.corners_px is None else res.corners_px.tolist(),
+                            res.quality, res.status))
     out: dict[str, Any] = {"frames": len(frames), "loadavg_1min": os.getloadavg()[0]}
+    if "lean2" in bits and "lean2c" in bits:
+        out["lean2c_identical_frames"] = sum(
+            a == b for a, b in zip(bits["lean2"], bits["lean2c"], strict=True))
     for m, perception in runs.items():
         # the worst corner against the projected true corners after the best one-to-one
         # matching (the order is the detector's business), on frames with both
@@ -286,6 +297,9 @@ def _flight(path: Path, n: int, as_json: bool) -> int:
 
 def _print_flight(path: Path, out: dict[str, Any], methods: list[str]) -> None:
     print(f"{path}: {out['frames']} flight frames, load {out['loadavg_1min']:.2f}")
+    if "lean2c_identical_frames" in out:
+        print(f"  lean2c (compiled) == lean2 (numpy), corners, quality and status bit for bit: "
+              f"{out['lean2c_identical_frames']} of {out['frames']} frames")
     for m in methods:
         r = out[m]
         s = r["perception_process"]
@@ -326,8 +340,11 @@ def _cases(poses: int, seed: int, reps: int, as_json: bool, places: list[str]) -
 
     limit_opencv_threads()
     cfg = load_config()
+    # "lean2": numpy's path, "lean2c": the same through the compiled kernel
     dets = {m: RectangleDetector(cfg.target.length_m, cfg.target.width_m,
-                                 settings=RectangleSettings(edges=m)) for m in EDGE_METHODS}
+                                 settings=RectangleSettings(edges=m.rstrip("c"),
+                                                            compiled=m == "lean2c"))
+            for m in (*EDGE_METHODS, "lean2c")}
     scenes = _case_frames(poses, seed)
     out: dict[str, Any] = {"poses": poses, "reps": reps, "loadavg_1min": os.getloadavg()[0],
                            "cases": {}}

@@ -21,11 +21,15 @@ class PerceptionConfig:
     default since 2026-11-28: "lean"'s measure with fewer numpy calls and about one pass a
     tracked frame), "lean" (tracking from the previous corners, three passes) or "profiles"
     (the detector before both; a log recorded without this key replays with it, see
-    ``companion.replay``; a log records the method it flew)."""
+    ``companion.replay``; a log records the method it flew). ``compiled_edges``: "lean2"'s
+    refinement as one compiled C call (built once with the system's C compiler, cached with
+    the RMPC's libraries; the same numbers bit for bit, checked against the numpy path when a
+    process loads it); false, or no compiler: the numpy path."""
 
     rectangle_threshold: int = 0
     rectangle_level_fraction: float = 0.7
     rectangle_edges: str = "lean2"
+    compiled_edges: bool = True
 
     def __post_init__(self) -> None:
         if not 0 <= self.rectangle_threshold <= 254:

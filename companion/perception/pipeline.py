@@ -143,6 +143,7 @@ def make_detector(target: TargetConfig, perception: PerceptionConfig | None = No
             threshold=p.rectangle_threshold or None,
             level_fraction=p.rectangle_level_fraction,
             edges=p.rectangle_edges,
+            compiled=p.compiled_edges,
         )
         return RectangleDetector(target.length_m, target.width_m, settings=settings)
     if target.pattern == "aruco":

@@ -42,8 +42,9 @@ from companion.perception._types import (
     to_gray,
 )
 from companion.perception.edges import EdgeFit, EdgeSettings, refine_quad
+from companion.perception.edges_kernel import lean2_refiner
 from companion.perception.edges_lean import LeanSettings, refine_quad_lean
-from companion.perception.edges_lean2 import read_box_px, refine_quad_lean2
+from companion.perception.edges_lean2 import read_box_px
 from companion.perception.plausibility import (
     QuadLimits,
     approx_quad,
@@ -78,8 +79,9 @@ class RectangleSettings:
     ``presmooth_px``: Gaussian sigma applied before thresholding (coarse stage only).
     ``profile_half_px``: half length of the profile sampled across each edge; must cover the
     edge blur plus the coarse corners' error. ``min_contrast``: inside minus outside level for
-    an edge sample to count. ``noise_floor_px``: blobs smaller than this are ignored silently
-    (sensor noise); larger ones that fail a check are reported as rejections.
+    an edge sample to count. ``compiled``: "lean2" by :mod:`~companion.perception.edges_kernel`
+    (the same numbers; numpy's without a compiler). ``noise_floor_px``: blobs smaller than
+    this are ignored silently (sensor noise); larger ones that fail a check are rejections.
     ``max_candidates``: bright blobs examined per image, largest first.
     """
 
@@ -102,6 +104,7 @@ class RectangleSettings:
     max_corner_shift_px: float = 4.0
     edges: str = "lean2"
     lean_samples_per_edge: int = 48
+    compiled: bool = True
 
     def __post_init__(self) -> None:
         if self.threshold is not None and not 0 < self.threshold < 255:
@@ -187,7 +190,7 @@ class RectangleDetector(QuadDetectorBase):
         # "lean2" frame on held levels: its edge profiles' box); None: the whole image
         self.last_read_box: tuple[int, int, int, int] | None = None
         self._reads = [0.0] * 4
-
+        self._lean2 = lean2_refiner(s.compiled and s.edges == "lean2")  # compiled or numpy's
 
     def analyse(
         self, image: npt.NDArray[np.uint8], hint: npt.ArrayLike | None = None
@@ -396,7 +399,7 @@ class RectangleDetector(QuadDetectorBase):
             return refine_quad(gray, corners, edge_settings)
         if self.settings.edges != "lean2":
             return refine_quad_lean(gray, corners, edge_settings)
-        refined = refine_quad_lean2(gray, corners, edge_settings, scale, reads)
+        refined = self._lean2(gray, corners, edge_settings, scale, reads)
         if refined is None:
             return None
         self._refined_scale = refined[2]
