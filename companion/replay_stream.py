@@ -342,8 +342,8 @@ class StreamWorker:
 
 
 def _grow_pipe(conn: Any) -> None:
-    """Let the worker run ~450 steps ahead (1 MB; a step is ~2.3 kB pickled, the default
-    pipe of 64 kB holds less than one batch): with a full pipe the worker waits for the
+    """Let the worker run ~800 steps ahead (1 MB; a paper flight's step is ~1.2 kB pickled,
+    the default pipe of 64 kB holds less than one batch): with a full pipe the worker waits for the
     replay to read, and on a loaded machine the replay then waits for the worker to be
     scheduled again, batch after batch. Best effort (Linux; the default size still works)."""
     try:
