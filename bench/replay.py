@@ -16,7 +16,10 @@ solver child) counts once it has exited: in the totals, not in the steady figure
 Wall figures depend on the machine's load (printed); CPU figures much less. The replay's own
 thread is the critical path: its CPU per step (and the start-up's), or half the total CPU when
 that is more, give the rate two idle cores would reach ("on two idle cores"), a figure a loaded
-machine can still measure.
+machine can still measure. The controller's own step (``ControlPipeline.step``, thread CPU) is
+timed apart: the replay cannot run faster than the flight's steps one after the other
+("the step alone"); the rest of the replay's thread is feeding it (the store's ingest of the
+messages, receiving the inputs, comparing).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from companion.config import DEFAULT_CONFIG  # noqa: E402
+from companion.control.pipeline import ControlPipeline  # noqa: E402
 from companion.flight import run_demo  # noqa: E402
 from companion.log.reader import LogReader  # noqa: E402
 from companion.replay import replay  # noqa: E402
@@ -57,8 +61,22 @@ def measure(log: Path, flight_s: float, out: Path | None = None, **kw: Any) -> d
             marks["a"] = now
         marks["b"] = now
 
+    step_cpu = [0.0]
+    plain = ControlPipeline.step
+
+    def timed_step(self: ControlPipeline, *a: Any, **k: Any) -> Any:
+        t = time.thread_time()
+        try:
+            return plain(self, *a, **k)
+        finally:
+            step_cpu[0] += time.thread_time() - t
+
+    ControlPipeline.step = timed_step  # type: ignore[method-assign]
     t0, c0, m0 = time.perf_counter(), _cpu(), time.thread_time()
-    res = replay(log, out, progress=prog, **kw)
+    try:
+        res = replay(log, out, progress=prog, **kw)
+    finally:
+        ControlPipeline.step = plain  # type: ignore[method-assign]
     wall, cpu = time.perf_counter() - t0, _cpu() - c0
     a, b = marks.get("a"), marks.get("b")
     steady = None
@@ -76,7 +94,10 @@ def measure(log: Path, flight_s: float, out: Path | None = None, **kw: Any) -> d
         # input process with perception, the writer's compression) is heavier, half the CPU
         busy_s = startup["main_thread_s"] + res.steps * steady["main_thread_ms_per_step"] * 1e-3
         bound = flight_s / max(busy_s, cpu / 2)
+    step_ms = step_cpu[0] * 1e3 / res.steps if res.steps else None
     return {"steps": res.steps, "identical": res.summary()["identical"], "wall_s": wall,
+            "controller_step_ms": step_ms,
+            "step_alone_bound": flight_s / (step_cpu[0]) if step_cpu[0] > 0 else None,
             "startup": startup,
             "cpu_s": cpu, "speed_vs_real_time": flight_s / wall if wall > 0 else None,
             "steady": steady, "idle_two_core_bound": bound}
@@ -131,6 +152,9 @@ def main() -> int:
         print(f"  {'':>16}  replay thread (the critical path): "
               f"{st.get('main_thread_ms_per_step', float('nan')):.2f} ms CPU per step; on two "
               f"idle cores ~{float('nan') if bound is None else bound:.0f}x")
+        print(f"  {'':>16}  of which the controller's step (ControlPipeline.step): "
+              f"{m['controller_step_ms'] or float('nan'):.2f} ms CPU a step; the steps "
+              f"alone, one after the other: ~{m['step_alone_bound'] or float('nan'):.0f}x")
         su = m["startup"] or {}
         print(f"  {'':>16}  start-up (call -> first step): {su.get('wall_s', float('nan')):.2f} s "
               f"wall, {su.get('cpu_s', float('nan')):.2f} s CPU (this process; the import of "

@@ -26,7 +26,6 @@ import numpy as np
 
 from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, load_config, with_overrides
-from companion.control.timebase import TimeBase
 from companion.control.topics import TOPIC_FRAME, TOPIC_INPUT, TOPIC_STEP, TOPIC_TRUTH
 from companion.control.wiring import new_pipeline, new_store
 from companion.log import schemas as sch
@@ -271,24 +270,24 @@ class _Replayer:
         self.pipeline = new_pipeline(cfg, timer=timer)
         # undistortion + metric of detections
         self.perception = Perception(cfg.camera, cfg.target, perception=cfg.perception)
-        self.store = new_store(cfg)
-        self.tb = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
+        self.store = new_store(cfg)  # (the time base is the input stage's: the times come stamped)
+        self.auto_delay = cfg.control.latency.auto_delay
         self.recorded_sat = self.corrupt_chunks = 0
 
     def feed(self, stage: Iterable[StepInput]) -> None:
         """Every step, in order, each after the messages it saw."""
-        writer, store, tb = self.writer, self.store, self.tb
+        writer, ingest = self.writer, self.store.ingest
         for s in stage:
             if writer is not None:
                 for t_ns, raw in s.truth:
                     writer.log(TOPIC_TRUTH, t_ns, raw, schema=sch.JSON)
-            for name, fields, sysid, t_rx_ns in s.messages:
-                store.ingest(name, fields, tb.message_s(name, fields, t_rx_ns), sysid)
+            for name, fields, sysid, t_s in s.messages:
+                ingest(name, fields, t_s, sysid)
             if s.record is None:  # the end
                 self.recorded_sat, self.corrupt_chunks = s.sat_count, s.corrupt_chunks
                 return
             p = self._perceived(s)
-            self.run_step(s.record, p, perception_result(s, p, self.perception))
+            self.run_step(s.record, p, perception_result(s, p, self.perception), s.t_s)
         raise ReplayError(f"{self.log_path}: the replay's inputs ended early")
 
     def _perceived(self, s: StepInput) -> Perceived:
@@ -300,11 +299,11 @@ class _Replayer:
         return nxt
 
     def run_step(self, rec_step: dict[str, Any], p: Perceived,
-                 seen: PerceptionResult | None) -> None:
+                 seen: PerceptionResult | None, t_s: float) -> None:
+        """Step ``rec_step`` (its frame at ``t_s`` on the time base) and compare."""
         res = self.res
         res.frames_missing += p.missing
         res.outside_crop += p.outside_crop
-        t_s = self.tb.frame_s(int(rec_step["frame_t_us"]), int(rec_step["t_rx_ns"]))
         self.pipeline.force_solver_failure = bool(rec_step.get("fault_injected", False))
         t_now = rec_step.get("t_now_s")  # the live step's "now" (latency compensation)
         ic = rec_step.get("in_control")
@@ -314,7 +313,7 @@ class _Replayer:
                                  in_control=ic if isinstance(ic, bool) else None,
                                  perceived=seen,
                                  actuation_delay_s=float(ad) if isinstance(ad, (int, float))
-                                 and self.cfg.control.latency.auto_delay else None)
+                                 and self.auto_delay else None)
         res.steps += 1
         if self.writer is not None:
             new = out.to_record()
@@ -342,13 +341,18 @@ def _quat_diff(q_rec: Any, q_new: Any) -> float:
     """Largest component difference of two quaternions, up to sign (q and -q are one
     attitude); plain floats: numpy's per-call overhead was most of a step's comparison."""
     a = [float(v) for v in q_rec]
-    b = [float(v) for v in q_new]
+    b = q_new.tolist() if isinstance(q_new, np.ndarray) else [float(v) for v in q_new]
     if len(a) != 4 or len(b) != 4:
         raise ReplayError(f"a quaternion of {len(a)} and one of {len(b)} components")
-    if not all(map(math.isfinite, a + b)):
+    a0, a1, a2, a3 = a
+    b0, b1, b2, b3 = b
+    # one sum is finite when every term is (a NaN or infinity anywhere makes it not); the
+    # one-by-one test only for what it rejects (a sum can also overflow)
+    if not math.isfinite(a0 + a1 + a2 + a3 + b0 + b1 + b2 + b3) and not all(
+            map(math.isfinite, a + b)):
         return math.inf  # a non-finite command is never "identical"
-    return min(max(abs(x - y) for x, y in zip(a, b, strict=True)),
-               max(abs(x + y) for x, y in zip(a, b, strict=True)))
+    return min(max(abs(a0 - b0), abs(a1 - b1), abs(a2 - b2), abs(a3 - b3)),
+               max(abs(a0 + b0), abs(a1 + b1), abs(a2 + b2), abs(a3 + b3)))
 
 
 def _compare(res: ReplayResult, rec_step: dict[str, Any], out: Any, t_s: float) -> None:

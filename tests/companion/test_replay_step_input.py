@@ -1,4 +1,4 @@
-"""The perception stage of a replay reads only the ``input`` entry of each step record."""
+"""What a replay reads of each step record, and what of it crosses between its two processes."""
 
 from __future__ import annotations
 
@@ -46,3 +46,46 @@ def test_the_replay_reads_the_channels_the_recording_writes() -> None:
 
     for name in topics.__all__:
         assert getattr(topics, name) == getattr(recording, name), name
+
+
+def test_a_step_crosses_between_the_processes_unchanged() -> None:
+    import pickle
+
+    from companion.replay_inputs import Perceived
+    from companion.replay_stream import StepInput, _unwire, _wire
+
+    p = Perceived("ok", "", ((1.5, 2.0), (3.0, 4.25), (5.0, 6.0), (7.0, 8.0)), 0.75,
+                  False, True)
+    s = StepInput({"rx_count": 3, "setpoint": {"q_wxyz": [1.0, 0.0, 0.0, 0.0],
+                                               "thrust": 0.5}},
+                  (("ATTITUDE", {"roll": 0.1}, 1, 2.5),), p, ((7, b"{}"),),
+                  (tuple(float(i) for i in range(24)), 0.75), 4, 1, 5.05)
+    back = _unwire(pickle.loads(pickle.dumps(_wire(s))))
+    assert back == s and back.perceived == p
+    none = s._replace(perceived=None, measured=None)
+    assert _unwire(pickle.loads(pickle.dumps(_wire(none)))) == none
+
+
+def test_the_corners_sent_give_the_arrays_perception_gives() -> None:
+    import numpy as np
+
+    from companion.config import load_config
+    from companion.perception import Perception
+    from companion.replay_inputs import Perceived
+    from companion.replay_stream import StepInput, _measured, perception_result
+
+    cfg = load_config()
+    metric = Perception(cfg.camera, cfg.target, perception=cfg.perception)
+    p = Perceived("ok", "", ((512.3, 401.7), (610.25, 405.5), (606.0, 470.125),
+                             (509.0, 466.0)), 0.9)
+    want = p.result(metric)
+    got = perception_result(StepInput({}, (), p, measured=_measured(p, metric)), p, metric)
+    assert want is not None and got is not None and got.status == "ok"
+    assert got.quality == want.quality
+    for a, b in ((got.corners_px, want.corners_px),
+                 (got.corners_undistorted_px, want.corners_undistorted_px),
+                 (got.points_m, want.points_m)):
+        assert a is not None and b is not None
+        assert a.dtype == b.dtype and a.shape == b.shape == (4, 2)
+        assert np.array_equal(a, b)  # bit for bit: the replay stays exact
+        assert a.flags.writeable == b.flags.writeable
