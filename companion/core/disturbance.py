@@ -48,6 +48,7 @@ from numpy.typing import ArrayLike
 
 from companion.core.disturbance_step import VelocityStep
 from companion.core.errors import ParamError
+from companion.core.frozen import make
 
 _NX = 7  # v (3), d (3), theta
 _NB = 2  # with the accelerometer: its bias in body x, y (states 7, 8)
@@ -243,8 +244,8 @@ class DisturbanceEstimator:
         dx, dy, dz = (math.sqrt(max(v, 0.0)) for v in p_diag[3:6])
         bias = (x[7], x[8]) if self.params.accelerometer else None
         ix, iy, iz = self.innovation.tolist()
-        return DisturbanceEstimate(
-            hover_thrust=1.0 / theta,
+        return make(
+            DisturbanceEstimate, hover_thrust=1.0 / theta,
             d_ned_m_s2=(x[3], x[4], x[5]),
             hover_std=theta_std / (theta * theta),
             d_std_m_s2=(dx, dy, dz),
