@@ -121,13 +121,19 @@ class TelemetryStore:
                 if src_sysid != self._target_sysid:
                     return self._reject("FOLLOW_TARGET from unexpected sysid")
                 return self._follow_target(fields, t_s)
-            if name == "ATTITUDE_QUATERNION":
-                q = (float(fields["q1"]), float(fields["q2"]), float(fields["q3"]),
-                     float(fields["q4"]))
-                if not _finite(*q, fields["yawspeed"]) or abs(_norm(q) - 1.0) > 1e-3:
+            if name == "ATTITUDE_QUATERNION":  # (50-100 Hz: written out, no helper calls)
+                q1, q2, q3, q4 = (float(fields["q1"]), float(fields["q2"]),
+                                  float(fields["q3"]), float(fields["q4"]))
+                rate = float(fields["yawspeed"])
+                isfinite = math.isfinite
+                # _norm's sum in its order (from 0: the same value)
+                if not (isfinite(q1) and isfinite(q2) and isfinite(q3) and isfinite(q4)
+                        and isfinite(rate)) or abs(
+                            math.sqrt(q1 * q1 + q2 * q2 + q3 * q3 + q4 * q4) - 1.0) > 1e-3:
                     return self._reject("ATTITUDE_QUATERNION not a unit quaternion")
-                return self._push_attitude(name, make(AttitudeSample, t_s=t_s, q_wxyz=q,
-                                                      yaw_rate_rad_s=float(fields["yawspeed"])))
+                return self._push_attitude(name, make(AttitudeSample, t_s=t_s,
+                                                      q_wxyz=(q1, q2, q3, q4),
+                                                      yaw_rate_rad_s=rate))
             if name == "ATTITUDE":  # PX4 onboard: 100 Hz against ATTITUDE_QUATERNION's 50 Hz
                 rpy = [float(fields[k]) for k in ("roll", "pitch", "yaw")]
                 if not _finite(*rpy, fields["yawspeed"]):
@@ -136,11 +142,11 @@ class TelemetryStore:
                 return self._push_attitude(name, AttitudeSample(
                     t_s, tuple(float(x) for x in qa), float(fields["yawspeed"])))  # type: ignore[arg-type]
             if name == "LOCAL_POSITION_NED":
-                vals = [float(fields[k]) for k in ("x", "y", "z", "vx", "vy", "vz")]
-                if not _finite(*vals):
+                pos = (float(fields["x"]), float(fields["y"]), float(fields["z"]))
+                vel = (float(fields["vx"]), float(fields["vy"]), float(fields["vz"]))
+                if not _finite(*pos, *vel):
                     return self._reject("LOCAL_POSITION_NED non-finite")
-                k = make(KinematicsSample, t_s=t_s, pos_ned_m=tuple(vals[:3]),
-                         vel_ned_m_s=tuple(vals[3:]))
+                k = make(KinematicsSample, t_s=t_s, pos_ned_m=pos, vel_ned_m_s=vel)
                 if self.kinematics is not None and t_s < self.kinematics.t_s:
                     return self._reject("LOCAL_POSITION_NED out of order")
                 self.kinematics = k
