@@ -40,6 +40,7 @@ velocity step compiled (:mod:`companion.core.disturbance_step`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -263,7 +264,7 @@ class DisturbanceEstimator:
         re-anchors the velocity; the estimate is not touched.
         """
         v = _three(v_ned_m_s)
-        if v is None or not _all_finite(list(v)) or not math.isfinite(float(t_s)):
+        if v is None or not _all_finite(v) or not math.isfinite(float(t_s)):
             return self._reject("non-finite velocity or time")
         if self.t_s is not None and t_s <= self.t_s:
             return self._reject("velocity sample not newer than the last one")
@@ -459,8 +460,12 @@ class DisturbanceEstimator:
         return False
 
 
-def _all_finite(values: list[float]) -> bool:
-    return all(math.isfinite(v) for v in values)
+def _all_finite(values: Sequence[float]) -> bool:
+    isfinite = math.isfinite
+    for v in values:  # noqa: SIM110 - every velocity sample: a plain loop, no generator
+        if not isfinite(v):
+            return False
+    return True
 
 
 def _three(x: ArrayLike) -> tuple[float, float, float] | None:
@@ -476,7 +481,7 @@ def _checked_inputs(thrust_norm: float,
     if b is None:
         return None
     bx, by, bz = b
-    if (not _all_finite([bx, by, bz]) or not math.isfinite(thrust_norm)
+    if (not _all_finite(b) or not math.isfinite(thrust_norm)
             or not 0.0 <= thrust_norm <= 1.0
             or abs(math.sqrt(bx * bx + by * by + bz * bz) - 1.0) > 1e-3):
         return None

@@ -112,10 +112,10 @@ class TargetMotion:
     @classmethod
     def built(cls, v_a_m_s: np.ndarray, vdot_a_m_s2: np.ndarray, psidot_a_rad_s: np.ndarray,
               disturbance_v_m_s2: np.ndarray | None = None) -> TargetMotion:
-        """``TargetMotion(...)`` of arrays the caller has just built for it: float64, C-order,
-        of the right shapes (checked) and shared with nobody, so they are taken as they are
-        (made read-only) instead of copied (the prediction, every control step: ~4 array
-        copies less). The same checks and errors as the constructor."""
+        """``TargetMotion(...)`` of arrays the caller has just built for it and shares with
+        nobody: float64 of the right shapes and finite (checked, else the constructor's
+        error), they are taken as they are (made read-only) instead of copied (the
+        prediction, every control step: four array copies fewer)."""
         n = v_a_m_s.shape[0]
         dd = np.zeros((n, 3)) if disturbance_v_m_s2 is None else disturbance_v_m_s2
         arrays = (v_a_m_s, vdot_a_m_s2, psidot_a_rad_s, dd)
