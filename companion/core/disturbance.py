@@ -461,11 +461,7 @@ class DisturbanceEstimator:
 
 
 def _all_finite(values: Sequence[float]) -> bool:
-    isfinite = math.isfinite
-    for v in values:  # noqa: SIM110 - every velocity sample: a plain loop, no generator
-        if not isfinite(v):
-            return False
-    return True
+    return all(map(math.isfinite, values))  # (a builtin over the values: no generator)
 
 
 def _three(x: ArrayLike) -> tuple[float, float, float] | None:
