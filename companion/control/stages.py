@@ -85,7 +85,7 @@ class StepResult:
                            "corners_px": _lst(self.corners_px)},
             "eta_e": _lst(es.eta_e) if es else None,
             "s": _lst(es.s) if es else None,
-            "p_e": _lst(es.eta_e[:2] / es.s[2]) if es else None,
+            "p_e": _p_e(es) if es else None,
             "attitude_rpy_rad": [es.roll_rad, es.pitch_rad, es.yaw_rad] if es else None,
             "target_velocity": None if self.target_velocity is None else {
                 "v_a_ned_m_s": _lst(self.target_velocity.v_a_ned_m_s),
@@ -178,6 +178,13 @@ def _lst(a: Any) -> Any:
     if isinstance(a, np.ndarray) and a.dtype == np.float64:
         return a.tolist()  # most values: no conversion to make
     return np.asarray(a, dtype=float).tolist()
+
+
+def _p_e(es: ErrorState) -> list[float]:
+    """``eta_e[:2] / s[2]`` (numpy's element-wise quotients, on floats)."""
+    e0, e1 = es.eta_e[:2].tolist()
+    s3 = float(es.s[2])
+    return [e0 / s3, e1 / s3]
 
 
 def _f(x: Any) -> float | None:

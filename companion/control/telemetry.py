@@ -17,6 +17,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from companion.core.frozen import make
 from companion.core.geometry import euler_zyx_from_quat, quat_from_euler_zyx
 
 EARTH_RADIUS_M = 6378137.0
@@ -120,12 +121,19 @@ class TelemetryStore:
                 if src_sysid != self._target_sysid:
                     return self._reject("FOLLOW_TARGET from unexpected sysid")
                 return self._follow_target(fields, t_s)
-            if name == "ATTITUDE_QUATERNION":
-                q = (float(fields["q1"]), float(fields["q2"]), float(fields["q3"]),
-                     float(fields["q4"]))
-                if not _finite(*q, fields["yawspeed"]) or abs(_norm(q) - 1.0) > 1e-3:
+            if name == "ATTITUDE_QUATERNION":  # (50-100 Hz: written out, no helper calls)
+                q1, q2, q3, q4 = (float(fields["q1"]), float(fields["q2"]),
+                                  float(fields["q3"]), float(fields["q4"]))
+                rate = float(fields["yawspeed"])
+                isfinite = math.isfinite
+                # _norm's sum in its order (from 0: the same value)
+                if not (isfinite(q1) and isfinite(q2) and isfinite(q3) and isfinite(q4)
+                        and isfinite(rate)) or abs(
+                            math.sqrt(q1 * q1 + q2 * q2 + q3 * q3 + q4 * q4) - 1.0) > 1e-3:
                     return self._reject("ATTITUDE_QUATERNION not a unit quaternion")
-                return self._push_attitude(name, AttitudeSample(t_s, q, float(fields["yawspeed"])))
+                return self._push_attitude(name, make(AttitudeSample, t_s=t_s,
+                                                      q_wxyz=(q1, q2, q3, q4),
+                                                      yaw_rate_rad_s=rate))
             if name == "ATTITUDE":  # PX4 onboard: 100 Hz against ATTITUDE_QUATERNION's 50 Hz
                 rpy = [float(fields[k]) for k in ("roll", "pitch", "yaw")]
                 if not _finite(*rpy, fields["yawspeed"]):
@@ -134,10 +142,11 @@ class TelemetryStore:
                 return self._push_attitude(name, AttitudeSample(
                     t_s, tuple(float(x) for x in qa), float(fields["yawspeed"])))  # type: ignore[arg-type]
             if name == "LOCAL_POSITION_NED":
-                vals = [float(fields[k]) for k in ("x", "y", "z", "vx", "vy", "vz")]
-                if not _finite(*vals):
+                pos = (float(fields["x"]), float(fields["y"]), float(fields["z"]))
+                vel = (float(fields["vx"]), float(fields["vy"]), float(fields["vz"]))
+                if not _finite(*pos, *vel):
                     return self._reject("LOCAL_POSITION_NED non-finite")
-                k = KinematicsSample(t_s, tuple(vals[:3]), tuple(vals[3:]))  # type: ignore[arg-type]
+                k = make(KinematicsSample, t_s=t_s, pos_ned_m=pos, vel_ned_m_s=vel)
                 if self.kinematics is not None and t_s < self.kinematics.t_s:
                     return self._reject("LOCAL_POSITION_NED out of order")
                 self.kinematics = k
@@ -251,7 +260,7 @@ class TelemetryStore:
         w = 0.0 if span <= 0 else (t_s - prev.t_s) / span
         q = _slerp(prev.q_wxyz, nxt.q_wxyz, w)
         rate = prev.yaw_rate_rad_s + w * (nxt.yaw_rate_rad_s - prev.yaw_rate_rad_s)
-        return AttitudeSample(t_s, q, rate)
+        return make(AttitudeSample, t_s=t_s, q_wxyz=q, yaw_rate_rad_s=rate)
 
     def autopilot_thrust_over(self, t0_s: float, t1_s: float,
                               max_age_s: float = 0.25) -> float | None:
@@ -294,7 +303,7 @@ class TelemetryStore:
                                                             strict=True))
                 vel = tuple(a + w * (b - a) for a, b in zip(s.vel_ned_m_s, nxt.vel_ned_m_s,
                                                             strict=True))
-                return KinematicsSample(t_s, pos, vel)  # type: ignore[arg-type]
+                return make(KinematicsSample, t_s=t_s, pos_ned_m=pos, vel_ned_m_s=vel)
             nxt = s
         return hist[0]
 

@@ -40,6 +40,7 @@ velocity step compiled (:mod:`companion.core.disturbance_step`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,6 +49,7 @@ from numpy.typing import ArrayLike
 
 from companion.core.disturbance_step import VelocityStep
 from companion.core.errors import ParamError
+from companion.core.frozen import make
 
 _NX = 7  # v (3), d (3), theta
 _NB = 2  # with the accelerometer: its bias in body x, y (states 7, 8)
@@ -243,8 +245,8 @@ class DisturbanceEstimator:
         dx, dy, dz = (math.sqrt(max(v, 0.0)) for v in p_diag[3:6])
         bias = (x[7], x[8]) if self.params.accelerometer else None
         ix, iy, iz = self.innovation.tolist()
-        return DisturbanceEstimate(
-            hover_thrust=1.0 / theta,
+        return make(
+            DisturbanceEstimate, hover_thrust=1.0 / theta,
             d_ned_m_s2=(x[3], x[4], x[5]),
             hover_std=theta_std / (theta * theta),
             d_std_m_s2=(dx, dy, dz),
@@ -262,7 +264,7 @@ class DisturbanceEstimator:
         re-anchors the velocity; the estimate is not touched.
         """
         v = _three(v_ned_m_s)
-        if v is None or not _all_finite(list(v)) or not math.isfinite(float(t_s)):
+        if v is None or not _all_finite(v) or not math.isfinite(float(t_s)):
             return self._reject("non-finite velocity or time")
         if self.t_s is not None and t_s <= self.t_s:
             return self._reject("velocity sample not newer than the last one")
@@ -458,8 +460,8 @@ class DisturbanceEstimator:
         return False
 
 
-def _all_finite(values: list[float]) -> bool:
-    return all(math.isfinite(v) for v in values)
+def _all_finite(values: Sequence[float]) -> bool:
+    return all(map(math.isfinite, values))  # (a builtin over the values: no generator)
 
 
 def _three(x: ArrayLike) -> tuple[float, float, float] | None:
@@ -475,7 +477,7 @@ def _checked_inputs(thrust_norm: float,
     if b is None:
         return None
     bx, by, bz = b
-    if (not _all_finite([bx, by, bz]) or not math.isfinite(thrust_norm)
+    if (not _all_finite(b) or not math.isfinite(thrust_norm)
             or not 0.0 <= thrust_norm <= 1.0
             or abs(math.sqrt(bx * bx + by * by + bz * bz) - 1.0) > 1e-3):
         return None

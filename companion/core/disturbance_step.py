@@ -48,22 +48,22 @@ class VelocityStep:
         buf.set_arg(0, self._arg.data)
         buf.set_res(0, self._res.data)
         self._fn = fn
+        # p goes in column-major: its slot seen as the (n, n) matrix it holds, so one
+        # strided copy writes p there (p.T.reshape(-1) first copied p.T, then that)
+        self._p_in = self._arg[n:n + n * n].reshape(n, n).T
+        self._k0 = n + n * n
 
     def __call__(self, x: np.ndarray, p: np.ndarray, dt: float,
                  f_col: tuple[float, float, float], g_dt: float, q_diag: list[float],
                  v: tuple[float, float, float], r: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
-        n = self.n
+        n, k0 = self.n, self._k0
         a = self._arg
         a[0:n] = x
-        a[n:n + n * n] = p.T.reshape(-1)
-        k0 = n + n * n
-        a[k0] = dt
-        a[k0 + 1:k0 + 4] = f_col
-        a[k0 + 4] = g_dt
-        a[k0 + 5:k0 + 5 + n] = q_diag
-        a[k0 + 5 + n:k0 + 8 + n] = v
-        a[k0 + 8 + n] = r
+        self._p_in[...] = p
+        # the scalars and short vectors after p in one assignment: [dt, f_col, g_dt,
+        # q_diag, v, r] (the same values as one slice each)
+        a[k0:] = [dt, *f_col, g_dt, *q_diag, *v, r]
         self._buf._eval()
         if int(self._buf.ret()) != 0:
             raise RuntimeError(f"{self._fn.name()}: evaluation failed")

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.core.errors import ParamError
+from companion.core.frozen import make
 
 
 @dataclass(frozen=True)
@@ -132,7 +133,8 @@ def predict_error_state(
             h = min(params.step_s, bound - t)
             eta = _euler(eta, input_at(history, t).tolist(), va, vda, psidot_a, z_star, h)
             t += h
-    return Prediction(np.array(eta), float(t_from_s), t_end, horizon, clipped)
+    return make(Prediction, eta_e=np.array(eta), t_from_s=float(t_from_s), t_to_s=t_end,
+                horizon_s=horizon, clipped=clipped)
 
 
 def _euler(eta: list[float], u: list[float], va: list[float], vda: list[float],

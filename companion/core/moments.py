@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from companion.core.frozen import make
 from companion.core.geometry import GeometryError, project_points
 
 # Points whose rms spread about their centroid is below this fraction of the image scale
@@ -271,11 +272,9 @@ def _moments_of(mom: tuple[float, float, float, float, float], us: list[float],
     else:
         s4 = unwrap_s4(orientation_raw(mu20, mu02, mu11), s4_prev_rad)
     s = np.array([s3 * ub / lam, s3 * nb / lam, s3, s4])
-    s.setflags(write=False)  # owned and read-only: ImageMoments keeps it without a copy
-    return ImageMoments(
-        s=s, u_v_bar_m=ub, n_v_bar_m=nb, a=a,
-        mu20=mu20, mu02=mu02, mu11=mu11, n_points=len(us),
-    )
+    s.setflags(write=False)  # owned and read-only, as ImageMoments keeps it: no __post_init__
+    return make(ImageMoments, s=s, u_v_bar_m=ub, n_v_bar_m=nb, a=a, mu20=mu20, mu02=mu02,
+                mu11=mu11, n_points=len(us))
 
 
 def a_star(target_points_m: ArrayLike, z_star_m: float, lam: float) -> float:

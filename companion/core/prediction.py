@@ -47,7 +47,7 @@ def predict_target_motion(
     yaw_q_rad: float,
     horizon: int,
     dt_s: float,
-    d_ned_m_s2: np.ndarray | None = None,
+    d_ned_m_s2: np.ndarray | tuple[float, float, float] | None = None,
     speed_cap_m_s: float | None = None,
 ) -> TargetMotion:
     """Predict the target's motion parameters for stages ``n = 0 .. horizon-1``.
@@ -64,22 +64,24 @@ def predict_target_motion(
     terminal set, ``v_q = v_a`` inside the box, unreachable whatever the state); a target
     already faster than the bound keeps its measured speed.
     """
-    v0x, v0y = np.asarray(v_a_ned_m_s, dtype=float)[:2].tolist()
-    a0x, a0y = np.asarray(a_a_ned_m_s2, dtype=float)[:2].tolist()
+    v0x, v0y = _first_two(v_a_ned_m_s)
+    a0x, a0y = _first_two(a_a_ned_m_s2)
     # stage by stage on plain floats (numpy's formulas row by row; ~16 stages of 2-vectors
-    # cost more in numpy's per-call overhead than in arithmetic)
+    # cost more in numpy's per-call overhead than in arithmetic), into flat lists that
+    # become the TargetMotion's arrays in one call each
     speed = float(np.hypot(v0x, v0y))  # numpy's hypot: math's differs in the last bit
     moving = speed > 1e-6
+    cos, sin = math.cos, math.sin
     heading = math.atan2(v0y, v0x) if moving else 0.0
-    a_along = a0x * math.cos(heading) + a0y * math.sin(heading) if moving else 0.0
+    a_along = a0x * cos(heading) + a0y * sin(heading) if moving else 0.0
     w = float(psidot_a_rad_s)
     top = math.inf
     if moving and speed_cap_m_s is not None and a_along > 0.0:
         top = max(speed, float(speed_cap_m_s))
-    d = None if d_ned_m_s2 is None else np.asarray(d_ned_m_s2, dtype=float).reshape(3).tolist()
-    v_v: list[tuple[float, float]] = []
-    vdot: list[tuple[float, float]] = []
-    d_out: list[tuple[float, float, float]] = []
+    d = None if d_ned_m_s2 is None else _three(d_ned_m_s2)
+    v_v: list[float] = []
+    vdot: list[float] = []
+    d_out: list[float] = []
     for n in range(horizon):
         t = n * dt_s
         if moving:
@@ -87,18 +89,36 @@ def predict_target_motion(
             acc = 0.0 if sp >= top else a_along
             sp = min(sp, top)
             hd = heading + w * t
-            ch, sh = math.cos(hd), math.sin(hd)
+            ch, sh = cos(hd), sin(hd)
             vx, vy = sp * ch, sp * sh
             ax, ay = acc * ch - sp * w * sh, acc * sh + sp * w * ch
         else:
             vx, vy, ax, ay = v0x + a0x * t, v0y + a0y * t, a0x, a0y
         psi_q = yaw_q_rad + w * t
-        c, s = math.cos(psi_q), math.sin(psi_q)
+        c, s = cos(psi_q), sin(psi_q)
         # Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y]; d/dt (Rz^T v) = Rz^T a + psidot_q
         # [v_y, -v_x] with psidot_q = w (the vehicle turns along)
         vvx, vvy = c * vx + s * vy, -s * vx + c * vy
-        v_v.append((vvx, vvy))
-        vdot.append((c * ax + s * ay + w * vvy, -s * ax + c * ay + w * -vvx))
-        d_out.append((0.0, 0.0, 0.0) if d is None
-                     else (c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]))
-    return TargetMotion(np.array(v_v), np.array(vdot), np.full(horizon, w), np.array(d_out))
+        v_v += (vvx, vvy)
+        vdot += (c * ax + s * ay + w * vvy, -s * ax + c * ay + w * -vvx)
+        if d is not None:
+            d_out += (c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2])
+    return TargetMotion.built(np.array(v_v).reshape(horizon, 2),
+                              np.array(vdot).reshape(horizon, 2), np.array([w] * horizon),
+                              None if d is None else np.array(d_out).reshape(horizon, 3))
+
+
+def _first_two(x: np.ndarray | tuple[float, ...]) -> tuple[float, float]:
+    """The first two values as floats (a tuple without numpy)."""
+    if type(x) is tuple and len(x) >= 2:
+        return float(x[0]), float(x[1])
+    a, b = np.asarray(x, dtype=float)[:2].tolist()
+    return a, b
+
+
+def _three(x: np.ndarray | tuple[float, ...]) -> list[float]:
+    """Three values as floats (numpy's ``reshape(3)`` check; a tuple without numpy)."""
+    if type(x) is tuple and len(x) == 3:
+        return [float(v) for v in x]
+    out: list[float] = np.asarray(x, dtype=float).reshape(3).tolist()
+    return out

@@ -30,12 +30,12 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.core.dynamics import S_REF, euler_step, input_error
+from companion.core.frozen import make
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import CompiledNlp, RmpcBuildError
 from companion.core.rmpc_check import check_solution, visibility_margin
@@ -108,6 +108,7 @@ class Rmpc:
         self.terminal = terminal
         self.horizon = rmpc.horizon
         self.u_max = np.asarray(rmpc.u_max, dtype=float)
+        self._u_max_list: list[float] = self.u_max.tolist()
         self.k = np.asarray(terminal.k, dtype=float)
         self.groups = tuple(
             name
@@ -146,6 +147,7 @@ class Rmpc:
         # sqrt((P^-1)_44): |eta|_P >= |se4| / this (see _infeasibility_certificate)
         self._se4_scale = float(np.sqrt(np.linalg.inv(np.asarray(terminal.p))[3, 3]))
         self._p_tube = tube_matrix(rmpc, np.asarray(terminal.p, dtype=float))
+        self._tube0_sq = tube_bound(rmpc, 0) ** 2  # X(0)^2 (the certificate, every step)
         self._s4_ref = 0.0  # eta0[3] of the current step (stage_motion's reference yaw)
         # where the solves run: here (None), or a backend the shell builds for this controller
         # (a child process bounded by rmpc.max_solve_time_s, companion.control.solve_guard)
@@ -188,7 +190,8 @@ class Rmpc:
         e0 = np.asarray(eta0, dtype=float).reshape(-1)
         if e0.shape != (NX,):
             raise RmpcParameterError(f"eta0: need 7 values, got shape {np.shape(eta0)}")
-        if not np.isfinite(e0).all():
+        # (one sum is finite iff every entry is, short of an overflow: the full test then)
+        if not math.isfinite(float(e0.sum())) and not np.isfinite(e0).all():
             raise RmpcParameterError(f"eta0: not finite ({e0.tolist()})")
         if not isinstance(target, TargetMotion) or target.horizon != self.horizon:
             raise RmpcParameterError(f"target: need a TargetMotion with {self.horizon} rows")
@@ -254,10 +257,19 @@ class Rmpc:
         self.rti_qps += out.qps
         if out.ok:
             self.rti_accepted += 1
-            self._prev = (out.eta, out.u)
-            return RmpcResult(True, "optimal", out.status, out.status, out.cost,
-                              out.qp_iterations, t_wall, _ro(out.u[0]), _ro(out.eta),
-                              _ro(out.u), 0.0, self.groups, target)
+            # the outcome's arrays are its own (fresh each step) and only read from here
+            # on: made read-only and shared with the warm start, not copied
+            eta, u = out.eta, out.u
+            eta.setflags(write=False)
+            u.setflags(write=False)
+            u0 = u[0].copy()
+            u0.setflags(write=False)
+            self._prev = (eta, u)
+            return make(RmpcResult, success=True, mode="optimal", status=out.status,
+                        hard_status=out.status, cost=out.cost,
+                        iterations=out.qp_iterations, solve_time_s=t_wall, u0=u0,
+                        eta_pred=eta, u_pred=u, max_soft_violation=0.0,
+                        active_groups=self.groups, target=target)
         self.rti_rejected += 1
         log.info("RMPC %s: solving the full NLP", out.status)
         return f"{out.status}; nlp: ", out.qp_iterations, t_wall
@@ -360,7 +372,7 @@ class Rmpc:
         tube, term = "tube" in self.groups, "terminal" in self.groups
         if not (tube or term):
             return None
-        if tube and float(eta0 @ self._p_tube @ eta0) > tube_bound(self.cfg, 0) ** 2:
+        if tube and float(eta0 @ self._p_tube @ eta0) > self._tube0_sq:
             return "infeasible: |eta0|_P > X(0)"
         if self.cfg.heading == "cost":  # s4 is in no hard row: no yaw argument
             return None
@@ -391,24 +403,27 @@ class Rmpc:
         """:meth:`_law` bit for bit (the same operations in the same order, a test holds them
         to each other), without the two-backend functions' dispatch: the warm start's last
         input every RTI step, ~40 us of CPU less in flight."""
-        v_a: Any
-        vdot_a: Any
-        v_a, vdot_a, psidot_a = target.stage(n)
+        # plain floats but for K eta (numpy's product: BLAS's order of the sums); math's
+        # cos and sin are numpy's, the clipping np.maximum/np.minimum's (NaN kept)
+        va0, va1 = target.v_a_m_s[n].tolist()
+        vd0, vd1 = target.vdot_a_m_s2[n].tolist()
+        psidot_a = float(target.psidot_a_rad_s[n])
         if self.cfg.target_motion != "nominal":  # stage_motion's "planned_yaw", u[3] = psidot_a
-            th = self._s4_ref - eta[3]
-            c, s = np.cos(th), np.sin(th)
-            va0 = c * v_a[0] + s * v_a[1]
-            va1 = -s * v_a[0] + c * v_a[1]
-            an0 = vdot_a[0] - psidot_a * v_a[1]
-            an1 = vdot_a[1] + psidot_a * v_a[0]
-            vdot_a = (c * an0 + s * an1 + psidot_a * va1, -s * an0 + c * an1 - psidot_a * va0)
-            v_a = (va0, va1)
-        ke = self.k @ eta
-        psidot_q = float(ke[3] + psidot_a)
-        gamma = np.array([float(vdot_a[0] - psidot_q * v_a[1]),
-                          float(psidot_q * v_a[0] + vdot_a[1]), 0.0, psidot_a])
-        out: np.ndarray = np.minimum(np.maximum(ke + gamma, -self.u_max), self.u_max)
-        return out
+            th = self._s4_ref - float(eta[3])
+            c, s = math.cos(th), math.sin(th)
+            an0 = vd0 - psidot_a * va1
+            an1 = vd1 + psidot_a * va0
+            va0, va1 = c * va0 + s * va1, -s * va0 + c * va1
+            vd0, vd1 = c * an0 + s * an1 + psidot_a * va1, -s * an0 + c * an1 - psidot_a * va0
+        k0, k1, k2, k3 = (self.k @ eta).tolist()
+        psidot_q = k3 + psidot_a
+        out = []
+        for v, hi in zip((k0 + (vd0 - psidot_q * va1), k1 + (psidot_q * va0 + vd1),
+                          k2 + 0.0, k3 + psidot_a), self._u_max_list, strict=True):
+            lo = -hi
+            v = lo if v < lo else v  # (np.maximum then np.minimum: a NaN stays)
+            out.append(hi if v > hi else v)
+        return np.array(out)
 
     def _step(self, eta: np.ndarray, u: np.ndarray, target: TargetMotion, n: int) -> np.ndarray:
         v_a, vdot_a, psidot_a = planned_motion(self.cfg, eta, u, target, n, self._s4_ref)

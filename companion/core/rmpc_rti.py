@@ -54,6 +54,7 @@ from companion.core import (
     rmpc_rti_loops,
     rmpc_rti_recursion,
 )
+from companion.core.frozen import make
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc_cache import (
     CompiledNlp,
@@ -316,9 +317,10 @@ class RtiSolver:
                 self._val()
             previous, viol = viol, float(self._excess[0])
             if math.isfinite(float(self._total[0])) and viol <= self.cfg.rti_tol:
-                return RtiOutcome(True, f"rti: {qps} QP, {iters} QP iterations",
-                                  self._states(), self._u_plan.copy(),
-                                  float(self._f[0]), iters, qps, viol)
+                return make(RtiOutcome, ok=True,
+                            status=f"rti: {qps} QP, {iters} QP iterations",
+                            eta=self._states(), u=self._u_plan.copy(), cost=float(self._f[0]),
+                            qp_iterations=iters, qps=qps, violation=viol)
             worst = self._worst_row(u.copy(), eta0, par, state_lo, state_hi)
             self._lo_x[:] = state_lo
             self._hi_x[:] = state_hi

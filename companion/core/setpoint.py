@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.core.errors import CoreError
+from companion.core.frozen import make
 from companion.core.geometry import quat_from_euler_zyx, wrap_pi
 from companion.core.params import ControlParams, RmpcParams
 
@@ -103,8 +104,9 @@ def attitude_setpoint(
     psi_d = wrap_pi(float(yaw_rad) + psidot * float(dt_s))
     thrust_raw = hover_thrust * f_norm / g_m_s2
     thrust = min(max(thrust_raw, thrust_min), thrust_max)
-    return AttitudeSetpoint(
-        q_wxyz=quat_from_euler_zyx(phi_d, theta_d, psi_d),
+    # (quat_from_euler_zyx's array is owned and read-only, as __post_init__ makes it)
+    return make(
+        AttitudeSetpoint, q_wxyz=quat_from_euler_zyx(phi_d, theta_d, psi_d),
         thrust_norm=thrust,
         roll_rad=phi_d,
         pitch_rad=theta_d,

@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike
 
 from companion.core.dynamics import S_REF
 from companion.core.errors import CoreError
+from companion.core.frozen import make
 from companion.core.geometry import (
     camera_points_to_body_image,
     real_lists_to_virtual,
@@ -144,8 +145,9 @@ def _motion(v_ned: tuple[float, float, float], a_ned: tuple[float, float, float]
     v = _to_virtual(v_ned, c, s)[:2]
     acc = _to_virtual(a_ned, c, s)[:2]
     vdot = [acc[0] + psidot_q * v[1], acc[1] + psidot_q * -v[0]]
-    return TargetMotion(v_a_m_s=_frozen(v), vdot_a_m_s2=_frozen(vdot), psidot_a_rad_s=psidot_a,
-                        accel_a_v_m_s2=_frozen(acc), yaw_rate_rad_s=psidot_q)
+    # (arrays owned and read-only, as __post_init__ makes them: built without it)
+    return make(TargetMotion, v_a_m_s=_frozen(v), vdot_a_m_s2=_frozen(vdot),
+                psidot_a_rad_s=psidot_a, accel_a_v_m_s2=_frozen(acc), yaw_rate_rad_s=psidot_q)
 
 
 def virtual_image_points(
@@ -267,8 +269,9 @@ def build_error_state(
     va0, va1 = motion.v_a_m_s.tolist()
     s_list = mom.s.tolist()
     eta = [s_list[i] - S_REF[i] for i in range(4)] + [v_q[0] - va0, v_q[1] - va1, v_q[2] - 0.0]
-    return ErrorState(
-        eta_e=_frozen(eta), s=mom.s, v_q_v_m_s=_frozen(v_q),
+    # (arrays owned and read-only, as __post_init__ makes them: built without it)
+    return make(
+        ErrorState, eta_e=_frozen(eta), s=_ro(mom.s), v_q_v_m_s=_frozen(v_q),
         v_a_v_m_s=_frozen([va0, va1, 0.0]), moments=mom, motion=motion,
         roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
     )
