@@ -328,6 +328,10 @@ class CompanionApp:
                     continue
                 break
             self._step(frame)
+            if self._records is not None:
+                # the loop now waits for the next frame: the writer's moment (one wake-up a
+                # step, between steps, rather than a timer's wherever the step is)
+                self._records.logger.kick()
 
     async def _next_frame(self, it: Any, wait_s: float, wake_on_stop: bool) -> CameraFrame:
         """The camera's next frame within ``wait_s`` (``TimeoutError``); with

@@ -156,16 +156,35 @@ def _fields(t: tuple[Any, ...], s: _Spec) -> dict[str, Any]:
 
 _HEADER_V2 = struct.Struct("<BBBBBBBHB")
 
+#: SET_ATTITUDE_TARGET's payload in wire order (pymavlink's ``unpacker`` format): time_boot_ms,
+#: q[4], body roll/pitch/yaw rates, thrust, target system, target component, type mask
+SETPOINT_PAYLOAD = struct.Struct(mavlink2.MAVLink_set_attitude_target_message.unpacker.format)
+#: TIMESYNC's payload: tc1, ts1
+TIMESYNC_PAYLOAD = struct.Struct(mavlink2.MAVLink_timesync_message.unpacker.format)
+SETPOINT_CRC_EXTRA = bytes([mavlink2.MAVLink_set_attitude_target_message.crc_extra])
+TIMESYNC_CRC_EXTRA = bytes([mavlink2.MAVLink_timesync_message.crc_extra])
+
+
+def frame(payload: bytes, seq: int, sysid: int, compid: int, msgid: int,
+          crc_extra: bytes) -> bytes:
+    """An unsigned MAVLink 2 frame of ``payload`` (its full wire-order bytes): the trailing
+    zero bytes dropped as MAVLink 2 does (at least one byte stays), the header, the
+    CRC-16/MCRF4XX with ``crc_extra``; byte for byte pymavlink's ``pack``."""
+    payload = payload.rstrip(b"\x00") or payload[:1]
+    body = _HEADER_V2.pack(MAGIC_V2, len(payload), 0, 0, seq, sysid, compid, msgid & 0xFFFF,
+                           msgid >> 16) + payload
+    return body + _CRC.pack(_mcrf4xx(crc_extra, _mcrf4xx(body[1:], 0xFFFF)))
+
 
 def _attitude_target_payload(msg: Any) -> bytes:
     q = msg.q
-    return msg.unpacker.pack(  # type: ignore[no-any-return]
+    return SETPOINT_PAYLOAD.pack(
         msg.time_boot_ms, q[0], q[1], q[2], q[3], msg.body_roll_rate, msg.body_pitch_rate,
         msg.body_yaw_rate, msg.thrust, msg.target_system, msg.target_component, msg.type_mask)
 
 
 def _timesync_payload(msg: Any) -> bytes:
-    return msg.unpacker.pack(msg.tc1, msg.ts1)  # type: ignore[no-any-return]
+    return TIMESYNC_PAYLOAD.pack(msg.tc1, msg.ts1)
 
 
 # what the step sends (the setpoint, the TIMESYNC probe before it): the wire field order of
@@ -186,12 +205,7 @@ def pack(msg: Any, mav: Any) -> bytes:
     if packer is None or mav.signing.sign_outgoing:
         return bytes(msg.pack(mav))
     payload_of, crc_extra, msgid = packer
-    payload = payload_of(msg)
-    # MAVLink 2 drops the payload's trailing zero bytes (at least one byte stays)
-    payload = payload.rstrip(b"\x00") or payload[:1]
-    frame = _HEADER_V2.pack(MAGIC_V2, len(payload), 0, 0, mav.seq, mav.srcSystem,
-                            mav.srcComponent, msgid & 0xFFFF, msgid >> 16) + payload
-    return frame + _CRC.pack(_mcrf4xx(crc_extra, _mcrf4xx(frame[1:], 0xFFFF)))
+    return frame(payload_of(msg), mav.seq, mav.srcSystem, mav.srcComponent, msgid, crc_extra)
 
 
 class LazyMessage:
@@ -217,5 +231,6 @@ class LazyMessage:
         return repr(self._decoded())
 
 
-__all__ = ["Header", "LazyMessage", "crc_ok", "decode_checked", "decode_fields", "pack",
+__all__ = ["SETPOINT_CRC_EXTRA", "SETPOINT_PAYLOAD", "TIMESYNC_CRC_EXTRA", "TIMESYNC_PAYLOAD",
+           "Header", "LazyMessage", "crc_ok", "decode_checked", "decode_fields", "frame", "pack",
            "single_frame_header", "spec"]

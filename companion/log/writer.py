@@ -131,7 +131,8 @@ class McapLogger(WriterThread):
         # every POLL_S and drains it in one go), so a record costs its caller ~1 us, not a
         # lock, a notify and a thread switch (see WriterThread)
         self._q: collections.deque[Any] = collections.deque()
-        self._wake = threading.Event()  # close, or a queue half full: drain now
+        self._wake = threading.Event()  # close, a queue half full, a kick: drain now
+        self._kicked = False  # the owner kicks (kick): the timed drain is only a backstop
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)  # image backlog below the byte budget
         self._topics: dict[str, str] = {}
@@ -411,6 +412,14 @@ class McapLogger(WriterThread):
         if schema is None:
             raise McapLogError(f"topic {topic!r} is new: give its schema name")
         self.register(topic, schema)
+
+    def kick(self) -> None:
+        """Write what is queued now: the owner's quiet moment (the control loop calls it once
+        a step, after the step's records, as it goes to wait for the next frame). From the
+        first kick on, the writer's timed drain is a backstop (``POLL_KICKED_S``), so it
+        wakes once a step between steps rather than every ``POLL_S`` wherever the step is."""
+        self._kicked = True
+        self._wake.set()
 
     def hold(self) -> None:
         """Keep the writer thread off the GIL until :meth:`release` (at most ``MAX_HOLD_S``
