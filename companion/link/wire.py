@@ -65,7 +65,7 @@ def single_frame_header(data: bytes) -> Header | None:
 class _Spec:
     """A message type's decoding plan, built once from pymavlink's generated class."""
 
-    __slots__ = ("crc_extra", "floats", "name", "plan", "size", "unpacker")
+    __slots__ = ("crc_extra", "fields", "floats", "name", "plan", "size", "unpacker")
 
     def __init__(self, cls: Any) -> None:
         self.name: str = cls.msgname
@@ -82,6 +82,40 @@ class _Spec:
         #: the unpacked tuple's float items (as a tuple), None when there are none
         self.floats: Callable[[tuple[Any, ...]], tuple[float, ...]] | None = _float_items(
             cls.unpacker.format)
+        #: the unpacked tuple -> the fields dict (:func:`_fields`'s result, built by one dict
+        #: display compiled for this message: ~2x the loop's speed)
+        self.fields: Callable[[tuple[Any, ...]], dict[str, Any]] = _fields_builder(
+            self.plan, _item_codes(cls.unpacker.format))
+
+
+def _item_codes(fmt: str) -> list[str]:
+    """The ``struct`` code of each item that format ``fmt`` unpacks (a ``16s`` is one item)."""
+    codes: list[str] = []
+    for count, code in re.findall(r"(\d*)([a-zA-Z?])", fmt):
+        codes.extend([code] * (1 if code == "s" or not count else int(count)))
+    return codes
+
+
+def _fields_builder(plan: list[tuple[str, int, int]],
+                    codes: list[str]) -> Callable[[tuple[Any, ...]], dict[str, Any]]:
+    """A function of the unpacked tuple giving what :func:`_fields` gives (same keys, order,
+    values and types): one dict display generated from the plan, as ``dataclasses`` and
+    ``namedtuple`` generate their methods. The names are pymavlink's field names (identifiers
+    of the dialect, checked here); a char array (``s``) is decoded as :func:`_fields` does."""
+    items = []
+    for fname, tip, n in plan:
+        if not fname.isidentifier():
+            raise ValueError(f"unexpected MAVLink field name {fname!r}")
+        if codes[tip] == "s":
+            value = f"t[{tip}].rstrip(b'\\x00').decode('utf-8', errors='replace')"
+        elif n != 1:
+            value = "[" + ", ".join(f"t[{tip + k}]" for k in range(n)) + "]"
+        else:
+            value = f"t[{tip}]"
+        items.append(f"{fname!r}: {value}")
+    namespace: dict[str, Any] = {}
+    exec(f"def build(t):\n    return {{{', '.join(items)}}}\n", namespace)
+    return namespace["build"]  # type: ignore[no-any-return]
 
 
 def _float_items(fmt: str) -> Callable[[tuple[Any, ...]], tuple[float, ...]] | None:
@@ -123,7 +157,7 @@ def crc_ok(data: bytes, h: Header, s: _Spec) -> bool:
 def decode_fields(data: bytes, h: Header, s: _Spec) -> dict[str, Any]:
     """The fields of a CRC-checked frame as :func:`message_fields` gives them for pymavlink's
     decoding (MAVLink 2 drops trailing zero bytes of the payload: they are put back)."""
-    return _fields(_unpacked(data, h, s), s)
+    return s.fields(_unpacked(data, h, s))
 
 
 def decode_checked(data: bytes, h: Header, s: _Spec) -> tuple[dict[str, Any], bool]:
@@ -132,7 +166,7 @@ def decode_checked(data: bytes, h: Header, s: _Spec) -> tuple[dict[str, Any], bo
     overflows, which the caller's value-by-value check then clears)."""
     t = _unpacked(data, h, s)
     get = s.floats
-    return _fields(t, s), get is None or math.isfinite(sum(get(t)))
+    return s.fields(t), get is None or math.isfinite(sum(get(t)))
 
 
 def _unpacked(data: bytes, h: Header, s: _Spec) -> tuple[Any, ...]:
@@ -143,6 +177,7 @@ def _unpacked(data: bytes, h: Header, s: _Spec) -> tuple[Any, ...]:
 
 
 def _fields(t: tuple[Any, ...], s: _Spec) -> dict[str, Any]:
+    """The reference form of ``s.fields(t)`` (:func:`_fields_builder`), kept for the test."""
     out: dict[str, Any] = {}
     for fname, tip, n in s.plan:
         v = t[tip]
