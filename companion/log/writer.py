@@ -414,18 +414,20 @@ class McapLogger(WriterThread):
         self.register(topic, schema)
 
     def kick(self) -> None:
-        """Write what is queued now: the owner's quiet moment (the control loop calls it once
-        a step, after the step's records, as it goes to wait for the next frame). From the
-        first kick on, the writer's timed drain is a backstop (``POLL_KICKED_S``), so it
-        wakes once a step between steps rather than every ``POLL_S`` wherever the step is."""
+        """Write what is queued now, and end a :meth:`hold`: the owner's quiet moment (the
+        control loop calls it once a step, after the step's records, as it goes to wait for
+        the next frame). From the first kick on, the writer's timed drain is a backstop
+        (``POLL_KICKED_S``), so it wakes once a step between steps rather than every
+        ``POLL_S`` wherever the step is."""
         self._kicked = True
+        self._may_write.set()
         self._wake.set()
 
     def hold(self) -> None:
-        """Keep the writer thread off the GIL until :meth:`release` (at most ``MAX_HOLD_S``
-        per message): the control step holds it while it computes. The writer serialises
-        messages in Python; with CPython's 5 ms switch interval a step that wants the GIL back
-        from it can wait up to that long. Logging itself is unchanged (nothing is dropped; a
+        """Keep the writer thread off the GIL until :meth:`release` or :meth:`kick` (at most
+        ``MAX_HOLD_S`` per message): the control step holds it from its start to its end.
+        The writer serialises messages in Python; a step that wants the GIL back from it can
+        wait up to the switch interval. Logging itself is unchanged (nothing is dropped; a
         message waits in the queue), only when the writer works."""
         self._may_write.clear()
 
