@@ -460,3 +460,27 @@ def test_decode_json_reads_what_either_encoder_wrote() -> None:
     assert math.isnan(odd["n"]) and odd["big"] == 2**70
     with pytest.raises(ValueError):
         decode_json(b'{"cut": ')
+
+
+def test_kick_ends_the_hold_and_the_writer_drains(tmp_path: Path) -> None:
+    """The control loop holds the writer through a step and kicks it at the step's end: the
+    kick lets it work again (a hold left on would slow every later message by MAX_HOLD_S) and
+    every record held back is written; a logger that was never kicked keeps its 20 ms drain,
+    one that was drains on kicks (the timed drain is then a backstop)."""
+    from companion.log import writer_thread
+
+    path = tmp_path / "kick.mcap"
+    with McapLogger(path, compression="none") as lg:
+        assert not lg._kicked
+        for step in range(3):
+            lg.hold()
+            assert not lg._may_write.is_set()
+            for i in range(5):
+                lg.log("/x", 1_000 + 10 * step + i, {"step": step, "i": i}, schema=sch.JSON)
+            lg.kick()
+            assert lg._may_write.is_set()  # the writer is free again
+        assert lg._kicked
+    assert writer_thread.POLL_KICKED_S > writer_thread.POLL_S
+    with LogReader(path) as r:
+        got = [(m.data["step"], m.data["i"]) for m in r.messages(["/x"])]
+    assert got == [(s, i) for s in range(3) for i in range(5)]
