@@ -294,7 +294,10 @@ class McapLogger(WriterThread):
         nbytes = int(image.nbytes)
         with self._space:
             if self.block_on_backlog:
-                # lockstep: no wall-clock deadline, so wait for the writer rather than drop
+                # lockstep: no wall-clock deadline, so wait for the writer rather than drop;
+                # a writer held (hold) would then wait for us: let it work
+                if self._pending_image_bytes + nbytes > self.max_pending_image_bytes:
+                    self._may_write.set()
                 self._space.wait_for(
                     lambda: self._pending_image_bytes + nbytes <= self.max_pending_image_bytes
                     or self._failure is not None or self._closed,
@@ -457,7 +460,8 @@ class McapLogger(WriterThread):
                 )
             return False
         q.append(item)
-        if len(q) * 2 >= self.queue_size:
+        if len(q) * 2 >= self.queue_size:  # drain now, held or not: a full queue drops
+            self._may_write.set()
             self._wake.set()
         with self._lock:
             self._enqueued += 1
