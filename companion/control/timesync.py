@@ -116,6 +116,7 @@ class ActuationDelayMeter:
         self._last_probe_s = -math.inf
         self.rejected = 0
         self.replies = 0
+        self._value: float | None = None  # value() of the window as it is (None: not known)
 
     def due(self, now_s: float) -> bool:
         """A probe is due at control time ``now_s`` (at most one per ``probe_interval_s``)."""
@@ -146,6 +147,7 @@ class ActuationDelayMeter:
             return None
         d = max(d, 0.0)
         self._samples.append(d)
+        self._value = None  # the window moved: the median again on the next value()
         return d
 
     @property
@@ -156,7 +158,9 @@ class ActuationDelayMeter:
         """The measured delay (s), ``None`` until ``min_samples`` are in."""
         if len(self._samples) < self.min_samples:
             return None
-        return float(statistics.median(self._samples))
+        if self._value is None:  # every step asks; the window moves ~once in two steps
+            self._value = float(statistics.median(self._samples))
+        return self._value
 
     def spread(self) -> float | None:
         """Max minus min of the window (s): the jitter the median smooths out."""

@@ -14,6 +14,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from companion.link import wire
 from companion.link.errors import LinkError
 from companion.link.px4 import (
     ARM_FORCE_MAGIC,
@@ -25,20 +26,37 @@ from companion.link.px4 import (
     MAV_STATE_ACTIVE,
     MAV_TYPE_ONBOARD_CONTROLLER,
 )
+from companion.link.sending import LinkSender
 
 _ATTITUDE_TARGET = mavlink2.MAVLink_set_attitude_target_message
+_TIMESYNC = mavlink2.MAVLink_timesync_message
+_SETPOINT_ID, _TIMESYNC_ID = _ATTITUDE_TARGET.id, _TIMESYNC.id
+_SETPOINT_NAME, _TIMESYNC_NAME = _ATTITUDE_TARGET.msgname, _TIMESYNC.msgname
+_pack_setpoint, _pack_timesync = wire.SETPOINT_PAYLOAD.pack, wire.TIMESYNC_PAYLOAD.pack
 
 
-class LinkCommands:
+def _unit_setpoint(q_wxyz: Sequence[float], thrust_norm: float) -> tuple[list[float], float]:
+    """The checked setpoint: ``q_wxyz`` normalised (norm within 10 % of 1, finite) and the
+    thrust in [0, 1]; a LinkError names what is wrong."""
+    q = [float(x) for x in q_wxyz]
+    thrust = float(thrust_norm)
+    if len(q) != 4 or not all(math.isfinite(x) for x in q):
+        raise LinkError(f"attitude setpoint q_wxyz must be 4 finite numbers, got {q_wxyz!r}")
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)  # the sum's order of sum(x * x for x in q)
+    if not 0.9 <= n <= 1.1:
+        raise LinkError(f"attitude setpoint quaternion norm {n:.3f} is not ~1")
+    if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
+        raise LinkError(f"thrust_norm {thrust_norm!r} not in [0, 1]")
+    return [w / n, x / n, y / n, z / n], thrust
+
+
+class LinkCommands(LinkSender):
     """The messages the companion sends, on top of the link's ``send`` (a mixin of
     :class:`~companion.link.link.MavlinkLink`)."""
 
-    _enc: Any
     target_system: int
     target_component: int
-
-    def send(self, msg: Any) -> bytes:
-        raise NotImplementedError
 
     def boot_time_ms(self) -> int:
         raise NotImplementedError
@@ -51,26 +69,35 @@ class LinkCommands:
         ``q_wxyz``: attitude of body FRD w.r.t. NED, w,x,y,z (normalised here; norm must be
         within 10 % of 1); ``thrust_norm`` in [0, 1] along body -z.
         """
-        q = [float(x) for x in q_wxyz]
-        thrust = float(thrust_norm)
-        if len(q) != 4 or not all(math.isfinite(x) for x in q):
-            raise LinkError(f"attitude setpoint q_wxyz must be 4 finite numbers, got {q_wxyz!r}")
-        w, x, y, z = q
-        n = math.sqrt(w * w + x * x + y * y + z * z)  # the sum's order of sum(x * x for x in q)
-        if not 0.9 <= n <= 1.1:
-            raise LinkError(f"attitude setpoint quaternion norm {n:.3f} is not ~1")
-        if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
-            raise LinkError(f"thrust_norm {thrust_norm!r} not in [0, 1]")
+        q, thrust = _unit_setpoint(q_wxyz, thrust_norm)
         t_ms = self.boot_time_ms() if time_boot_ms is None else time_boot_ms
         return _ATTITUDE_TARGET(t_ms, self.target_system, self.target_component,
-                                ATTITUDE_THRUST_TYPE_MASK, [w / n, x / n, y / n, z / n],
-                                0.0, 0.0, 0.0, thrust)
+                                ATTITUDE_THRUST_TYPE_MASK, q, 0.0, 0.0, 0.0, thrust)
 
     def send_attitude_target(
         self, q_wxyz: Sequence[float], thrust_norm: float, time_boot_ms: int | None = None
     ) -> bytes:
-        """Send SET_ATTITUDE_TARGET (see :meth:`encode_attitude_target`); returns the bytes."""
-        return self.send(self.encode_attitude_target(q_wxyz, thrust_norm, time_boot_ms))
+        """Send SET_ATTITUDE_TARGET (see :meth:`encode_attitude_target`); returns the bytes.
+
+        Every step sends one: its payload is packed straight from the values
+        (:meth:`send_payload`, no pymavlink object; the bytes and the logged fields are those
+        of :meth:`send` of :meth:`encode_attitude_target`'s message); a signed link and a
+        field out of its type's range go through :meth:`send`."""
+        q, thrust = _unit_setpoint(q_wxyz, thrust_norm)
+        t_ms = self.boot_time_ms() if time_boot_ms is None else time_boot_ms
+        ts, tc, mask = self.target_system, self.target_component, ATTITUDE_THRUST_TYPE_MASK
+        if type(t_ms) is int and 0 <= t_ms <= 0xFFFFFFFF:
+            payload = _pack_setpoint(t_ms, q[0], q[1], q[2], q[3], 0.0, 0.0, 0.0, thrust,
+                                     ts, tc, mask)
+            raw = self.send_payload(_SETPOINT_ID, _SETPOINT_NAME, wire.SETPOINT_CRC_EXTRA,
+                                    payload, {
+                                        "time_boot_ms": t_ms, "target_system": ts,
+                                        "target_component": tc, "type_mask": mask, "q": q,
+                                        "body_roll_rate": 0.0, "body_pitch_rate": 0.0,
+                                        "body_yaw_rate": 0.0, "thrust": thrust})
+            if raw is not None:
+                return raw
+        return self.send(_ATTITUDE_TARGET(t_ms, ts, tc, mask, q, 0.0, 0.0, 0.0, thrust))
 
     def send_command_long(
         self, command: int, params: Sequence[float] = (), confirmation: int = 0
@@ -105,7 +132,13 @@ class LinkCommands:
     def send_timesync(self, tc1: int, ts1: int) -> bytes:
         """TIMESYNC (#111): a request is ``tc1 = 0, ts1 = local ns``; a reply to the
         autopilot's request is ``tc1 = local ns, ts1`` echoed (docs/reference/wire.md)."""
-        return self.send(self._enc.timesync_encode(int(tc1), int(ts1)))
+        tc1, ts1 = int(tc1), int(ts1)
+        if -(1 << 63) <= tc1 < 1 << 63 and -(1 << 63) <= ts1 < 1 << 63:
+            raw = self.send_payload(_TIMESYNC_ID, _TIMESYNC_NAME, wire.TIMESYNC_CRC_EXTRA,
+                                    _pack_timesync(tc1, ts1), {"tc1": tc1, "ts1": ts1})
+            if raw is not None:
+                return raw
+        return self.send(self._enc.timesync_encode(tc1, ts1))
 
     def send_heartbeat(self) -> bytes:
         """HEARTBEAT as an onboard controller (type 18, autopilot INVALID 8, state ACTIVE)."""

@@ -20,7 +20,6 @@ path (not by pymavlink: see :mod:`companion.link.receive`).
 from __future__ import annotations
 
 import asyncio
-import errno
 import logging
 import os
 import socket
@@ -31,13 +30,12 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.link import wire
 from companion.link.commands import LinkCommands
 from companion.link.endpoints import parse_connection_string
-from companion.link.errors import LinkError, NoPeerError
+from companion.link.errors import LinkError
 from companion.link.filters import AllowRule, ValueLimits, default_allow_rules
 from companion.link.guard import GuardParams, SourceGuard
-from companion.link.messages import Received, Sent, sent
+from companion.link.messages import Received, Sent
 from companion.link.receive import ReceivePath, new_parser, reset_parser
 from companion.link.signing import SignatureVerifier, load_signing_key, signing_timestamp_now
 from companion.link.transport import (
@@ -449,47 +447,9 @@ class MavlinkLink(LinkCommands):
         if self._queue_frames:  # False: on_rx does the work (a task wake-up a frame saved)
             self._push(rx)
 
-    # -- send -----------------------------------------------------------------------------------
+    # -- send (companion/link/sending.py) --------------------------------------------------------
 
     @property
     def mav(self) -> Any:
         """The pymavlink encoder: ``link.mav.xxx_encode(...)`` builds a message for :meth:`send`."""
         return self._enc
-
-    def send(self, msg: Any) -> bytes:
-        """Encode ``msg`` (MAVLink 2, our source ids, signed if configured), send it to the peer
-        and return the bytes sent. Raises :class:`NoPeerError` (udpin before the autopilot was
-        heard) or :class:`LinkError`."""
-        if self._closed or (self._transport is None and self._serial_fd is None
-                            and self._sock is None):
-            raise LinkError("MAVLink link is not open")
-        kind = self.endpoint.kind
-        if kind in ("udpin", "udpout") and self._peer is None:
-            self._count("tx_no_peer")
-            raise NoPeerError(f"no autopilot heard yet on {self.endpoint}: nothing sent")
-        if self._verifier is not None:
-            self._enc.signing.timestamp = max(self._enc.signing.timestamp, signing_timestamp_now())
-        try:
-            raw = wire.pack(msg, self._enc)
-        except Exception as e:  # struct.error / MAVError on out-of-range fields
-            raise LinkError(f"cannot encode {msg.get_type()}: {e}") from e
-        self._enc.seq = (self._enc.seq + 1) % 256
-        try:
-            if kind in ("udpin", "udpout"):
-                assert self._sock is not None and self._peer is not None
-                self._sock.sendto(raw, self._peer)
-            elif kind == "tcp":
-                self._transport.write(raw)
-            else:
-                assert self._serial_fd is not None
-                n = os.write(self._serial_fd, raw)
-                if n != len(raw):
-                    raise OSError(errno.EAGAIN, "short write")
-        except OSError as e:
-            self._count("tx_errors")
-            raise LinkError(f"send {msg.get_type()} on {self.endpoint}: {e}") from e
-        self.last_tx_ns = time.monotonic_ns()  # the frame left (its log record is made after)
-        self._count("tx_frames")
-        if self._on_tx is not None:
-            self._on_tx(sent(msg, raw, self._clock_ns(), msg.get_msgId(), msg.get_type()))
-        return raw

@@ -48,13 +48,18 @@ def received(msg: Any, raw: bytes, t_rx_ns: int, src_sysid: int, src_compid: int
 
 @dataclass(frozen=True)
 class Sent:
-    """One frame the link sent: ``raw`` bytes as written, ``t_tx_ns`` the link clock."""
+    """One frame the link sent: ``raw`` bytes as written, ``t_tx_ns`` the link clock,
+    ``fields`` the message's fields as :func:`message_fields` gives them for the message object
+    the frame was packed from (``None``: the log decodes ``msg`` itself). A setpoint or
+    TIMESYNC packed straight from its values (:meth:`LinkCommands.send_attitude_target`) has
+    ``fields`` and a ``msg`` decoded from ``raw`` on first use."""
 
     msg: Any
     raw: bytes
     t_tx_ns: int
     msgid: int
     name: str
+    fields: dict[str, Any] | None = None
 
 
 def message_fields(msg: Any) -> dict[str, Any]:
@@ -70,8 +75,9 @@ def message_fields(msg: Any) -> dict[str, Any]:
     return out
 
 
-def sent(msg: Any, raw: bytes, t_tx_ns: int, msgid: int, name: str) -> Sent:
+def sent(msg: Any, raw: bytes, t_tx_ns: int, msgid: int, name: str,
+         fields: dict[str, Any] | None = None) -> Sent:
     """A :class:`Sent` equal to ``Sent(...)`` of the same values (see :func:`received`)."""
     r = _new(Sent)
-    r.__dict__.update(msg=msg, raw=raw, t_tx_ns=t_tx_ns, msgid=msgid, name=name)
+    r.__dict__.update(msg=msg, raw=raw, t_tx_ns=t_tx_ns, msgid=msgid, name=name, fields=fields)
     return r

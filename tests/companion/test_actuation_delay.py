@@ -51,6 +51,10 @@ def test_autopilot_clock_median_of_the_round_trip() -> None:
         assert m.on_reply(msg.tc1, msg.ts1, 0) == pytest.approx(rtt, abs=1e-6)
         if k < 4:
             assert m.value() is None  # the configured constant is used meanwhile
+        else:  # asked every step (cached between replies): always the window's median
+            window = [max(r, 0.0) for r in rtts[-41:]]
+            assert m.value() == pytest.approx(statistics.median(window), abs=1e-6)
+            assert m.value() == m.value()
     v = m.value()
     assert v is not None and m.samples == 41
     assert v == pytest.approx(statistics.median(rtts[-41:]), abs=1e-6)
