@@ -327,14 +327,7 @@ class CompanionApp:
                     self._stop.set()
                     continue
                 break
-            try:
-                self._step(frame)
-            finally:
-                if self._records is not None:
-                    # the loop now waits for the next frame: the writer's moment (released
-                    # from the step's hold, one wake-up a step between steps rather than a
-                    # timer's wherever the step is)
-                    self._records.logger.kick()
+            self._step(frame)
 
     async def _next_frame(self, it: Any, wait_s: float, wake_on_stop: bool) -> CameraFrame:
         """The camera's next frame within ``wait_s`` (``TimeoutError``); with
@@ -418,18 +411,20 @@ class CompanionApp:
         assert self._records is not None
         logger, vehicle = self._records.logger, self.vehicle
         t_start_ns = time.monotonic_ns()
-        # The log writer waits while the step computes, sends and records (McapLogger.hold,
-        # until the control loop's kick after the step): it would take the GIL from the step
-        # for up to the switch interval (send stage 1.2-1.9 -> 0.4-0.6 ms median, frame ->
-        # command 6.7-7.1 -> 5.8-6.2 ms, load 6, interleaved, with the 5 ms interval).
+        # The log writer waits while the step computes and sends (McapLogger.hold): it would
+        # take the GIL from the step for up to the 5 ms switch interval (send stage 1.2-1.9 ->
+        # 0.4-0.6 ms median, frame -> command 6.7-7.1 -> 5.8-6.2 ms, load 6, interleaved).
         meter = vehicle.delay_meter
         measured = None if meter is None else meter.value()
         sent: list[int | None] = []  # the send's time (None: no peer yet); empty: a stream gap
         logger.hold()
-        res = self.pipeline.step(np.asarray(frame.image), t_s, vehicle.store,
-                                 t_now_s=vehicle.now_s(), in_control=vehicle.in_control(),
-                                 actuation_delay_s=measured,
-                                 send=lambda sp, t_now: self._send(sp, t_now, t_s, sent))
+        try:
+            res = self.pipeline.step(np.asarray(frame.image), t_s, vehicle.store,
+                                     t_now_s=vehicle.now_s(), in_control=vehicle.in_control(),
+                                     actuation_delay_s=measured,
+                                     send=lambda sp, t_now: self._send(sp, t_now, t_s, sent))
+        finally:
+            logger.release()
         if not sent:
             self.offboard.on_stream_gap()
         return res, _Sent(sent[0] if sent else None, measured, t_start_ns)

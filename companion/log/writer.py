@@ -40,7 +40,7 @@ from companion.log.encode import (
     xyz,
     xyzw,
 )
-from companion.log.writer_thread import POLL_S, STOP, Sink, WriterThread
+from companion.log.writer_thread import STOP, Sink, WriterThread
 
 log = logging.getLogger(__name__)
 
@@ -131,9 +131,7 @@ class McapLogger(WriterThread):
         # every POLL_S and drains it in one go), so a record costs its caller ~1 us, not a
         # lock, a notify and a thread switch (see WriterThread)
         self._q: collections.deque[Any] = collections.deque()
-        self._wake = threading.Event()  # close, a queue half full, a kick: drain now
-        self._kicked = False  # the owner kicks (kick): the timed drain is only a backstop
-        self._t_kick = -math.inf  # monotonic time of the last kick that woke the writer
+        self._wake = threading.Event()  # close, or a queue half full: drain now
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)  # image backlog below the byte budget
         self._topics: dict[str, str] = {}
@@ -417,26 +415,13 @@ class McapLogger(WriterThread):
             raise McapLogError(f"topic {topic!r} is new: give its schema name")
         self.register(topic, schema)
 
-    def kick(self) -> None:
-        """End a :meth:`hold` and, at most once every ``POLL_S``, wake the writer: the owner's
-        quiet moment (the control loop calls it once a step, after the step's records, as it
-        goes to wait for the next frame). From the first kick on, the writer's timed drain is
-        a backstop (``POLL_KICKED_S``): it drains at a step's end, once a step when steps are
-        slower than ``POLL_S`` (a 20 Hz camera in real time) and every few steps when they
-        are faster (a lockstep flight running ahead of real time), never in a step's middle."""
-        self._kicked = True
-        self._may_write.set()
-        now = time.monotonic()
-        if now - self._t_kick >= POLL_S:
-            self._t_kick = now
-            self._wake.set()
-
     def hold(self) -> None:
-        """Keep the writer thread off the GIL until :meth:`release` or :meth:`kick` (at most
-        ``MAX_HOLD_S`` per message): the control step holds it from its start to its end.
-        The writer serialises messages in Python; a step that wants the GIL back from it can
-        wait up to the switch interval. Logging itself is unchanged (nothing is dropped; a
-        message waits in the queue), only when the writer works."""
+        """Keep the writer thread off the GIL until :meth:`release` (at most ``MAX_HOLD_S``
+        per message): the control step holds it while it computes. The writer serialises
+        messages in Python; a step that wants the GIL back from it can wait up to the switch
+        interval. Logging itself is unchanged (nothing is dropped; a message waits in the
+        queue), only when the writer works; a hold ends early when the holder's own logging
+        would wait for the writer (an image backlog) or the queue is half full."""
         self._may_write.clear()
 
     def release(self) -> None:

@@ -39,11 +39,6 @@ MAX_HOLD_S = 0.05  # the longest a hold (McapLogger.hold) delays the writer per 
 #: 0.32-0.34 -> 0.42 ms median, p95 0.62-0.65 -> 1.29 ms, docs/reference/logging.md).
 POLL_S = 0.02
 POLL_LIVE_S = 0.02
-#: With an owner that says when to write (:meth:`McapLogger.kick`: the control loop, once a
-#: step, as it goes idle to wait for the next frame) the timed drain is only a backstop: the
-#: writer wakes once a step, between steps, instead of every 20 ms wherever the step is (on a
-#: loaded 2-core machine 3.9 wake-ups a step: the timer, the hold's waits, the GIL's).
-POLL_KICKED_S = 0.1
 
 
 def downscale(image: np.ndarray, scale: float) -> np.ndarray:
@@ -113,7 +108,6 @@ class WriterThread:
     _errors: int
     _last_err_warn: float
     _pending_image_bytes: int
-    _kicked: bool
     _failure: BaseException | None
     _sink: Sink | None
     _closed: bool
@@ -140,8 +134,7 @@ class WriterThread:
                 if time.monotonic() >= next_flush:
                     self._flush(writer, sink)
                     next_flush = time.monotonic() + self.flush_interval_s
-                poll = (POLL_LIVE_S if self.observer is not None
-                        else POLL_KICKED_S if self._kicked else POLL_S)
+                poll = POLL_S if self.observer is None else POLL_LIVE_S
                 self._wake.wait(min(poll, max(0.0, next_flush - time.monotonic())))
                 self._wake.clear()
             writer.finish()  # type: ignore[no-untyped-call]

@@ -462,30 +462,6 @@ def test_decode_json_reads_what_either_encoder_wrote() -> None:
         decode_json(b'{"cut": ')
 
 
-def test_kick_ends_the_hold_and_the_writer_drains(tmp_path: Path) -> None:
-    """The control loop holds the writer through a step and kicks it at the step's end: the
-    kick lets it work again (a hold left on would slow every later message by MAX_HOLD_S) and
-    every record held back is written; a logger that was never kicked keeps its 20 ms drain,
-    one that was drains on kicks (the timed drain is then a backstop)."""
-    from companion.log import writer_thread
-
-    path = tmp_path / "kick.mcap"
-    with McapLogger(path, compression="none") as lg:
-        assert not lg._kicked
-        for step in range(3):
-            lg.hold()
-            assert not lg._may_write.is_set()
-            for i in range(5):
-                lg.log("/x", 1_000 + 10 * step + i, {"step": step, "i": i}, schema=sch.JSON)
-            lg.kick()
-            assert lg._may_write.is_set()  # the writer is free again
-        assert lg._kicked
-    assert writer_thread.POLL_KICKED_S > writer_thread.POLL_S
-    with LogReader(path) as r:
-        got = [(m.data["step"], m.data["i"]) for m in r.messages(["/x"])]
-    assert got == [(s, i) for s in range(3) for i in range(5)]
-
-
 def test_a_held_writer_is_let_go_before_the_log_would_wait_or_drop(tmp_path: Path) -> None:
     """The step holds the writer; if the step's own logging then waits for the writer (an
     image backlog with block_on_backlog) or the queue is half full, the hold ends at once:
@@ -500,7 +476,7 @@ def test_a_held_writer_is_let_go_before_the_log_would_wait_or_drop(tmp_path: Pat
         for i in range(40):
             lg.log("/x", 2_000 + i, {"i": i}, schema=sch.JSON)
         assert lg._may_write.is_set()  # half full: let go
-        lg.kick()
+        lg.release()
     img = np.zeros((100, 100), np.uint8)
     with McapLogger(tmp_path / "b.mcap", compression="none", block_on_backlog=True,
                     max_pending_image_bytes=3 * img.nbytes) as lg:
@@ -510,6 +486,6 @@ def test_a_held_writer_is_let_go_before_the_log_would_wait_or_drop(tmp_path: Pat
         lg.hold()
         assert lg.log_image("/img", 2_000, img, "png")  # over the budget: waits for the writer
         assert lg._may_write.is_set()
-        lg.kick()
+        lg.release()
     with LogReader(tmp_path / "b.mcap") as r:
         assert len(list(r.messages(["/img"]))) == 4
