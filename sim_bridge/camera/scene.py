@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from sim_bridge.camera.lens import Lens
+from sim_bridge.camera.upsample import upsample2x
 
 # Intensities (mono8).
 GROUND_MIN, GROUND_MAX = 40, 150
@@ -152,7 +153,12 @@ def render_ground(tex: np.ndarray, lens: Lens, r: np.ndarray, c_w: np.ndarray, g
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_WRAP,
         )
-        image = small if half else cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+        if half:
+            image = small
+        elif (w, h) == (2 * wh, 2 * hh):  # cv2.resize's pixels, a third of its CPU
+            image = upsample2x(small)
+        else:
+            image = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
         corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float)
         dz = corners @ a[2]
         if (dz > _SKY_DZ).all():
