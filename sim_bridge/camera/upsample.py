@@ -106,7 +106,7 @@ def kernel(directory: Path | None = None) -> _Kernel | None:
         return None
     try:
         fn = _load(lib)
-    except OSError as e:
+    except (OSError, AttributeError) as e:  # not a library, or not this one
         log.info("upsample kernel not loaded (%s): cv2.resize", e)
         return None
     if not _matches(fn):
@@ -120,7 +120,7 @@ def upsample2x(src: np.ndarray) -> np.ndarray:
     through the kernel when it is available (the same pixels)."""
     fn = kernel()
     h, w = src.shape[:2]
-    if (fn is None or src.dtype != np.uint8 or src.ndim != 2 or w < 2
+    if (fn is None or src.dtype != np.uint8 or src.ndim != 2 or w < 2 or h < 1
             or src.strides[1] != 1):
         return cv2.resize(src, (2 * w, 2 * h), interpolation=cv2.INTER_LINEAR)
     return _run(fn, src)
