@@ -18,6 +18,11 @@ collective thrust (the vehicle's true hover thrust keeps it in the air, e.g. 0.5
 ``--digest``). ``--cv-threads N``: the emulator's OpenCV threads (``sim-bridge --cv-threads``;
 1 by default, 0 = OpenCV's own pool; the frames are the same either way).
 
+``--wrap CMD``: the emulator runs under ``CMD`` (e.g. ``"valgrind --tool=callgrind
+--callgrind-out-file=cg.out"``; the client then waits minutes, not seconds, for its frames):
+instruction counts of the real process, which the machine's load does not change; two
+durations' difference is the cost of the steps between them (docs/reference/emulator.md).
+
 ``--transport shm``: the client asks for the frames through the emulator's shared memory
 (docs/reference/wire.md) and copies each out of its slot; the digest hashes the same header
 (with the payload's CRC-32) and pixels, so both transports give the same digest.
@@ -42,6 +47,7 @@ import math
 import mmap
 import os
 import resource
+import shlex
 import socket
 import struct
 import subprocess
@@ -132,6 +138,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="the emulator's OpenCV threads (sim-bridge --cv-threads; 0: its pool)")
     ap.add_argument("--transport", choices=("tcp", "shm"), default="tcp",
                     help="the frames over TCP or through the emulator's shared memory")
+    ap.add_argument("--wrap", default=None,
+                    help="a command the emulator runs under, e.g. \"valgrind --tool=callgrind "
+                         "--callgrind-out-file=cg.out\" (instruction counts: load-independent)")
     ap.add_argument("--digest", action="store_true",
                     help="fly an attitude wave in OFFBOARD and print the output's SHA-256")
     ap.add_argument("--lockstep-timeout", type=float, default=None,
@@ -161,7 +170,7 @@ def _emulator_cmd(args: argparse.Namespace, p_sim: int, p_comp: int, p_frame: in
     ports), optionally under cProfile."""
     conf = ["--config", args.config] if args.config else []
     entry = ["-c", _PROFILED, args.profile] if args.profile else ["-m", "sim_bridge"]
-    return [sys.executable, *entry, *conf, "--lockstep",
+    return [*shlex.split(args.wrap or ""), sys.executable, *entry, *conf, "--lockstep",
             "--duration", str(args.duration), "--bind", "127.0.0.1", "--offboard-port", str(p_sim),
             "--offboard-remote", f"127.0.0.1:{p_comp}",
             "--gcs-port", str(free_port(socket.SOCK_DGRAM)),
@@ -171,9 +180,9 @@ def _emulator_cmd(args: argparse.Namespace, p_sim: int, p_comp: int, p_frame: in
             "--log-level", "WARNING", "--cv-threads", str(args.cv_threads)]
 
 
-def _connect_frames(p_frame: int) -> socket.socket:
-    """The frame socket, retried while the emulator starts (30 s)."""
-    deadline = time.monotonic() + 30.0
+def _connect_frames(p_frame: int, wait_s: float = 30.0) -> socket.socket:
+    """The frame socket, retried while the emulator starts (``wait_s``)."""
+    deadline = time.monotonic() + wait_s
     while True:
         try:
             return socket.create_connection(("127.0.0.1", p_frame), timeout=1.0)
@@ -230,7 +239,7 @@ def _client_loop(args: argparse.Namespace, tcp: socket.socket, udp: socket.socke
                  digest: Any) -> tuple[list[float], list[int]]:
     """Read every frame until the emulator ends and answer it (hover, or the digest's wave):
     the frames' arrival times (perf_counter) and sim stamps (us)."""
-    tcp.settimeout(5.0)
+    tcp.settimeout(300.0 if args.wrap else 5.0)
     arrivals: list[float] = []
     stamps_us: list[int] = []
     buf = memoryview(bytearray(64 << 20))
@@ -278,9 +287,9 @@ def _fly(args: argparse.Namespace, digest: Any) -> tuple[list[float], list[int],
     q = [1.0, 0.0, 0.0, 0.0]
     hover = mav.set_attitude_target_encode(0, 1, 1, 7, q, 0.0, 0.0, 0.0, args.thrust).pack(mav)
     try:
-        tcp = _connect_frames(p_frame)
+        tcp = _connect_frames(p_frame, 900.0 if args.wrap else 30.0)
         arrivals, stamps_us = _client_loop(args, tcp, udp, mav, hover, p_sim, digest)
-        sim.wait(timeout=30.0)
+        sim.wait(timeout=300.0 if args.wrap else 30.0)
     finally:
         if sim.poll() is None:
             sim.kill()

@@ -22,7 +22,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
 
+from sim_bridge import mavpack
 from sim_bridge.camera import Camera, RenderedFrame, read_calibration
 from sim_bridge.camera.frames import FrameServer
 from sim_bridge.camera.sensor import CameraTiming, Sensor
@@ -51,6 +53,10 @@ from sim_bridge.truth import TruthPublisher, truth_record
 from sim_bridge.vehicle_model import build_vehicle_model, vehicle_is_ideal
 
 log = logging.getLogger(__name__)
+
+# FOLLOW_TARGET packed without a pymavlink message object (mavpack.encoder: the same bytes)
+_FOLLOW_TARGET = mavpack.encoder(mavlink2.MAVLink_follow_target_message)
+_FOLLOW_TARGET_FIELDS: tuple[str, ...] = tuple(mavlink2.MAVLink_follow_target_message.fieldnames)
 
 
 @dataclass(frozen=True)
@@ -334,8 +340,11 @@ class SimBridge:
         targets: list[Address] = []
         for name in ("offboard", "gcs"):
             targets += [a for a in self.links[name].peers if a not in targets]
-        for a in targets:
-            agv_link.send(agv_link.mav.follow_target_encode(**fields), a)
+        if not targets:
+            return
+        msg = _FOLLOW_TARGET(*[fields[n] for n in _FOLLOW_TARGET_FIELDS])
+        for a in targets:  # one encoding; each send packs it with the link's next sequence
+            agv_link.send(msg, a)
 
     async def publish_frame(self, t: float) -> None:
         """Capture the camera frame exposed around ``t``: render it, publish the ground-truth

@@ -291,7 +291,8 @@ class MavUdpLink:
 
     # ------------------------------------------------------------------ send
     def send(self, msg: Any, addr: Address | None = None) -> None:
-        """Pack ``msg`` (a pymavlink message from ``self.mav.xxx_encode``) and send it to
+        """Pack ``msg`` (a pymavlink message from ``self.mav.xxx_encode``, or a
+        :class:`~sim_bridge.mavpack.Encoded`) and send it to
         ``addr`` or, without one, to every current peer."""
         self.send_frames(self.pack(msg), addr)
 
@@ -300,6 +301,8 @@ class MavUdpLink:
         signing timestamp when signing is on, now)."""
         if self.signing is None and mavpack.packable(msg):
             return [mavpack.pack(self.mav, msg)]  # pymavlink's bytes, a third of its cost
+        if isinstance(msg, mavpack.Encoded):
+            msg = msg.message()
         if self.signing is not None:
             self.mav.signing.timestamp = self.signing.next_timestamp(time.time())
         self.mav.send(msg)

@@ -9,6 +9,7 @@ streams.
 
 from __future__ import annotations
 
+import inspect
 import operator
 import struct
 from collections.abc import Callable
@@ -30,7 +31,8 @@ _PAYLOAD_ATTR = "_sim_bridge_payload"
 
 
 def packable(msg: Any) -> bool:
-    """Whether :func:`pack` packs ``msg`` (a message with number fields only: no strings)."""
+    """Whether :func:`pack` packs ``msg`` (an :class:`Encoded`, or a message with number fields
+    only: no strings)."""
     cls = type(msg)
     ok = _NUMERIC.get(cls)
     if ok is None:
@@ -68,13 +70,62 @@ def payload(msg: Any) -> bytes:
     return p
 
 
+class Encoded:
+    """A message whose payload was packed when it was encoded (:func:`encoder`): no pymavlink
+    message object on the way (its ``__init__`` and the field reads cost about as much as
+    the packing). :meth:`message` builds pymavlink's, for a link that signs."""
+
+    __slots__ = ("args", "cls", "extra", "mid", "payload")
+
+    def __init__(self, cls: type, args: tuple[Any, ...], payload: bytes, mid: int,
+                 extra: bytes) -> None:
+        self.cls, self.args, self.payload, self.mid, self.extra = cls, args, payload, mid, extra
+
+    def message(self) -> Any:
+        """pymavlink's message of the same fields (``cls(*args)``, as ``*_encode`` builds it)."""
+        return self.cls(*self.args)
+
+
+_NUMERIC[Encoded] = True
+
+
+def encoder(cls: type) -> Callable[..., Encoded]:
+    """The encoder of pymavlink message class ``cls`` (number fields only): called with the
+    arguments of pymavlink's ``MAVLink.<name>_encode`` (positional, in its order; omitted
+    extension fields take its defaults), it returns an :class:`Encoded` whose payload is the
+    one :func:`payload` packs from pymavlink's message (tests/sim/test_mavpack.py)."""
+    if not all(t != "char" for t in cls.fieldtypes):  # type: ignore[attr-defined]
+        raise ValueError(f"{cls.__name__}: string fields are packed by pymavlink")
+    names = list(cls.fieldnames)  # type: ignore[attr-defined]
+    defaults = tuple(p.default for p in inspect.signature(cls).parameters.values())
+    # the payload's values in wire order, an array field's first n elements spliced in (as
+    # pymavlink's pack reads them): one tuple display compiled from the field indices
+    items = []
+    for name, n in zip(cls.ordered_fieldnames, cls.array_lengths, strict=True):  # type: ignore[attr-defined]
+        i = names.index(name)
+        items += [f"a[{i}][{k}]" for k in range(n)] if n else [f"a[{i}]"]
+    values: Callable[[tuple[Any, ...]], tuple[Any, ...]] = eval(  # built from indices only
+        f"lambda a: ({', '.join(items)},)")
+    st, mid, extra = cls.unpacker, cls.id, bytes((cls.crc_extra,))  # type: ignore[attr-defined]
+    n_fields = len(names)
+
+    def encode(*args: Any) -> Encoded:
+        if len(args) < n_fields:
+            args = args + defaults[len(args):]
+        return Encoded(cls, args, st.pack(*values(args)).rstrip(b"\0") or b"\0", mid, extra)
+
+    return encode
+
+
 def pack(mav: Any, msg: Any) -> bytes:
-    """The unsigned MAVLink 2 frame of ``msg`` from ``mav`` (pymavlink ``MAVLink``), taking its
-    next sequence number and counting it as ``mav.send`` does. ``packable(msg)`` must hold and
-    ``mav`` must not sign."""
-    cls = type(msg)
-    pl = payload(msg)
-    _, _, _, mid, extra = _PLANS[cls]
+    """The unsigned MAVLink 2 frame of ``msg`` (an :class:`Encoded` or a pymavlink message)
+    from ``mav`` (pymavlink ``MAVLink``), taking its next sequence number and counting it as
+    ``mav.send`` does. ``packable(msg)`` must hold and ``mav`` must not sign."""
+    if type(msg) is Encoded:
+        pl, mid, extra = msg.payload, msg.mid, msg.extra
+    else:
+        pl = payload(msg)
+        _, _, _, mid, extra = _PLANS[type(msg)]
     body = _HEADER.pack(_MAGIC_V2, len(pl), 0, 0, mav.seq, mav.srcSystem,
                         mav.srcComponent, mid & 0xFFFF, mid >> 16) + pl
     frame = body + _CRC.pack(mcrf4xx(extra, mcrf4xx(body[1:], 0xFFFF)))

@@ -11,7 +11,7 @@ import numpy as np
 
 from sim_bridge import ConfigError
 from sim_bridge.camera.lens import Lens
-from sim_bridge.camera.scene import clip_polygon_halfplane, coverage
+from sim_bridge.camera.scene import clip_polygon_halfplane, edge_lines, edge_min
 from sim_bridge.camera.scene import roi as roi_of
 from sim_bridge.physics.agv import AgvState
 
@@ -22,6 +22,32 @@ ARUCO_WHITE, ARUCO_BLACK = 245, 10
 NEAR_M = 0.05  # points closer than this along the optical axis are not drawn
 _TOP_TEXEL_M = 5.0e-4  # finest texel of the ArUco top texture (mip level 0)
 _MIP_LEVELS = 7  # 0.5 mm .. 32 mm texels
+
+
+def _coverages(hull: np.ndarray, top: np.ndarray | None, roi: tuple[int, int, int, int]
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The silhouette's coverage ``h`` and, with ``top``, the top's ``t = min(coverage(top),
+    h)`` (float32 ROI arrays), as ``scene.coverage`` computes each: ``t`` is ``clip(min(...))``
+    over the top's edges and the silhouette's (clip is monotone, the minimum exact), so it
+    continues the silhouette's running minimum, and a top edge that is also a silhouette edge
+    in the same direction (the same three floats: the same float32 array) is not computed
+    again: seen from above, most of the top's edges are silhouette edges."""
+    x0, y0, x1, y1 = roi
+    hull_lines = edge_lines(hull)
+    h_min = edge_min(hull_lines, roi)
+    t_cov = None
+    if top is not None:
+        top_lines = edge_lines(top)
+        if h_min is None or not top_lines:  # a degenerate polygon covers nothing
+            t_cov = np.zeros((y1 - y0, x1 - x0), np.float32)
+        else:
+            shared = set(hull_lines)
+            t_min = edge_min([e for e in top_lines if e not in shared], roi, h_min.copy())
+            assert t_min is not None
+            t_cov = np.clip(t_min, 0.0, 1.0, out=t_min)
+    if h_min is None:
+        return np.zeros((y1 - y0, x1 - x0), np.float32), t_cov
+    return np.clip(h_min, 0.0, 1.0, out=h_min), t_cov
 
 
 class TargetPainter:
@@ -130,12 +156,11 @@ class TargetPainter:
             roi = roi_of(hull, lens.rw, lens.rh)
             if roi is None:
                 return None
-            h_cov = coverage(hull, roi)
+            h_cov, t_cov = _coverages(hull, px[:4] if top_faces_camera else None, roi)
             x0, y0, x1, y1 = roi
             bg = image[y0:y1, x0:x1].astype(np.float32)
             out = bg + (np.float32(BOX_SIDE_LEVEL) - bg) * h_cov
-            if top_faces_camera:
-                t_cov = np.minimum(coverage(px[:4], roi), h_cov)
+            if t_cov is not None:
                 if self.pattern == "rectangle":
                     fg: float | np.ndarray = float(TOP_LEVEL)
                 else:

@@ -19,6 +19,7 @@ cannot go below it and, while pressed onto it, its velocity is zero.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
@@ -262,21 +263,29 @@ class VehicleState:
     # the collective thrust that hovers the vehicle now (battery, payload), NaN if unknown
     hover_thrust_true: float = math.nan
 
-    @property
+    # Derived once per state (a step's state is read by the camera, the telemetry and the
+    # ground truth: ~8 conversions a step); read-only, as the state is.
+    @functools.cached_property
     def q_wxyz(self) -> Vec:
-        return quat_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad)
+        return _read_only(quat_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad))
 
-    @property
+    @functools.cached_property
     def rot_body_to_ned(self) -> Vec:
-        return rot_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad)
+        return _read_only(rot_from_euler(self.roll_rad, self.pitch_rad, self.yaw_rad))
 
-    @property
+    @functools.cached_property
     def rates_frd_rad_s(self) -> Vec:
         """Body rates (p, q, r) from the Euler rates (ZYX kinematics)."""
         dr, dp, dy = (float(v) for v in self.euler_rates_rad_s)
         sr, cr = math.sin(self.roll_rad), math.cos(self.roll_rad)
         sp, cp = math.sin(self.pitch_rad), math.cos(self.pitch_rad)
-        return np.array([dr - sp * dy, cr * dp + sr * cp * dy, -sr * dp + cr * cp * dy])
+        return _read_only(np.array([dr - sp * dy, cr * dp + sr * cp * dy,
+                                    -sr * dp + cr * cp * dy]))
+
+
+def _read_only(a: Vec) -> Vec:
+    a.flags.writeable = False
+    return a
 
 
 def initial_state(pos_ned_m: tuple[float, float, float] | Vec, roll_rad: float = 0.0,

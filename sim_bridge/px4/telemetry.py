@@ -6,11 +6,13 @@ faults of ``[sim.telemetry]`` and ``[sim.faults]``, sent through the transport d
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
 
-from sim_bridge import SimBridgeError
+from sim_bridge import SimBridgeError, mavpack
 from sim_bridge.delay import rngs
 from sim_bridge.follow_target import latlon_from_ned
 from sim_bridge.link import Address, MavUdpLink
@@ -37,6 +39,19 @@ from sim_bridge.px4.streams import (
 
 if TYPE_CHECKING:
     from sim_bridge.app import SimBridge
+
+# the streamed messages' encoders, by id: pymavlink's ``*_encode`` arguments, the payload
+# packed at once (no pymavlink message object; the same bytes, tests/sim/test_mavpack.py)
+_ENC: dict[int, Callable[..., mavpack.Encoded]] = {
+    cls.id: mavpack.encoder(cls) for cls in (
+        mavlink2.MAVLink_heartbeat_message, mavlink2.MAVLink_sys_status_message,
+        mavlink2.MAVLink_attitude_quaternion_message, mavlink2.MAVLink_attitude_message,
+        mavlink2.MAVLink_attitude_target_message, mavlink2.MAVLink_highres_imu_message,
+        mavlink2.MAVLink_local_position_ned_message,
+        mavlink2.MAVLink_global_position_int_message,
+        mavlink2.MAVLink_extended_sys_state_message, mavlink2.MAVLink_timesync_message,
+        mavlink2.MAVLink_system_time_message, mavlink2.MAVLink_home_position_message,
+        mavlink2.MAVLink_autopilot_version_message)}
 
 
 def _floats(x: Any) -> list[float]:
@@ -91,25 +106,25 @@ class Telemetry:
         return latlon_from_ned(pos, tg.origin_lat_deg, tg.origin_lon_deg, tg.origin_alt_m)
 
     def encode(self, link: MavUdpLink, mid: int, t: float) -> Any:
-        s, px4, mav, ms = self.sim.state, self.sim.px4, link.mav, self.sim.ms(t)
+        s, px4, ms = self.sim.state, self.sim.px4, self.sim.ms(t)
         if mid == HEARTBEAT:
-            return mav.heartbeat_encode(2, 12, px4.base_mode, px4.custom_mode,
+            return _ENC[HEARTBEAT](2, 12, px4.base_mode, px4.custom_mode,
                                         px4.system_status, 3)
         if mid == SYS_STATUS:
             sensors = 1 | 2 | 4 | 8 | 32 | 0x8000 | 0x200000 | 0x2000000
-            return mav.sys_status_encode(sensors, sensors, sensors, 100, 16000, -1, 100,
+            return _ENC[SYS_STATUS](sensors, sensors, sensors, 100, 16000, -1, 100,
                                          0, 0, 0, 0, 0, 0)
         if mid == ATTITUDE_QUATERNION:
             q, w = s.q_wxyz, s.rates_frd_rad_s
-            return mav.attitude_quaternion_encode(ms, *_floats(q), *_floats(w))
+            return _ENC[ATTITUDE_QUATERNION](ms, *_floats(q), *_floats(w))
         if mid == ATTITUDE:
             w = s.rates_frd_rad_s
-            return mav.attitude_encode(ms, s.roll_rad, s.pitch_rad, s.yaw_rad, *_floats(w))
+            return _ENC[ATTITUDE](ms, s.roll_rad, s.pitch_rad, s.yaw_rad, *_floats(w))
         if mid == ATTITUDE_TARGET:  # PX4 streams/ATTITUDE_TARGET.hpp: the attitude setpoint
             cmd = self.sim.attitude_target or px4.attitude_command()
             q = quat_from_euler(cmd.roll_rad, cmd.pitch_rad, cmd.yaw_rad)
             rates = cmd.body_rates_frd_rad_s or (0.0, 0.0, cmd.yaw_rate_ff_rad_s)
-            return mav.attitude_target_encode(ms, 0, [float(v) for v in q],
+            return _ENC[ATTITUDE_TARGET](ms, 0, [float(v) for v in q],
                                               *(float(v) for v in rates),
                                               float(cmd.thrust_norm))
         if mid == HIGHRES_IMU:  # PX4 streams/HIGHRES_IMU.hpp (docs/reference/wire.md, HIGHRES_IMU)
@@ -117,40 +132,40 @@ class Telemetry:
             if self._imu_noisy:
                 f = f + self._accel_bias + self._accel_noise * self._imu_rng.standard_normal(3)
             w = s.rates_frd_rad_s
-            return mav.highres_imu_encode(self.sim.us(t), *_floats(f), *_floats(w), 0.0, 0.0,
+            return _ENC[HIGHRES_IMU](self.sim.us(t), *_floats(f), *_floats(w), 0.0, 0.0,
                                           0.0, 0.0, 0.0, 0.0, 0.0, 0b111111)
         if mid == LOCAL_POSITION_NED:
             vel = s.vel_ned_m_s
             if self._vel_noise > 0:
                 vel = vel + self._vel_noise * self._vel_rng.standard_normal(3)
-            return mav.local_position_ned_encode(ms, *_floats(s.pos_ned_m), *_floats(vel))
+            return _ENC[LOCAL_POSITION_NED](ms, *_floats(s.pos_ned_m), *_floats(vel))
         if mid == GLOBAL_POSITION_INT:
             lat, lon, alt = self.ned_to_global(s.pos_ned_m)
             rel = float(px4.home_ned_m[2] - s.pos_ned_m[2])
             v = s.vel_ned_m_s * 100
             hdg = round(math.degrees(s.yaw_rad) % 360 * 100) % 36000
-            return mav.global_position_int_encode(ms, int(lat * 1e7), int(lon * 1e7),
+            return _ENC[GLOBAL_POSITION_INT](ms, int(lat * 1e7), int(lon * 1e7),
                                                   int(alt * 1000), int(rel * 1000),
                                                   int(v[0]), int(v[1]), int(v[2]), hdg)
         if mid == EXTENDED_SYS_STATE:
-            return mav.extended_sys_state_encode(0, px4.landed_state)
+            return _ENC[EXTENDED_SYS_STATE](0, px4.landed_state)
         if mid == TIMESYNC:  # PX4's own request (streams/TIMESYNC.hpp): tc1 = 0, ts1 = now ns
             ts1 = round(self.sim.boot_s(t) * 1e9)
             self.timesync_sent_ns[ts1] = t
             if len(self.timesync_sent_ns) > 64:
                 self.timesync_sent_ns.pop(next(iter(self.timesync_sent_ns)))
-            return mav.timesync_encode(0, ts1)
+            return _ENC[TIMESYNC](0, ts1)
         if mid == SYSTEM_TIME:
-            return mav.system_time_encode(round((self.sim.unix_t0_s + t) * 1e6), ms)
+            return _ENC[SYSTEM_TIME](round((self.sim.unix_t0_s + t) * 1e6), ms)
         if mid == HOME_POSITION:
             h = px4.home_ned_m
             lat, lon, alt = self.ned_to_global(h)
-            return mav.home_position_encode(int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
+            return _ENC[HOME_POSITION](int(lat * 1e7), int(lon * 1e7), int(alt * 1000),
                                             float(h[0]), float(h[1]), float(h[2]),
                                             [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
                                             self.sim.us(t))
         if mid == AUTOPILOT_VERSION:
-            return mav.autopilot_version_encode(CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0,
+            return _ENC[AUTOPILOT_VERSION](CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0,
                                                 [0] * 8, [0] * 8, [0] * 8, 0x26AC, 0x11,
                                                 0x5EB1D6E0)
         raise SimBridgeError(f"no encoder for message {mid}")  # pragma: no cover
@@ -186,14 +201,14 @@ class Telemetry:
 
     def encode_nan(self, link: MavUdpLink, mid: int, t: float) -> Any:
         """The state message ``mid`` with NaN attitude/velocity (injected fault)."""
-        nan, ms, mav = float("nan"), self.sim.ms(t), link.mav
+        nan, ms = float("nan"), self.sim.ms(t)
         if mid == ATTITUDE_QUATERNION:
-            return mav.attitude_quaternion_encode(ms, nan, nan, nan, nan, nan, nan, nan)
+            return _ENC[ATTITUDE_QUATERNION](ms, nan, nan, nan, nan, nan, nan, nan)
         if mid == ATTITUDE:
-            return mav.attitude_encode(ms, nan, nan, nan, nan, nan, nan)
+            return _ENC[ATTITUDE](ms, nan, nan, nan, nan, nan, nan)
         if mid == HIGHRES_IMU:
-            return mav.highres_imu_encode(self.sim.us(t), nan, nan, nan, nan, nan, nan, 0.0, 0.0,
+            return _ENC[HIGHRES_IMU](self.sim.us(t), nan, nan, nan, nan, nan, nan, 0.0, 0.0,
                                           0.0, 0.0, 0.0, 0.0, 0.0, 0b111111)
         p = self.sim.state.pos_ned_m
-        return mav.local_position_ned_encode(ms, float(p[0]), float(p[1]), float(p[2]),
+        return _ENC[LOCAL_POSITION_NED](ms, float(p[0]), float(p[1]), float(p[2]),
                                              nan, nan, nan)
