@@ -39,16 +39,21 @@ def _random_message(cls: type, rng: np.random.Generator) -> Any:
     return cls(*args)
 
 
-def test_packer_writes_pymavlinks_bytes_for_every_numeric_message() -> None:
-    rng = np.random.default_rng(4)
-    ours = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+def _ours_and_pymavlinks() -> tuple[Any, Any, list[bytes]]:
+    """A sender for mavpack (no output) and a pymavlink one whose frames land in the list."""
     frames: list[bytes] = []
 
     class Sink:
         def write(self, b: bytes) -> None:
             frames.append(bytes(b))
 
-    ref = mavlink2.MAVLink(Sink(), srcSystem=1, srcComponent=1)
+    return (mavlink2.MAVLink(None, srcSystem=1, srcComponent=1),
+            mavlink2.MAVLink(Sink(), srcSystem=1, srcComponent=1), frames)
+
+
+def test_packer_writes_pymavlinks_bytes_for_every_numeric_message() -> None:
+    rng = np.random.default_rng(4)
+    ours, ref, frames = _ours_and_pymavlinks()
     checked = 0
     for cls in mavlink2.mavlink_map.values():
         if "char" in cls.fieldtypes:  # strings: pymavlink packs them (MavUdpLink.pack)
@@ -77,14 +82,7 @@ def test_encoder_writes_pymavlinks_bytes_for_every_numeric_message() -> None:
     frame pymavlink's ``*_encode`` + ``send`` writes, for every number-only message, with the
     extension fields given or left to their defaults; its message() is pymavlink's."""
     rng = np.random.default_rng(6)
-    ours = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
-    frames: list[bytes] = []
-
-    class Sink:
-        def write(self, b: bytes) -> None:
-            frames.append(bytes(b))
-
-    ref = mavlink2.MAVLink(Sink(), srcSystem=1, srcComponent=1)
+    ours, ref, frames = _ours_and_pymavlinks()
     checked = 0
     for cls in mavlink2.mavlink_map.values():
         if "char" in cls.fieldtypes:
