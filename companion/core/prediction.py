@@ -85,6 +85,7 @@ def predict_target_motion(
     d_out: list[float] = []
     for n in range(horizon):
         t = n * dt_s
+        wt = w * t  # (once: the two headings' w * t, the same product)
         if moving:
             # max(0.0, x) and min(x, top) spelt out (the builtins' results, bit for bit:
             # max keeps 0.0 unless x > 0.0, also for x = -0.0 or NaN; min keeps x unless
@@ -97,13 +98,14 @@ def predict_target_motion(
                 acc = 0.0
                 if top < sp:
                     sp = top
-            hd = heading + w * t
+            hd = heading + wt
             ch, sh = cos(hd), sin(hd)
             vx, vy = sp * ch, sp * sh
-            ax, ay = acc * ch - sp * w * sh, acc * sh + sp * w * ch
+            spw = sp * w  # (sp * w * x is (sp * w) * x)
+            ax, ay = acc * ch - spw * sh, acc * sh + spw * ch
         else:
             vx, vy, ax, ay = v0x + a0x * t, v0y + a0y * t, a0x, a0y
-        psi_q = yaw_q_rad + w * t
+        psi_q = yaw_q_rad + wt
         c, s = cos(psi_q), sin(psi_q)
         # Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y]; d/dt (Rz^T v) = Rz^T a + psidot_q
         # [v_y, -v_x] with psidot_q = w (the vehicle turns along)
