@@ -135,12 +135,16 @@ class TelemetryStore:
                                                       q_wxyz=(q1, q2, q3, q4),
                                                       yaw_rate_rad_s=rate))
             if name == "ATTITUDE":  # PX4 onboard: 100 Hz against ATTITUDE_QUATERNION's 50 Hz
-                rpy = [float(fields[k]) for k in ("roll", "pitch", "yaw")]
-                if not _finite(*rpy, fields["yawspeed"]):
+                roll, pitch, yaw = (float(fields["roll"]), float(fields["pitch"]),
+                                    float(fields["yaw"]))
+                rate = float(fields["yawspeed"])
+                if not _finite(roll, pitch, yaw, rate):
                     return self._reject("ATTITUDE non-finite")
-                qa = quat_from_euler_zyx(*rpy)
-                return self._push_attitude(name, AttitudeSample(
-                    t_s, tuple(float(x) for x in qa), float(fields["yawspeed"])))  # type: ignore[arg-type]
+                # (the quaternion's floats by tolist: the values float() gave one by one)
+                w, x, y, z = quat_from_euler_zyx(roll, pitch, yaw).tolist()
+                return self._push_attitude(name, make(AttitudeSample, t_s=t_s,
+                                                      q_wxyz=(w, x, y, z),
+                                                      yaw_rate_rad_s=rate))
             if name == "LOCAL_POSITION_NED":
                 pos = (float(fields["x"]), float(fields["y"]), float(fields["z"]))
                 vel = (float(fields["vx"]), float(fields["vy"]), float(fields["vz"]))

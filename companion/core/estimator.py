@@ -37,7 +37,7 @@ class ImageVelocityEstimator:
             vy = vq1 + self.z_star * (sd1 + sl[0] * yaw_rate)
             c, sn = math.cos(yaw), math.sin(yaw)
             v_a_ned = (c * vx - sn * vy, sn * vx + c * vy, 0.0)
-            if all(math.isfinite(v) for v in v_a_ned):
+            if all(map(math.isfinite, v_a_ned)):
                 a = self.alpha
                 self.v_ned = np.array([(1 - a) * o + a * n
                                        for o, n in zip(self.v_ned.tolist(), v_a_ned,

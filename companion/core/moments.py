@@ -88,7 +88,7 @@ def central_moments(points_v_m: ArrayLike) -> tuple[float, float, float, float, 
     if p.shape[0] < 3:
         raise DegenerateTargetError(f"target points: need >= 3, got {p.shape[0]}")
     us, ns = p[:, 0].tolist(), p[:, 1].tolist()
-    if not all(math.isfinite(v) for v in us + ns):
+    if not all(map(math.isfinite, us + ns)):
         raise DegenerateTargetError("target points: non-finite value")
     if len(us) >= 8:  # numpy sums eight or more pairwise: keep its values there
         ub, nb = float(np.mean(p[:, 0])), float(np.mean(p[:, 1]))
@@ -243,7 +243,7 @@ def image_moments_xy(
     _check_scalars(a_star, lam)
     if len(us) < 3:
         raise DegenerateTargetError(f"target points: need >= 3, got {len(us)}")
-    if not all(math.isfinite(v) for v in us + ns):
+    if not all(map(math.isfinite, us + ns)):
         raise DegenerateTargetError("target points: non-finite value")
     if len(us) >= 8:
         return image_moments(np.column_stack([us, ns]), a_star, lam, s4_prev_rad,
@@ -263,7 +263,7 @@ def _moments_of(mom: tuple[float, float, float, float, float], us: list[float],
                 ns: list[float], a_star: float, lam: float, s4_prev_rad: float | None,
                 heading_from_corners: bool) -> ImageMoments:
     ub, nb, mu20, mu02, mu11 = mom
-    scale = max(lam, max(abs(v) for v in us), max(abs(v) for v in ns))
+    scale = max(lam, max(map(abs, us)), max(map(abs, ns)))  # (map: no generator frame)
     _check_spread(mu20, mu02, mu11, len(us), scale)
     a = mu20 + mu02
     s3 = math.sqrt(a_star / a)

@@ -79,22 +79,33 @@ def predict_target_motion(
     if moving and speed_cap_m_s is not None and a_along > 0.0:
         top = max(speed, float(speed_cap_m_s))
     d = None if d_ned_m_s2 is None else _three(d_ned_m_s2)
+    d0, d1, d2 = (0.0, 0.0, 0.0) if d is None else d
     v_v: list[float] = []
     vdot: list[float] = []
     d_out: list[float] = []
     for n in range(horizon):
         t = n * dt_s
+        wt = w * t  # (once: the two headings' w * t, the same product)
         if moving:
-            sp = max(0.0, speed + a_along * t)
-            acc = 0.0 if sp >= top else a_along
-            sp = min(sp, top)
-            hd = heading + w * t
+            # max(0.0, x) and min(x, top) spelt out (the builtins' results, bit for bit:
+            # max keeps 0.0 unless x > 0.0, also for x = -0.0 or NaN; min keeps x unless
+            # top < x), without two builtin calls a stage
+            sp = speed + a_along * t
+            if not sp > 0.0:
+                sp = 0.0
+            acc = a_along
+            if sp >= top:
+                acc = 0.0
+                if top < sp:
+                    sp = top
+            hd = heading + wt
             ch, sh = cos(hd), sin(hd)
             vx, vy = sp * ch, sp * sh
-            ax, ay = acc * ch - sp * w * sh, acc * sh + sp * w * ch
+            spw = sp * w  # (sp * w * x is (sp * w) * x)
+            ax, ay = acc * ch - spw * sh, acc * sh + spw * ch
         else:
             vx, vy, ax, ay = v0x + a0x * t, v0y + a0y * t, a0x, a0y
-        psi_q = yaw_q_rad + w * t
+        psi_q = yaw_q_rad + wt
         c, s = cos(psi_q), sin(psi_q)
         # Rz(psi_q(n))^T [x, y] = [c x + s y, -s x + c y]; d/dt (Rz^T v) = Rz^T a + psidot_q
         # [v_y, -v_x] with psidot_q = w (the vehicle turns along)
@@ -102,7 +113,7 @@ def predict_target_motion(
         v_v += (vvx, vvy)
         vdot += (c * ax + s * ay + w * vvy, -s * ax + c * ay + w * -vvx)
         if d is not None:
-            d_out += (c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2])
+            d_out += (c * d0 + s * d1, -s * d0 + c * d1, d2)
     return TargetMotion.built(np.array(v_v).reshape(horizon, 2),
                               np.array(vdot).reshape(horizon, 2), np.array([w] * horizon),
                               None if d is None else np.array(d_out).reshape(horizon, 3))

@@ -19,6 +19,10 @@ from companion.core.errors import CoreError
 from companion.core.params import RmpcParams
 from companion.core.rmpc_problem import stage_motion
 
+# ndarray.sum() is numpy's Python wrapper around this call with axis=None (the same
+# reduction, the same bits): called directly on the control step's path
+_sum_all = np.add.reduce
+
 
 class RmpcError(CoreError):
     """Root of the RMPC's errors."""
@@ -119,11 +123,15 @@ class TargetMotion:
         n = v_a_m_s.shape[0]
         dd = np.zeros((n, 3)) if disturbance_v_m_s2 is None else disturbance_v_m_s2
         arrays = (v_a_m_s, vdot_a_m_s2, psidot_a_rad_s, dd)
+        f64 = np.float64
+        # (the dtypes spelt out, no generator; _sum_all is ndarray.sum's own reduction)
         if (v_a_m_s.shape != (n, 2) or vdot_a_m_s2.shape != (n, 2)
                 or psidot_a_rad_s.shape != (n,) or dd.shape != (n, 3)
-                or any(a.dtype != np.float64 for a in arrays)
-                or not math.isfinite(float(v_a_m_s.sum() + vdot_a_m_s2.sum()
-                                           + psidot_a_rad_s.sum() + dd.sum()))):
+                or v_a_m_s.dtype != f64 or vdot_a_m_s2.dtype != f64
+                or psidot_a_rad_s.dtype != f64 or dd.dtype != f64
+                or not math.isfinite(float(_sum_all(v_a_m_s, None) + _sum_all(vdot_a_m_s2, None)
+                                           + _sum_all(psidot_a_rad_s, None)
+                                           + _sum_all(dd, None)))):
             return cls(*arrays)  # (its checks name what is wrong)
         for a in arrays:
             a.setflags(write=False)

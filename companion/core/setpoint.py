@@ -83,7 +83,7 @@ def attitude_setpoint(
         if uu.shape != (4,):
             raise SetpointError(f"u: expected 4 components, got shape {uu.shape}")
         vals = uu.tolist()
-    if not all(math.isfinite(x) for x in vals):
+    if not all(map(math.isfinite, vals)):
         raise SetpointError(f"u: non-finite value {vals}")
     for name, v in (("yaw_rad", yaw_rad), ("dt_s", dt_s), ("hover_thrust", hover_thrust),
                     ("thrust_min", thrust_min), ("thrust_max", thrust_max),

@@ -79,7 +79,8 @@ def _xyz(x: ArrayLike, name: str) -> tuple[float, float, float]:
     """A finite 3-vector as floats (:func:`_vec`'s checks; tuples without numpy)."""
     if (isinstance(x, tuple) and len(x) == 3) or (isinstance(x, np.ndarray)
                                                   and x.shape == (3,)):
-        a, b, c = (float(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x))
+        a, b, c = x.tolist() if isinstance(x, np.ndarray) else x
+        a, b, c = float(a), float(b), float(c)  # (unpacked: no generator)
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
             raise MeasurementError(f"{name}: non-finite value")
         return a, b, c
@@ -252,7 +253,7 @@ def build_error_state(
     if cam_to_body is None and pts.ndim == 2 and pts.shape[1] == 2 and 3 <= pts.shape[0] < 8:
         # the corners of one frame (every control step): plain floats, the same formulas
         us, ns = pts[:, 0].tolist(), pts[:, 1].tolist()
-        if not all(math.isfinite(v) for v in us + ns):
+        if not all(map(math.isfinite, us + ns)):
             raise DegenerateTargetError("target points: non-finite value")
         uv, nv = real_lists_to_virtual(us, ns, roll, pitch, lam)
         mom = image_moments_xy(uv, nv, a_star, lam, s4_prev_rad,
