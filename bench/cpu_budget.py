@@ -45,12 +45,10 @@ import math
 import os
 import resource
 import signal
-import socket
 import subprocess
 import sys
 import time
 import tomllib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +71,7 @@ from bench.budget_figures import (  # noqa: E402
     summarize,
 )
 from bench.cgroup_quota import CgroupUnavailable, CpuQuota, create_quota  # noqa: E402
-from companion.flight import free_ports  # noqa: E402
+from companion.flight_ports import FlightSockets, ReadyPorts, read_ready  # noqa: E402
 
 PAPER = ROOT / "config" / "paper.toml"
 EXIT_BAD_INPUT = 2
@@ -135,38 +133,30 @@ def check_emulator_config(variant: Path, scenario: str, env: dict[str, str]) -> 
                          EXIT_BAD_INPUT)
 
 
-@dataclass
-class Ports:
-    sim: int
-    comp: int
-    gcs: int
-    gcs_remote: int
-    agv: int
-    truth: int
-    frame: int
-
-    @classmethod
-    def pick(cls) -> Ports:
-        udp = free_ports(6, socket.SOCK_DGRAM)
-        return cls(*udp, free_ports(1, socket.SOCK_STREAM)[0])
-
-
-def companion_cmd(variant: Path, ports: Ports, out: Path, duration_s: float) -> list[str]:
+def companion_cmd(variant: Path, frame_port: int, out: Path, duration_s: float) -> list[str]:
+    """The companion's line: it binds its MAVLink and ground-truth ports itself (port 0) and
+    names them in its ready file (companion/flight_ports.py: nothing probed, nothing raced)."""
     return [sys.executable, "-m", "companion", "run", "--config", str(variant),
-            "--mavlink", f"udpin:127.0.0.1:{ports.comp}",
-            "--camera", f"tcp://127.0.0.1:{ports.frame}",
-            "--log", str(out / "flight.mcap"), "--truth-port", str(ports.truth),
+            "--mavlink", "udpin:127.0.0.1:0",
+            "--camera", f"tcp://127.0.0.1:{frame_port}",
+            "--log", str(out / "flight.mcap"), "--truth-port", "0",
             "--duration", f"{duration_s}", "--ready-file", str(out / ".companion-ready"),
             "--progress-file", str(out / ".companion-progress")]
 
 
-def emulator_cmd(variant: Path, scenario: str, ports: Ports, duration_s: float) -> list[str]:
+def emulator_cmd(variant: Path, scenario: str, sockets: FlightSockets, ready: ReadyPorts | None,
+                 duration_s: float) -> list[str]:
+    """The emulator's line: its own links on ports it picks, the frames on the listening
+    socket this process holds (``--frame-fd``: start it with ``pass_fds``), sending to the
+    ports the companion's ready file names."""
+    if ready is None or ready.mavlink_port is None or ready.truth_port is None:
+        raise BenchError(f"the companion's ready file names no ports ({ready})")
     return [sys.executable, "-m", "sim_bridge", "--config", str(variant), "--scenario", scenario,
             "--realtime", "--duration", f"{duration_s}", "--bind", "127.0.0.1",
-            "--offboard-port", str(ports.sim), "--offboard-remote", f"127.0.0.1:{ports.comp}",
-            "--gcs-port", str(ports.gcs), "--gcs-remote", f"127.0.0.1:{ports.gcs_remote}",
-            "--agv-port", str(ports.agv), "--frame-port", str(ports.frame),
-            "--truth-remote", f"127.0.0.1:{ports.truth}"]
+            "--offboard-port", "0", "--offboard-remote", f"127.0.0.1:{ready.mavlink_port}",
+            "--gcs-port", "0", "--gcs-remote", f"127.0.0.1:{sockets.gcs_sink_port}",
+            "--agv-port", "0", "--frame-fd", str(sockets.frame_fd),
+            "--truth-remote", f"127.0.0.1:{ready.truth_port}"]
 
 
 def _children_cpu_s() -> float:
@@ -241,17 +231,18 @@ def fly(quota: CpuQuota, sim_group: CpuQuota | None, variant: Path, scenario: st
     stopped at the end of ``duration_s``."""
     assert quota.fraction is not None
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(ROOT))
-    ports = Ports.pick()
     f = Flown(out, quota.fraction, quota={"cgroup": f"v{quota.controller.version}",
                                           "group": str(quota.cpu_group),
                                           "quota_us": quota.quota_us,
                                           "period_us": quota.period_us})
     f.load.append(_load())
     (out / ".companion-ready").unlink(missing_ok=True)
-    with open(out / "companion.log", "w") as clog, open(out / "sim.log", "w") as slog:
+    with (FlightSockets() as sockets, open(out / "companion.log", "w") as clog,
+          open(out / "sim.log", "w") as slog):
         t0 = time.monotonic()
         cpu0 = _children_cpu_s()
-        comp = subprocess.Popen(companion_cmd(variant, ports, out, duration_s), stdout=clog,
+        comp = subprocess.Popen(companion_cmd(variant, sockets.frame_port, out, duration_s),
+                                stdout=clog,
                                 stderr=subprocess.STDOUT, env=env,
                                 preexec_fn=quota.enter_self)  # before exec: its children inherit
         sim: subprocess.Popen[bytes] | None = None
@@ -261,9 +252,12 @@ def fly(quota: CpuQuota, sim_group: CpuQuota | None, variant: Path, scenario: st
             f.idle = _wait_idle(quota, comp, 30.0 + 30.0 / quota.fraction)
             f.start_wall_s = time.monotonic() - t0
             f.cg_usage_start_s = quota.usage_s()
-            sim = subprocess.Popen(emulator_cmd(variant, scenario, ports, duration_s),
-                                   stdout=slog, stderr=subprocess.STDOUT, env=env,
+            sim_cmd = emulator_cmd(variant, scenario, sockets,
+                                   read_ready(out / ".companion-ready"), duration_s)
+            sim = subprocess.Popen(sim_cmd, stdout=slog, stderr=subprocess.STDOUT, env=env,
+                                   pass_fds=(sockets.frame_fd,),
                                    preexec_fn=None if sim_group is None else sim_group.enter_self)
+            sockets.frame.close()  # the emulator's now (held until it exits)
             t_fly = time.monotonic()
             try:
                 f.sim_rc = sim.wait(timeout=duration_s + 120.0)

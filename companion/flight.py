@@ -7,9 +7,11 @@ the companion meets a real PX4: this module starts ``python -m sim_bridge --lock
 subprocess and never imports it. It merges the config file and every ``--set`` override into
 ``DIR/config.toml`` (so an override reaches both processes, ``sim.*`` keys the emulator and
 shared ``camera.*``/``target.*`` keys both), has both programs validate it (``sim-bridge
---check-config``; a key neither knows is refused before anything flies), picks free ports,
-starts both on that file, waits for the flight, then scores it from the log (ground truth
-recorded on ``/truth``) into ``DIR/report.json`` and the report figures.
+--check-config``; a key neither knows is refused before anything flies), starts both on that
+file on ports the binding processes choose (companion/flight_ports.py: nothing is probed, so
+two flights started at once cannot be handed the same port), waits for the flight, then
+scores it from the log (ground truth recorded on ``/truth``) into ``DIR/report.json`` and the
+report figures.
 
 The flight's folder ``DIR`` then holds ``flight.mcap``, ``report.json``, ``config.toml`` and the
 two processes' output (``companion.log``, ``sim.log``).
@@ -36,13 +38,14 @@ from companion import CompanionError, ConfigError
 from companion.config import Config, config_from_dict, read_document
 from companion.config_file import absolutize_paths, dump_toml, merged_document
 from companion.control.knobs import warn_ineffective_knobs
+from companion.flight_ports import FlightSockets, ReadyPorts, read_ready
 from companion.report.files import build_report
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Flight", "build_flight_report", "check_emulator_config", "demo_commands", "fly",
-           "free_port", "free_ports", "prepare_configs", "read_progress", "run_demo",
-           "write_merged_config"]
+__all__ = ["Flight", "build_flight_report", "check_emulator_config", "demo_commands",
+           "emulator_command", "fly", "free_port", "free_ports", "prepare_configs",
+           "read_progress", "run_demo", "write_merged_config"]
 
 READY_FILE = ".companion-ready"
 PROGRESS_FILE = ".companion-progress"
@@ -96,18 +99,32 @@ def free_ports(n: int, kind: int = socket.SOCK_DGRAM) -> list[int]:
 
 def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
                   overrides: Sequence[str], faults: Sequence[str],
-                  live: bool = False) -> tuple[list[str], list[str]]:
-    """The two command lines (emulator, companion) of a lockstep flight on free ports, both
-    reading ``config`` (the merged file); ``overrides`` go to the companion only (the demo's
-    own lockstep settings)."""
-    p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = free_ports(6)
-    p_frame = free_port(socket.SOCK_STREAM)
+                  live: bool = False, sockets: FlightSockets | None = None,
+                  ) -> tuple[list[str], list[str]]:
+    """The two command lines (emulator, companion) of a lockstep flight, both reading
+    ``config`` (the merged file); ``overrides`` go to the companion only (the demo's own
+    lockstep settings).
+
+    With ``sockets`` (what :func:`fly` does) no port is probed (companion/flight_ports.py):
+    the companion binds port 0 and reports its ports in its ready file, which
+    :func:`emulator_command` then writes into the emulator's line; the emulator serves the
+    frames on ``sockets.frame`` (start it with ``pass_fds=(sockets.frame_fd,)``). Without,
+    probed free ports (:func:`free_ports`: another process may take one before the child
+    binds it; for tools that start the two processes on their own)."""
+    if sockets is None:
+        p_sim, p_comp, p_gcs, p_gcs_remote, p_agv, p_truth = free_ports(6)
+        p_frame = free_port(socket.SOCK_STREAM)
+        frame = ["--frame-port", str(p_frame)]
+    else:  # 0: the binding process picks; the remotes are filled in by emulator_command
+        p_sim = p_comp = p_gcs = p_agv = p_truth = 0
+        p_gcs_remote, p_frame = sockets.gcs_sink_port, sockets.frame_port
+        frame = ["--frame-fd", str(sockets.frame_fd)]
     sim = [
         sys.executable, "-m", "sim_bridge", "--config", str(config), "--scenario", scenario,
         "--lockstep", "--duration", f"{duration_s}", "--bind", "127.0.0.1",
         "--offboard-port", str(p_sim), "--offboard-remote", f"127.0.0.1:{p_comp}",
         "--gcs-port", str(p_gcs), "--gcs-remote", f"127.0.0.1:{p_gcs_remote}",
-        "--agv-port", str(p_agv), "--frame-port", str(p_frame),
+        "--agv-port", str(p_agv), *frame,
         "--truth-remote", f"127.0.0.1:{p_truth}",
     ]
     comp = [
@@ -139,6 +156,17 @@ def demo_commands(config: Path, scenario: str, duration_s: float, out: Path,
         *(["--live"] if live else []),
     ]
     return sim, comp
+
+
+def emulator_command(sim_cmd: Sequence[str], ready: ReadyPorts | None) -> list[str]:
+    """``sim_cmd`` sending to the ports the companion's ready file names (its MAVLink and
+    ground-truth sockets); a clear error if it names none."""
+    if ready is None or ready.mavlink_port is None or ready.truth_port is None:
+        raise CompanionError(f"demo: the companion's ready file names no ports ({ready})")
+    cmd = list(sim_cmd)
+    cmd[cmd.index("--offboard-remote") + 1] = f"127.0.0.1:{ready.mavlink_port}"
+    cmd[cmd.index("--truth-remote") + 1] = f"127.0.0.1:{ready.truth_port}"
+    return cmd
 
 
 def positive_seconds(text: str) -> float:
@@ -236,19 +264,26 @@ def fly(config: Path, scenario: str, duration_s: float | None, out: Path,
         cfg.live, enabled=True)) if live else cfg)
     if duration_s is None:
         duration_s = float(sim_doc.get("sim", {}).get("duration_s", 251.0))
-    sim_cmd, comp_cmd = demo_commands(comp_path, scenario, duration_s, out, [], faults,
-                                      live=live)
-    sim_cmd[sim_cmd.index("--config") + 1] = str(sim_path)
     budget = budget_s if budget_s is not None else 120.0 + 4.0 * duration_s
-    with open(out / "companion.log", "w") as comp_log, open(out / "sim.log", "w") as sim_log:
+    progress_file = out / PROGRESS_FILE
+    with (FlightSockets() as sockets, open(out / "companion.log", "w") as comp_log,
+          open(out / "sim.log", "w") as sim_log):
+        sim_cmd, comp_cmd = demo_commands(comp_path, scenario, duration_s, out, [], faults,
+                                          live=live, sockets=sockets)
+        sim_cmd[sim_cmd.index("--config") + 1] = str(sim_path)
         comp = _start_companion(comp_cmd, comp_log, env, out,
                                 STARTUP_S if budget_s is None else max(STARTUP_S, budget_s))
-        progress_file = out / PROGRESS_FILE
+        try:
+            sim_cmd = emulator_command(sim_cmd, read_ready(out / READY_FILE))
+        except (CompanionError, ValueError):
+            comp.kill()
+            comp.wait()
+            raise
         progress_file.unlink(missing_ok=True)
         bar = _bar_for(duration_s, show_progress)
         try:
             ended = _supervise(sim_cmd, sim_log, comp, env, out, budget, monitor,
-                               lambda: _advance(bar, progress_file))
+                               lambda: _advance(bar, progress_file), sockets)
         finally:
             if bar is not None:
                 bar.close()
@@ -304,14 +339,17 @@ def _start_companion(cmd: list[str], output: Any, env: Mapping[str, str], out: P
 def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
                env: Mapping[str, str], out: Path, budget_s: float,
                monitor: Callable[[subprocess.Popen[bytes]], None] | None,
-               tick: Callable[[], None]) -> _Ended:
-    """Start the emulator and wait for the flight's end (the emulator exits after its
-    duration, then the companion is told to stop); both processes are gone on return."""
+               tick: Callable[[], None], sockets: FlightSockets) -> _Ended:
+    """Start the emulator (handing it the frame server's socket) and wait for the flight's
+    end (the emulator exits after its duration, then the companion is told to stop); both
+    processes are gone on return."""
     t0 = time.monotonic()
     # the emulator's CPU: what this process's reaped children used from its start until it
     # is reaped (the companion is reaped after it)
     children0 = _children_cpu_s()
-    sim = subprocess.Popen(sim_cmd, stdout=output, stderr=subprocess.STDOUT, env=dict(env))
+    sim = subprocess.Popen(sim_cmd, stdout=output, stderr=subprocess.STDOUT, env=dict(env),
+                           pass_fds=(sockets.frame_fd,))
+    sockets.frame.close()  # the emulator's now: its port stays held until the emulator exits
     try:
         while time.monotonic() - t0 < budget_s:
             sim_rc = sim.poll()
@@ -320,9 +358,7 @@ def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
                 wall = time.monotonic() - t0
                 emulator_cpu_s = _children_cpu_s() - children0
                 # the flight is over, ended or failed: the companion stops at once (it would
-                # otherwise wait for frames that will not come, or take another flight's: an
-                # emulator that could not bind its probed port exits 2 while the companion
-                # may have connected to whoever holds that port)
+                # otherwise wait for frames that will not come)
                 if comp.poll() is None:
                     comp.send_signal(signal.SIGTERM)
                 return _Ended(sim_rc, comp.wait(timeout=30.0), wall, emulator_cpu_s)

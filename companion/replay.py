@@ -17,7 +17,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Callable, Iterable, Iterator
+import typing
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -106,10 +107,65 @@ def replay_config(reader: LogReader, config: Path | None, overrides: list[str]) 
              if m.data for o in m.data.get("overrides") or []]
     for m in reader.messages(topics=["/config"]):
         if m.data and isinstance(m.data.get("config"), dict):
-            recorded = _as_flown(m.data["config"])
-            return config_from_dict(with_overrides(recorded, [*flown, *overrides]),
+            recorded = with_overrides(_as_flown(m.data["config"]), flown)
+            return config_from_dict(with_known_keys(recorded, overrides),
                                     source=f"{m.data.get('source', '')} (recorded)")
     raise ReplayError("the log has no /config channel: pass --config FILE")
+
+
+def schema_refuses(key: str) -> str | None:
+    """Why the companion's config schema (today's :class:`Config`) has no dotted ``key``, or
+    ``None`` when it has it (a value, or a table)."""
+    cls: Any = Config
+    parts = key.split(".")
+    for i, part in enumerate(parts):
+        names = [f.name for f in dataclasses.fields(cls) if f.name not in ("source", "raw")]
+        where = ".".join(parts[:i + 1])
+        if part not in names:
+            table = ".".join(parts[:i]) or "the config"
+            return f"{where}: no such key in {table} (it has {', '.join(sorted(names))})"
+        if i == len(parts) - 1:
+            return None
+        tp = typing.get_type_hints(cls)[part]
+        inner = [t for t in (typing.get_args(tp) or (tp,)) if dataclasses.is_dataclass(t)]
+        if not inner:
+            return f"{where}: a value, not a table"
+        cls = inner[0]
+    return None
+
+
+def _has_key(doc: Mapping[str, Any], key: str) -> bool:
+    node: Any = doc
+    for part in key.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def with_known_keys(doc: Mapping[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """``doc`` (a recorded config) with ``--set`` ``overrides`` applied; a key the recording
+    lacks (one added to the companion after the log was written) is added when today's config
+    schema knows it (:func:`schema_refuses`), with its tables; any other key is refused with a
+    :class:`ConfigError` naming it."""
+    out = with_overrides(doc, [])
+    for text in overrides:
+        key = text.partition("=")[0].strip()
+        if "=" not in text or not key:
+            raise ConfigError(f"--set {text!r}: expected KEY=VALUE")
+        if not _has_key(out, key):  # as recorded: replaced (also a foreign table's key)
+            why = schema_refuses(key)
+            if why is not None:
+                raise ConfigError(f"--set {key}: unknown key: {why}")
+            log.info("--set %s: not in the recorded config (a key newer than the log): added",
+                     key)
+            node = out
+            *tables, leaf = key.split(".")
+            for part in tables:
+                node = node.setdefault(part, {})
+            node[leaf] = None  # a place for the override (replaced just below)
+        out = with_overrides(out, [text])
+    return out
 
 
 #: ``[control.*]`` features newer than some logs: a log whose config has no such table was flown

@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import socket
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -115,11 +116,15 @@ class SimBridge:
 
     ``bind_host`` is where the UDP links and the frame server listen (PX4 SITL listens on all
     interfaces; tests use 127.0.0.1). After ``__aenter__``, :attr:`ports` holds the bound ports.
+    ``frame_sock``: a listening socket for the frame server instead of ``link.frame_port``
+    (``sim-bridge --frame-fd``).
     """
 
-    def __init__(self, cfg: EmulatorConfig, *, bind_host: str = "0.0.0.0") -> None:
+    def __init__(self, cfg: EmulatorConfig, *, bind_host: str = "0.0.0.0",
+                 frame_sock: socket.socket | None = None) -> None:
         self.cfg = cfg
         self.bind_host = bind_host
+        self._frame_sock = frame_sock
         sim = cfg.sim
         self.lockstep = sim.time_mode == "lockstep"
         # the vehicle: its dynamics, its start and its autopilot
@@ -240,7 +245,7 @@ class SimBridge:
         self.links["agv"] = agv_link
         self.ports["agv"] = agv_link.port
         self._frame_server = await self._stack.enter_async_context(
-            FrameServer(self.bind_host, link.frame_port))
+            FrameServer(self.bind_host, link.frame_port, sock=self._frame_sock))
         self.ports["frames"] = self._frame_server.port
         self._truth = TruthPublisher(*parse_address(link.truth_remote))
         self._stack.callback(self._truth.close)

@@ -11,6 +11,7 @@ import asyncio
 import contextlib
 import logging
 import signal
+import socket
 import sys
 from typing import TYPE_CHECKING
 
@@ -40,7 +41,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gcs-port", type=int, help="local UDP port of the GCS link")
     p.add_argument("--gcs-remote", help="HOST:PORT the GCS link sends to")
     p.add_argument("--agv-port", type=int, help="local UDP port of the AGV node")
-    p.add_argument("--frame-port", type=int, help="TCP port of the camera frame server")
+    frames = p.add_mutually_exclusive_group()
+    frames.add_argument("--frame-port", type=int, help="TCP port of the camera frame server")
+    frames.add_argument("--frame-fd", type=int,
+                        help="an inherited listening TCP socket (its file descriptor) to serve "
+                             "the camera frames on: the port is chosen and held by the process "
+                             "that starts the emulator (``companion demo``), so no other "
+                             "process can take it in between")
     p.add_argument("--truth-remote", help="HOST:PORT for ground-truth JSON")
     p.add_argument("--log-level", default="INFO")
     p.add_argument("--cv-threads", type=int, default=1,
@@ -94,6 +101,19 @@ def _render_threads(n: int) -> None:
     cv2.setNumThreads(n if n > 0 else -1)
 
 
+def inherited_listener(fd: int) -> socket.socket:
+    """The listening TCP socket of file descriptor ``fd`` (``--frame-fd``), or a clear error."""
+    try:
+        sock = socket.socket(fileno=fd)
+    except OSError as e:
+        raise SimBridgeError(f"--frame-fd {fd}: not an open socket ({e.strerror})") from e
+    if (sock.type != socket.SOCK_STREAM
+            or not sock.getsockopt(socket.SOL_SOCKET, socket.SO_ACCEPTCONN)):
+        sock.detach()  # not ours to close
+        raise SimBridgeError(f"--frame-fd {fd}: not a listening TCP socket")
+    return sock
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(),
@@ -123,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg = with_link(cfg, **changes)
         if args.duration is not None and not args.duration > 0:
             raise SimBridgeError("--duration: must be > 0")
-        asyncio.run(_run(SimBridge(cfg, bind_host=args.bind), args.duration))
+        frame_sock = None if args.frame_fd is None else inherited_listener(args.frame_fd)
+        asyncio.run(_run(SimBridge(cfg, bind_host=args.bind, frame_sock=frame_sock),
+                         args.duration))
     except SimBridgeError as e:
         log.error("%s", e)
         return 2

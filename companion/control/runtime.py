@@ -56,6 +56,7 @@ from companion.control.vehicle import Vehicle
 from companion.control.vehicle_limits import VehicleLimitsStage, adopt_vehicle_limits, set_pipeline
 from companion.control.wiring import allow_rules, new_pipeline
 from companion.core.setpoint import AttitudeSetpoint
+from companion.flight_ports import write_ready
 from companion.link import MavlinkLink, NoPeerError
 from companion.log import schemas as sch
 from companion.log.live import start_live
@@ -108,6 +109,7 @@ class CompanionApp:
         self.camera_url = camera_url
         self.log_path = log_path
         self.truth_port = truth_port
+        self._truth_bound_port: int | None = None  # what the kernel gave a --truth-port 0
         self.duration_s = duration_s
         self.idle_timeout_s = idle_timeout_s
         # before the first frame nothing is under our control: wait longer for the camera
@@ -194,8 +196,8 @@ class CompanionApp:
             async with asyncio.TaskGroup() as tg:
                 control = tg.create_task(self._control(camera))
                 aux = await self._start_up(tg, link)
-                if self.ready_file is not None:
-                    self.ready_file.write_text("ready\n")
+                if self.ready_file is not None:  # with the ports bound (an orchestrator's)
+                    write_ready(self.ready_file, link.local_address, self._truth_bound_port)
                 await control
                 for t in aux:
                     t.cancel()
@@ -291,6 +293,7 @@ class CompanionApp:
                            lambda t: logger.log(TOPIC_TRUTH, t, rec, schema=sch.JSON))
 
         transport, _ = await loop.create_datagram_endpoint(_Proto, local_addr=("127.0.0.1", port))
+        self._truth_bound_port = int(transport.get_extra_info("sockname")[1])
         ready.set()
         try:
             await asyncio.Future()

@@ -172,8 +172,9 @@ class VehicleLimitsStage:
                      f"{res.elapsed_s:.2f} s): {got or 'none'}")
         if res.missing:
             text("WARNING", f"vehicle limits: no answer for {', '.join(res.missing)} after "
-                            f"{vl.read_retries} tries of {vl.read_timeout_s} s (their bounds "
-                            f"stay as configured)")
+                            f"{vl.read_retries} tries in {res.elapsed_s:.1f} s (the first "
+                            f"waiting {vl.read_timeout_s} s, each retry twice the one before; "
+                            f"their bounds stay as configured)")
         out = cfg
         if vl.from_autopilot and not values:
             text("WARNING", "vehicle limits: from_autopilot asked, nothing read: the controller "

@@ -19,10 +19,12 @@ class VehicleLimitsConfig:
     """``[vehicle_limits]``: ``read`` the autopilot's limits on connect (log them, report a
     configured bound beyond them); ``from_autopilot``: also build the controller's bounds from
     them, each ``(1 - margin)`` times the autopilot's (module docstring); the read asks each
-    parameter ``read_retries`` times, ``read_timeout_s`` apart."""
+    parameter up to ``read_retries`` times, the first try waiting ``read_timeout_s`` (or 3 x
+    the slowest answer seen, if longer) and each retry twice the one before, at most 8 x
+    ``read_timeout_s`` (``companion/link/params.py``)."""
 
     read: bool = True
     from_autopilot: bool = False
     margin: float = field(default=0.2, metadata=checked(_margin))
     read_timeout_s: float = field(default=0.5, metadata=checked(positive))
-    read_retries: int = field(default=3, metadata=checked(positive))
+    read_retries: int = field(default=5, metadata=checked(positive))

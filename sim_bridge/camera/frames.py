@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 import struct
 from dataclasses import dataclass
 from types import TracebackType
@@ -246,12 +247,16 @@ class FrameServer:
     """TCP server streaming camera frames to any number of clients (docs/reference/wire.md).
 
     ``async with FrameServer("127.0.0.1", 0) as srv: await srv.publish(seq, t_us, image)``.
-    ``port`` 0 picks a free port (read it from :attr:`port`). Counters: :attr:`published`,
-    :attr:`sent` and :attr:`dropped` (over all clients, current and past), :attr:`n_clients`.
+    ``port`` 0 picks a free port (read it from :attr:`port`); ``sock``: a listening socket to
+    serve on instead (handed over by the process that chose the port: ``sim-bridge
+    --frame-fd``). Counters: :attr:`published`, :attr:`sent` and :attr:`dropped` (over all
+    clients, current and past), :attr:`n_clients`.
     """
 
-    def __init__(self, host: str, port: int, encoding: str = "mono8") -> None:
+    def __init__(self, host: str, port: int, encoding: str = "mono8",
+                 sock: socket.socket | None = None) -> None:
         self.host = host
+        self._listen_sock = sock
         self.requested_port = port
         self.encoding = encoding
         _encoding_code(encoding)
@@ -267,7 +272,11 @@ class FrameServer:
 
     async def __aenter__(self) -> FrameServer:
         try:
-            self._server = await asyncio.start_server(self._on_client, self.host, self.port)
+            if self._listen_sock is not None:
+                self._server = await asyncio.start_server(self._on_client,
+                                                          sock=self._listen_sock)
+            else:
+                self._server = await asyncio.start_server(self._on_client, self.host, self.port)
         except OSError as e:
             raise LinkError(f"camera frames: cannot listen on {self.host}:{self.port}: {e}") from e
         self.port = self._server.sockets[0].getsockname()[1]

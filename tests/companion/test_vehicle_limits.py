@@ -24,6 +24,8 @@ from companion.control.vehicle_limits import (
 from companion.link import MavlinkLink, default_allow_rules
 from companion.link.params import ParamReader, decode_param_value
 from sim_bridge.config import with_link
+from sim_bridge.config.links import ImpairmentConfig
+from sim_bridge.impairment import ImpairmentParams
 from sim_bridge.px4_params import px4_param_specs
 from tests.sim.harness import make_config, run_sim
 
@@ -39,7 +41,8 @@ def _link(port: int = 0) -> MavlinkLink:
                        allow=default_allow_rules(1, 1, 42, 1))
 
 
-async def _read_from_emulator(names: tuple[str, ...], **sim_changes: object) -> tuple[
+async def _read_from_emulator(names: tuple[str, ...], timeout_s: float = 0.3, retries: int = 3,
+                              **sim_changes: object) -> tuple[
         dict[str, float], tuple[str, ...], int, dict[str, int]]:
     async with _link() as link:
         port = link.local_address[1]  # type: ignore[index]
@@ -53,7 +56,7 @@ async def _read_from_emulator(names: tuple[str, ...], **sim_changes: object) -> 
 
         with run_sim(cfg):
             task = asyncio.create_task(feed())
-            res = await reader.read(names, timeout_s=0.3, retries=3)
+            res = await reader.read(names, timeout_s=timeout_s, retries=retries)
             task.cancel()
         types = {n: p.param_type for n, p in res.values.items()}
         return {n: p.value for n, p in res.values.items()}, res.missing, res.requests_sent, types
@@ -82,6 +85,40 @@ def test_sim_params_override_what_the_emulator_serves() -> None:
         ("MPC_XY_VEL_MAX", "MPC_YAWRAUTO_MAX"),
         params=(("MPC_XY_VEL_MAX", 5.0), ("MPC_YAWRAUTO_MAX", 30.0))))
     assert values == {"MPC_XY_VEL_MAX": 5.0, "MPC_YAWRAUTO_MAX": 30.0} and missing == ()
+
+
+def _impaired(to_companion: ImpairmentParams, to_vehicle: ImpairmentParams,
+              seed: int) -> ImpairmentConfig:
+    return ImpairmentConfig(links=("offboard",), seed=seed, vehicle_to_companion=to_companion,
+                            companion_to_vehicle=to_vehicle)
+
+
+def test_a_slow_autopilot_is_waited_for() -> None:
+    """Every answer arrives 1 s after its request (a loaded autopilot or link): 3 tries of a
+    fixed 0.3 s would give up after 0.9 s with everything missing; the tries back off
+    (0.3, 0.6, 1.2 s) and the answers to the first requests are taken when they come."""
+    slow = _impaired(ImpairmentParams(delay_s=1.0), ImpairmentParams(), seed=3)
+    values, missing, sent, _ = asyncio.run(_read_from_emulator(
+        PARAM_NAMES, timeout_s=0.3, retries=3, impairment=slow))
+    assert missing == ()
+    assert values["MPC_XY_VEL_MAX"] == 12.0 and values["MPC_THR_HOVER"] == 0.5
+    assert sent <= 3 * len(PARAM_NAMES)
+
+
+def test_a_lossy_link_loses_no_parameter() -> None:
+    """A quarter of the datagrams lost each way, with delay, jitter, reordering, duplicates:
+    each lost request or answer costs one more request of that name alone."""
+    lossy = _impaired(
+        ImpairmentParams(drop_p=0.25, delay_s=0.05, jitter_s=0.05, reorder_p=0.1,
+                         duplicate_p=0.05),
+        ImpairmentParams(drop_p=0.25, delay_s=0.02, jitter_s=0.02), seed=11)
+    values, missing, sent, _ = asyncio.run(_read_from_emulator(
+        PARAM_NAMES, timeout_s=0.2, retries=12, impairment=lossy))
+    assert missing == ()
+    expect = {s.name: float(s.default) for s in px4_param_specs(make_config())}
+    assert values == pytest.approx({n: expect[n] for n in PARAM_NAMES}, rel=1e-6)
+    # some were asked again (P(no loss on 11 round trips) = 0.56^11 ~ 0.2 %), never a round
+    assert len(PARAM_NAMES) < sent
 
 
 def test_an_autopilot_that_does_not_answer_times_out_with_every_name_missing() -> None:
@@ -120,7 +157,7 @@ def test_an_autopilot_that_does_not_answer_times_out_with_every_name_missing() -
     missing, sent, dt, received = asyncio.run(main())
     assert missing == ("MPC_XY_VEL_MAX", "MPC_ACC_HOR")
     assert sent == 4 and received >= 4  # 2 names x 2 tries, on the wire
-    assert dt >= 0.4  # it waited both rounds before giving up
+    assert dt >= 0.6  # it waited both tries (0.2 s, then twice that) before giving up
 
 
 def test_no_autopilot_heard_means_nothing_sent_and_everything_missing() -> None:
