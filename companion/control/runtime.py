@@ -234,6 +234,14 @@ class CompanionApp:
                  "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
         self._write_progress(final=True)
 
+    def _progress_due(self) -> None:
+        """The progress file now unless it was written less than ``PROGRESS_INTERVAL_S`` of
+        wall time ago (a write and a rename: ~0.3 ms of CPU on ext4)."""
+        now = time.monotonic()
+        if now >= self._next_progress_s:
+            self._next_progress_s = now + PROGRESS_INTERVAL_S
+            self._write_progress()
+
     def _write_progress(self, final: bool = False) -> None:
         """``elapsed_s steps [cpu_ms_per_step]`` for an orchestrator (``companion demo``)."""
         if self.progress_file is None:
@@ -387,10 +395,7 @@ class CompanionApp:
         if self._cpu0 is None:
             self._cpu0 = (_cpu_s(self.pipeline.rmpc), self.steps)
         elif self.progress_file is not None and self.steps % 20 == 0:
-            now = time.monotonic()
-            if now >= self._next_progress_s:  # a rename costs ~0.3 ms of CPU on ext4
-                self._next_progress_s = now + PROGRESS_INTERVAL_S
-                self._write_progress()
+            self._progress_due()
         self._log_step(frame, t_s, t_log, frame_late_s, res, sent, logged_input)
 
     def _admit(self, frame: CameraFrame, t_log: int, t_s: float) -> bool:
