@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
-import logging
 import sys
 import time
-from collections.abc import Coroutine
 from pathlib import Path
-from typing import Any
 
 from companion.config import load_config
+from companion.control.event_loop import run_loop
 from companion.control.faults import FaultWindow
 from companion.control.runtime import CompanionApp
 from companion.flight import positive_seconds
@@ -25,23 +22,6 @@ from companion.flight import positive_seconds
 #: 4.47, 5.18, 8.04, 5.01 ms, companion CPU no higher (docs/reference/logging.md): a small gain
 #: inside the machine's run-to-run spread, at no cost.
 GIL_SWITCH_INTERVAL_S = 0.0005
-
-log = logging.getLogger(__name__)
-
-
-def run_loop(main: Coroutine[Any, Any, int]) -> int:
-    """``main`` on uvloop's event loop (libuv, its loop in C), asyncio's own when uvloop is not
-    installed. The control process's loop turns several times a step (the frame, ~6 telemetry
-    datagrams, the setpoint's task): asyncio's pure-Python loop costs CPU at each turn. On a
-    lockstep frame and its answer (``bench/frame_transport.py --transport shm``, three
-    interleaved pairs at load 11) the client's CPU a frame was 0.35, 0.35, 0.38 ms with
-    asyncio's loop against 0.29, 0.28, 0.36 ms with uvloop."""
-    try:
-        import uvloop
-    except ImportError:
-        log.info("uvloop is not installed: asyncio's own event loop")
-        return asyncio.run(main)
-    return int(uvloop.run(main))
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

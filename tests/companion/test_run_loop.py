@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from companion.commands.run import run_loop
+from companion.control.event_loop import run_loop
 
 
 async def _loop_module() -> int:
