@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
 import sys
 import time
 from pathlib import Path
 
 from companion.config import load_config
+from companion.control.event_loop import run_loop
 from companion.control.faults import FaultWindow
 from companion.control.runtime import CompanionApp
 from companion.flight import positive_seconds
@@ -71,7 +71,7 @@ def _run(args: argparse.Namespace) -> int:
         ready_file=args.ready_file, progress_file=args.progress_file,
     )
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    rc = asyncio.run(app.run())
+    rc = run_loop(app.run())
     if app.cpu_ms_per_step is not None:
         print(f"companion: {app.steps} steps, CPU {app.cpu_ms_per_step:.2f} ms per step "
               "(getrusage, all threads and the solver process)")

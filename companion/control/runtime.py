@@ -65,6 +65,9 @@ from companion.log.writer import McapLogger
 log = logging.getLogger(__name__)
 
 FIRST_FRAME_TIMEOUT_S = 60.0
+#: The progress file (a demo's bar) at most this often, wall time: a write and a rename cost the
+#: control loop ~0.3 ms of CPU and ~1.8 ms of wall time on ext4 (every 20 steps: ~6 a second).
+PROGRESS_INTERVAL_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -120,6 +123,7 @@ class CompanionApp:
         self.ready_file = ready_file
         self.stale_frames = 0  # frames refused as stale (no command built from them)
         self.progress_file = progress_file
+        self._next_progress_s = 0.0  # monotonic time of the next progress write
         self._cpu0: tuple[float, int] | None = None  # (CPU s, steps) at the first frame
         self.cpu_ms_per_step: float | None = None
         self.timebase = TimeBase(cfg.control.time_source, cfg.safety.max_frame_age_s)
@@ -228,6 +232,13 @@ class CompanionApp:
                  self.log_path, logger.stats.written, logger.stats.dropped,
                  "-" if self.cpu_ms_per_step is None else f"{self.cpu_ms_per_step:.2f}")
         self._write_progress(final=True)
+
+    def _progress_due(self) -> None:
+        """The progress file, unless written less than ``PROGRESS_INTERVAL_S`` ago."""
+        now = time.monotonic()
+        if now >= self._next_progress_s:
+            self._next_progress_s = now + PROGRESS_INTERVAL_S
+            self._write_progress()
 
     def _write_progress(self, final: bool = False) -> None:
         """``elapsed_s steps [cpu_ms_per_step]`` for an orchestrator (``companion demo``)."""
@@ -382,7 +393,7 @@ class CompanionApp:
         if self._cpu0 is None:
             self._cpu0 = (_cpu_s(self.pipeline.rmpc), self.steps)
         elif self.progress_file is not None and self.steps % 20 == 0:
-            self._write_progress()
+            self._progress_due()
         self._log_step(frame, t_s, t_log, frame_late_s, res, sent, logged_input)
 
     def _admit(self, frame: CameraFrame, t_log: int, t_s: float) -> bool:

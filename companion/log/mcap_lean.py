@@ -48,11 +48,12 @@ class LeanWriter(Writer):
         self._stats: Any = getattr(self, "_Writer__statistics", None)
         self._chunk: Any = cb
         self._finalize: Any = getattr(self, "_Writer__maybe_finalize_chunk", None)
+        self._chunk_size: Any = getattr(self, "_Writer__chunk_size", None)
         self._lean = (
             cb is not None and self._stats is not None and callable(self._finalize)
             and all(hasattr(cb, a) for a in ("message_indices", "record_writer", "num_messages",
                                               "message_start_time", "message_end_time"))
-            and hasattr(cb.record_writer, "_buffer")
+            and hasattr(cb.record_writer, "_buffer") and isinstance(self._chunk_size, int)
         )
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int,
@@ -82,4 +83,5 @@ class LeanWriter(Writer):
         buf.write(_MESSAGE_HEAD.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id,
                                      sequence, log_time, publish_time))
         buf.write(data)
-        self._finalize()
+        if buf.tell() > self._chunk_size:  # Writer's own test, without its two calls a message
+            self._finalize()
