@@ -22,6 +22,7 @@ import numpy as np
 
 from sim_bridge.camera.lens import Lens
 from sim_bridge.camera.upsample import upsample2x
+from sim_bridge.camera.warp import warp_perspective
 
 # Intensities (mono8).
 GROUND_MIN, GROUND_MAX = 40, 150
@@ -146,13 +147,8 @@ def render_ground(tex: np.ndarray, lens: Lens, r: np.ndarray, c_w: np.ndarray, g
         to_half = np.array(
             [[1.0 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1.0 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]]
         )
-        small = cv2.warpPerspective(
-            tex,
-            g @ to_half,
-            (wh, hh),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_WRAP,
-        )
+        # cv2.warpPerspective(INTER_LINEAR | WARP_INVERSE_MAP, BORDER_WRAP)'s pixels
+        small = warp_perspective(tex, g @ to_half, (wh, hh))
         if half:
             image = small
         elif (w, h) == (2 * wh, 2 * hh):  # cv2.resize's pixels, a third of its CPU
