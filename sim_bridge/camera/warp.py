@@ -83,17 +83,26 @@ def _homography(rng: np.random.Generator, src_hw: tuple[int, int],
 def probes(seed: int = 2024) -> Iterator[tuple[np.ndarray, np.ndarray, tuple[int, int]]]:
     """(source, matrix, (w, h)) cases for the check: exact half-pixel shifts (the rounding's
     ties), tiny and large destinations (the vector loop, its 16-column turns and the scalar
-    tail), random homographies over random and ground-like sources, and the ground's size."""
+    tail), random homographies over random and ground-like sources, narrow ones whose every
+    pixel is the scalar tail's, and the ground's size."""
     rng = np.random.default_rng(seed)
     src = rng.integers(0, 256, (40, 52), dtype=np.uint8)
     for tx, ty in ((0.5, 0.5), (0.25, 0.75), (0.0, 0.5), (1.5, 2.0), (0.0, 0.0)):
         yield src, np.array([[1.0, 0, tx], [0, 1.0, ty], [0, 0, 1.0]]), (35, 30)
     yield src, np.array([[0.5, 0, 0.25], [0, 0.5, 0.75], [0, 0, 1.0]]), (63, 31)
+    # the scalar tail's interpolation contracted: 195.49998 fused, 195.5 (so 196) unfused
+    tie = np.array([[174, 148, 0, 0], [211, 205, 0, 0]], np.uint8)
+    yield tie, np.array([[1.0, 0, 0.961883544921875], [0, 1.0, 0.8270072937011719],
+                         [0, 0, 1.0]]), (1, 1)
     for w, h in ((2, 2), (15, 3), (16, 2), (17, 5), (31, 4), (33, 7), (47, 9), (100, 6)):
         for lo, hi in ((0, 256), (40, 151), (0, 2), (254, 256)):
             s = rng.integers(lo, hi, (int(rng.integers(6, 60)), int(rng.integers(8, 70))),
                              dtype=np.uint8)
             yield s, _homography(rng, s.shape, (w, h)), (w, h)
+    for _ in range(6):  # tall and narrow: the scalar tail's arithmetic on ~50 000 pixels
+        s = rng.integers(0, 256, (int(rng.integers(20, 200)), int(rng.integers(20, 200))),
+                         dtype=np.uint8)
+        yield s, _homography(rng, s.shape, (15, 600)), (15, 600)
     big = rng.integers(40, 151, (300, 420), dtype=np.uint8)
     yield big, _homography(rng, big.shape, (500, 500)), (500, 500)
 
