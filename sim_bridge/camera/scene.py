@@ -2,8 +2,9 @@
 anti-aliased polygon coverage the target is drawn with.
 
 The ground plane (a periodic procedural texture, intensities ~40..150, precomputed once) is
-warped into the image by its homography (``cv2.warpPerspective``, INTER_LINEAR, BORDER_WRAP, at
-half resolution, then upsampled). Polygons are drawn with analytic anti-aliasing (coverage
+warped into the image by its homography (``cv2.warpPerspective``'s pixels, INTER_LINEAR,
+BORDER_WRAP, through the compiled kernel of ``warp`` when it is available, at half resolution,
+then upsampled). Polygons are drawn with analytic anti-aliasing (coverage
 ``clip(0.5 + signed distance to the edge, 0, 1)`` per pixel), so an edge's 50 % level lies exactly
 on the projected edge and detected corners land where the projection puts them.
 """
