@@ -93,12 +93,18 @@ AVX2 static int vector_row(const uint8_t *src, int sw, int sh, long sstep, const
         /* a lane out of range reads pixel 0 (the call is refused at the row's end anyway) */
         __m256i addr = _mm256_andnot_si256(bad, _mm256_add_epi32(_mm256_mullo_epi32(iy, step),
                                                                   ix));
+        /* the two 16-bit pairs (p00 p01, p10 p11) of each lane, inserted straight from memory */
         int32_t off[8];
         _mm256_storeu_si256((__m256i *)off, addr);
-#define QUAD(i) (int)((uint32_t)load2(src + off[i]) | ((uint32_t)load2(src + off[i] + sstep) << 16))
-        __m256i q = _mm256_setr_epi32(QUAD(0), QUAD(1), QUAD(2), QUAD(3), QUAD(4), QUAD(5),
-                                      QUAD(6), QUAD(7));
-#undef QUAD
+        const uint8_t *row1 = src + sstep;
+        __m128i t0 = _mm_cvtsi32_si128(load2(src + off[0]));
+        __m128i t1 = _mm_cvtsi32_si128(load2(row1 + off[0]));
+#define INS(i) t0 = _mm_insert_epi16(t0, load2(src + off[i]), i); \
+               t1 = _mm_insert_epi16(t1, load2(row1 + off[i]), i);
+        INS(1) INS(2) INS(3) INS(4) INS(5) INS(6) INS(7)
+#undef INS
+        __m256i q = _mm256_or_si256(_mm256_cvtepu16_epi32(t0),
+                                    _mm256_slli_epi32(_mm256_cvtepu16_epi32(t1), 16));
         __m256 p00 = _mm256_cvtepi32_ps(_mm256_and_si256(q, lo));
         __m256 p01 = _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32(q, 8), lo));
         __m256 p10 = _mm256_cvtepi32_ps(_mm256_and_si256(_mm256_srli_epi32(q, 16), lo));
