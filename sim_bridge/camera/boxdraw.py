@@ -81,7 +81,7 @@ def _random_case(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.n
         x0, y0 = rng.integers(-3, [w // 2, h // 2])
         x1, y1 = x0 + rng.integers(3, w), y0 + rng.integers(3, h)
         rect = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
-        return canvas, rect, (None if rng.integers(3) == 0 else rect + [1, 1])
+        return canvas, rect, (None if rng.integers(3) == 0 else rect + np.array([1.0, 1.0]))
     if kind == 0:  # a small box: the anti-aliased edges dominate
         pts = rng.uniform(0, 6, (8, 2)) + rng.uniform(0, [w, h])
     elif kind == 1:  # slivers 0.3-3 px wide across the canvas: every pixel on an edge's ramp
