@@ -2,8 +2,9 @@
 anti-aliased polygon coverage the target is drawn with.
 
 The ground plane (a periodic procedural texture, intensities ~40..150, precomputed once) is
-warped into the image by its homography (``cv2.warpPerspective``, INTER_LINEAR, BORDER_WRAP, at
-half resolution, then upsampled). Polygons are drawn with analytic anti-aliasing (coverage
+warped into the image by its homography (``cv2.warpPerspective``'s pixels, INTER_LINEAR,
+BORDER_WRAP, through the compiled kernel of ``warp`` when it is available, at half resolution,
+then upsampled). Polygons are drawn with analytic anti-aliasing (coverage
 ``clip(0.5 + signed distance to the edge, 0, 1)`` per pixel), so an edge's 50 % level lies exactly
 on the projected edge and detected corners land where the projection puts them.
 """
@@ -22,6 +23,7 @@ import numpy as np
 
 from sim_bridge.camera.lens import Lens
 from sim_bridge.camera.upsample import upsample2x
+from sim_bridge.camera.warp import warp_perspective
 
 # Intensities (mono8).
 GROUND_MIN, GROUND_MAX = 40, 150
@@ -146,13 +148,8 @@ def render_ground(tex: np.ndarray, lens: Lens, r: np.ndarray, c_w: np.ndarray, g
         to_half = np.array(
             [[1.0 / sx, 0.0, 0.5 / sx - 0.5], [0.0, 1.0 / sy, 0.5 / sy - 0.5], [0.0, 0.0, 1.0]]
         )
-        small = cv2.warpPerspective(
-            tex,
-            g @ to_half,
-            (wh, hh),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_WRAP,
-        )
+        # cv2.warpPerspective(INTER_LINEAR | WARP_INVERSE_MAP, BORDER_WRAP)'s pixels
+        small = warp_perspective(tex, g @ to_half, (wh, hh))
         if half:
             image = small
         elif (w, h) == (2 * wh, 2 * hh):  # cv2.resize's pixels, a third of its CPU

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from sim_bridge import ConfigError
+from sim_bridge.camera import boxdraw
 from sim_bridge.camera.lens import Lens
 from sim_bridge.camera.scene import clip_polygon_halfplane, edge_lines, edge_min
 from sim_bridge.camera.scene import roi as roi_of
@@ -48,6 +49,19 @@ def _coverages(hull: np.ndarray, top: np.ndarray | None, roi: tuple[int, int, in
     if h_min is None:
         return np.zeros((y1 - y0, x1 - x0), np.float32), t_cov
     return np.clip(h_min, 0.0, 1.0, out=h_min), t_cov
+
+
+def composite(image: np.ndarray, roi: tuple[int, int, int, int], hull: np.ndarray,
+              top: np.ndarray | None, fg: float | np.ndarray) -> None:
+    """The box over ``image``'s ROI in numpy passes: ground (1 - h), sides (h - t) at
+    ``BOX_SIDE_LEVEL``, top t at ``fg`` (a level or the top's texture)."""
+    h_cov, t_cov = _coverages(hull, top, roi)
+    x0, y0, x1, y1 = roi
+    bg = image[y0:y1, x0:x1].astype(np.float32)
+    out = bg + (np.float32(BOX_SIDE_LEVEL) - bg) * h_cov
+    if t_cov is not None:
+        out += (fg - np.float32(BOX_SIDE_LEVEL)) * t_cov
+    image[y0:y1, x0:x1] = (out + 0.5).astype(np.uint8)
 
 
 class TargetPainter:
@@ -156,17 +170,17 @@ class TargetPainter:
             roi = roi_of(hull, lens.rw, lens.rh)
             if roi is None:
                 return None
-            h_cov, t_cov = _coverages(hull, px[:4] if top_faces_camera else None, roi)
-            x0, y0, x1, y1 = roi
-            bg = image[y0:y1, x0:x1].astype(np.float32)
-            out = bg + (np.float32(BOX_SIDE_LEVEL) - bg) * h_cov
-            if t_cov is not None:
-                if self.pattern == "rectangle":
-                    fg: float | np.ndarray = float(TOP_LEVEL)
-                else:
-                    fg = self._aruco_top(lens, roi, r, t, agv, float(np.mean(z_cv[:4])))
-                out += (fg - np.float32(BOX_SIDE_LEVEL)) * t_cov
-            image[y0:y1, x0:x1] = (out + 0.5).astype(np.uint8)
+            top = px[:4] if top_faces_camera else None
+            fg: float | np.ndarray = float(TOP_LEVEL)
+            if self.pattern == "rectangle":
+                fn = boxdraw.kernel()  # the same pixels in one compiled loop
+                if fn is not None and boxdraw.run(
+                        fn, image, roi, edge_lines(hull), None if top is None else edge_lines(top),
+                        float(BOX_SIDE_LEVEL), float(TOP_LEVEL - BOX_SIDE_LEVEL)):
+                    return roi
+            elif top is not None:
+                fg = self._aruco_top(lens, roi, r, t, agv, float(np.mean(z_cv[:4])))
+            composite(image, roi, hull, top, fg)
             return roi
         if (z_cv <= NEAR_M).all():
             return None

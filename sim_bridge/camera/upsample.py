@@ -42,27 +42,34 @@ def _compiler() -> str | None:
     return None
 
 
-def _build(directory: Path) -> Path | None:
-    """The kernel's shared library in ``directory`` (built now if missing), or None."""
+def build_library(source_path: Path, flags: tuple[str, ...], directory: Path) -> Path | None:
+    """The shared library of the C file ``source_path`` built with ``flags`` in ``directory``
+    (built now if missing: named by the hash of the source, the flags and the machine), or
+    None without a compiler, off x86-64 or when the build fails."""
     cc = _compiler()
     if cc is None or platform.machine().lower() not in ("x86_64", "amd64"):
         return None
-    source = SOURCE_PATH.read_bytes()
-    key = hashlib.sha256(source + " ".join(FLAGS).encode() + platform.platform().encode())
-    lib = directory / f"upsample2x-{key.hexdigest()[:24]}.so"
+    source = source_path.read_bytes()
+    key = hashlib.sha256(source + " ".join(flags).encode() + platform.platform().encode())
+    lib = directory / f"{source_path.stem}-{key.hexdigest()[:24]}.so"
     if lib.exists():
         return lib
     try:
         directory.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=directory) as tmp:
             out = Path(tmp) / lib.name
-            subprocess.run([cc, *FLAGS, "-o", str(out), str(SOURCE_PATH)], check=True,
+            subprocess.run([cc, *flags, "-o", str(out), str(source_path)], check=True,
                            capture_output=True, timeout=60)
             os.replace(out, lib)  # atomic: a concurrent start loads all or nothing
     except (OSError, subprocess.SubprocessError) as e:
-        log.info("upsample kernel not built (%s): cv2.resize", e)
+        log.info("%s not built (%s): OpenCV instead", source_path.name, e)
         return None
     return lib
+
+
+def _build(directory: Path) -> Path | None:
+    """The kernel's shared library in ``directory`` (built now if missing), or None."""
+    return build_library(SOURCE_PATH, FLAGS, directory)
 
 
 def _load(lib: Path) -> _Kernel:

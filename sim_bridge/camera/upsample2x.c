@@ -11,9 +11,38 @@
  * and c = floor(3 h / 4) per source row: output row 2j is (a[j-1] + c[j] + 2) >> 2, row 2j+1
  * is (c[j] + a[j+1] + 2) >> 2 (indices clamped). Every value fits 16 bits (3 h <= 3060). */
 #include <stdint.h>
-#include <emmintrin.h>
+#include <immintrin.h>
+
+#define AVX2 __attribute__((target("avx2")))
 
 /* a = floor(h/4), c = floor(3h/4) of the horizontal sums of one source row (2w values) */
+/* the even and odd columns of source columns k .. k+15 (k >= 1, k + 16 < w), 32 values each */
+AVX2 static int row_ac_avx2(const uint8_t *s, int w, uint16_t *a, uint16_t *c)
+{
+    int k = 1;
+    for (; k + 16 < w; k += 16) {
+        __m256i p = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(s + k - 1)));
+        __m256i q = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(s + k)));
+        __m256i r = _mm256_cvtepu8_epi16(_mm_loadu_si128((const __m128i *)(s + k + 1)));
+        __m256i q3 = _mm256_add_epi16(q, _mm256_add_epi16(q, q));
+        __m256i e = _mm256_add_epi16(p, q3), o = _mm256_add_epi16(q3, r);
+        __m256i e3 = _mm256_add_epi16(e, _mm256_add_epi16(e, e));
+        __m256i o3 = _mm256_add_epi16(o, _mm256_add_epi16(o, o));
+        __m256i ea = _mm256_srli_epi16(e, 2), oa = _mm256_srli_epi16(o, 2);
+        __m256i ec = _mm256_srli_epi16(e3, 2), oc = _mm256_srli_epi16(o3, 2);
+        /* the unpacks interleave within each 128-bit half: put the halves back in order */
+        __m256i al = _mm256_unpacklo_epi16(ea, oa), ah = _mm256_unpackhi_epi16(ea, oa);
+        __m256i cl = _mm256_unpacklo_epi16(ec, oc), ch = _mm256_unpackhi_epi16(ec, oc);
+        _mm256_storeu_si256((__m256i *)(a + 2 * k), _mm256_permute2x128_si256(al, ah, 0x20));
+        _mm256_storeu_si256((__m256i *)(a + 2 * k + 16), _mm256_permute2x128_si256(al, ah, 0x31));
+        _mm256_storeu_si256((__m256i *)(c + 2 * k), _mm256_permute2x128_si256(cl, ch, 0x20));
+        _mm256_storeu_si256((__m256i *)(c + 2 * k + 16), _mm256_permute2x128_si256(cl, ch, 0x31));
+    }
+    return k;
+}
+
+static int use_avx2;
+
 static void row_ac(const uint8_t *s, int w, uint16_t *a, uint16_t *c)
 {
     const __m128i z = _mm_setzero_si128();
@@ -22,7 +51,7 @@ static void row_ac(const uint8_t *s, int w, uint16_t *a, uint16_t *c)
     c[0] = (uint16_t)((3 * h0) >> 2);
     /* k from 1: even column 2k = s[k-1] + 3 s[k], odd column 2k+1 = 3 s[k] + s[k+1]; the
      * vector loop takes k = 1 .. while k + 8 < w (needs s[k+8] for the odd of k+7) */
-    int k = 1;
+    int k = use_avx2 ? row_ac_avx2(s, w, a, c) : 1;
     for (; k + 8 < w; k += 8) {
         __m128i p = _mm_unpacklo_epi8(_mm_loadl_epi64((const __m128i *)(s + k - 1)), z);
         __m128i q = _mm_unpacklo_epi8(_mm_loadl_epi64((const __m128i *)(s + k)), z);
@@ -58,10 +87,29 @@ static void row_ac(const uint8_t *s, int w, uint16_t *a, uint16_t *c)
     c[2 * w - 1] = (uint16_t)((3 * hl) >> 2);
 }
 
+/* (x + y + 2) >> 2 of the first multiple of 32 values */
+AVX2 static int mix_avx2(const uint16_t *x, const uint16_t *y, int n, uint8_t *out)
+{
+    const __m256i two = _mm256_set1_epi16(2);
+    int i = 0;
+    for (; i + 32 <= n; i += 32) {
+        __m256i lo = _mm256_srli_epi16(_mm256_add_epi16(_mm256_add_epi16(
+            _mm256_loadu_si256((const __m256i *)(x + i)),
+            _mm256_loadu_si256((const __m256i *)(y + i))), two), 2);
+        __m256i hi = _mm256_srli_epi16(_mm256_add_epi16(_mm256_add_epi16(
+            _mm256_loadu_si256((const __m256i *)(x + i + 16)),
+            _mm256_loadu_si256((const __m256i *)(y + i + 16))), two), 2);
+        /* the pack works per 128-bit half: quarters 0, 2, 1, 3 are the output's order */
+        _mm256_storeu_si256((__m256i *)(out + i),
+                            _mm256_permute4x64_epi64(_mm256_packus_epi16(lo, hi), 0xD8));
+    }
+    return i;
+}
+
 static void mix(const uint16_t *x, const uint16_t *y, int n, uint8_t *out)
 {
     const __m128i two = _mm_set1_epi16(2);
-    int i = 0;
+    int i = use_avx2 ? mix_avx2(x, y, n, out) : 0;
     for (; i + 16 <= n; i += 16) {
         __m128i lo = _mm_srli_epi16(_mm_add_epi16(_mm_add_epi16(
             _mm_loadu_si128((const __m128i *)(x + i)), _mm_loadu_si128((const __m128i *)(y + i))), two), 2);
@@ -78,6 +126,8 @@ int upsample2x_u8(const uint8_t *src, int h, int w, long sstep, uint8_t *dst, lo
 {
     if (h < 1 || w < 2)
         return -1;
+    __builtin_cpu_init();
+    use_avx2 = __builtin_cpu_supports("avx2");
     int n = 2 * w;
     uint16_t *pa = scratch, *pc = scratch + n, *a = scratch + 2 * n, *c = scratch + 3 * n;
     row_ac(src, w, pa, pc);

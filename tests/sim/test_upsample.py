@@ -68,7 +68,8 @@ def test_a_kernel_that_differs_is_refused(tmp_path: Path) -> None:
     """The start-up check catches a wrong kernel (here: the rounding's + 2 removed)."""
     bad = tmp_path / "upsample2x.c"
     bad.write_text(upsample.SOURCE_PATH.read_text().replace(
-        "_mm_set1_epi16(2)", "_mm_set1_epi16(0)").replace("+ y[i] + 2)", "+ y[i])"))
+        "_mm_set1_epi16(2)", "_mm_set1_epi16(0)").replace(
+        "_mm256_set1_epi16(2)", "_mm256_set1_epi16(0)").replace("+ y[i] + 2)", "+ y[i])"))
     src_path = upsample.SOURCE_PATH
     try:
         upsample.SOURCE_PATH = bad
