@@ -69,12 +69,14 @@ class Flight:
 @dataclass(frozen=True)
 class _Ended:
     """How the two processes ended: exit codes, wall time of the flight (s, emulator start to
-    its exit) and the emulator's CPU time (s, ``None`` when not measured)."""
+    its exit), the emulator's CPU time (s, ``None`` when not measured) and how much of it was
+    spent before the companion's first step (its start-up, s; ``None`` when not sampled)."""
 
     sim_rc: int | None
     comp_rc: int | None
     wall_s: float
     emulator_cpu_s: float | None
+    emulator_startup_cpu_s: float | None = None
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:
@@ -283,7 +285,8 @@ def fly(config: Path, scenario: str, duration_s: float | None, out: Path,
         bar = _bar_for(duration_s, show_progress)
         try:
             ended = _supervise(sim_cmd, sim_log, comp, env, out, budget, monitor,
-                               lambda: _advance(bar, progress_file), sockets)
+                               lambda: _advance(bar, progress_file), sockets,
+                               lambda: read_progress(progress_file)[1] > 0)
         finally:
             if bar is not None:
                 bar.close()
@@ -296,9 +299,8 @@ def fly(config: Path, scenario: str, duration_s: float | None, out: Path,
                                   else None)
     report["companion_cpu_ms_per_step"] = read_progress(progress_file)[2]
     steps = round(duration_s / _step_s(sim_doc))
-    report["emulator_cpu_ms_per_step"] = (
-        ended.emulator_cpu_s * 1e3 / steps
-        if ended.emulator_cpu_s is not None and steps > 0 else None)
+    report.update(emulator_cpu_figures(ended.emulator_cpu_s, ended.emulator_startup_cpu_s,
+                                       steps))
     report["load_1min"] = os.getloadavg()[0]
     report["scenario"] = scenario
     report["overrides"] = list(overrides)
@@ -339,7 +341,8 @@ def _start_companion(cmd: list[str], output: Any, env: Mapping[str, str], out: P
 def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
                env: Mapping[str, str], out: Path, budget_s: float,
                monitor: Callable[[subprocess.Popen[bytes]], None] | None,
-               tick: Callable[[], None], sockets: FlightSockets) -> _Ended:
+               tick: Callable[[], None], sockets: FlightSockets,
+               first_step: Callable[[], bool] = lambda: False) -> _Ended:
     """Start the emulator (handing it the frame server's socket) and wait for the flight's
     end (the emulator exits after its duration, then the companion is told to stop); both
     processes are gone on return."""
@@ -350,6 +353,7 @@ def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
     sim = subprocess.Popen(sim_cmd, stdout=output, stderr=subprocess.STDOUT, env=dict(env),
                            pass_fds=(sockets.frame_fd,))
     sockets.frame.close()  # the emulator's now: its port stays held until the emulator exits
+    startup_cpu_s: float | None = None
     try:
         while time.monotonic() - t0 < budget_s:
             sim_rc = sim.poll()
@@ -361,7 +365,12 @@ def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
                 # otherwise wait for frames that will not come)
                 if comp.poll() is None:
                     comp.send_signal(signal.SIGTERM)
-                return _Ended(sim_rc, comp.wait(timeout=30.0), wall, emulator_cpu_s)
+                return _Ended(sim_rc, comp.wait(timeout=30.0), wall, emulator_cpu_s,
+                              startup_cpu_s)
+            if startup_cpu_s is None and first_step():
+                # the emulator's start-up (imports, kernels' checks, first frames) ends where
+                # the companion's per-step figure begins: its first step
+                startup_cpu_s = proc_cpu_s(sim.pid)
             if comp_rc is not None:  # the companion stopped: at the end, or early?
                 try:
                     sim_rc = sim.wait(timeout=5.0)
@@ -402,6 +411,37 @@ def build_flight_report(out: Path, cfg: Config, plots: bool,
     finally:
         if rbar is not None:
             rbar.close()
+
+
+def emulator_cpu_figures(total_s: float | None, startup_s: float | None,
+                         steps: int) -> dict[str, float | None]:
+    """The emulator's CPU a step as the companion's is counted, from the companion's first
+    step to the exit (``emulator_cpu_ms_per_step``), beside its start-up (s) and the whole
+    process's figure (start-up included, ``emulator_cpu_ms_per_step_all``). Without a
+    start-up sample (no ``/proc``, or the companion never stepped) the per-step figure is the
+    whole process's."""
+    if total_s is None or steps <= 0:
+        return {"emulator_cpu_ms_per_step": None, "emulator_cpu_ms_per_step_all": None,
+                "emulator_startup_cpu_s": None}
+    whole = total_s * 1e3 / steps
+    if startup_s is None or not 0.0 <= startup_s <= total_s:
+        return {"emulator_cpu_ms_per_step": whole, "emulator_cpu_ms_per_step_all": whole,
+                "emulator_startup_cpu_s": None}
+    return {"emulator_cpu_ms_per_step": (total_s - startup_s) * 1e3 / steps,
+            "emulator_cpu_ms_per_step_all": whole, "emulator_startup_cpu_s": startup_s}
+
+
+def proc_cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system, its threads and reaped children) of a running process from
+    ``/proc/PID/stat``; ``None`` where there is no such file (not Linux, already gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        # after the ")": state is field 3, utime..cstime are fields 14..17
+        ticks = sum(int(v) for v in fields[11:15])
+        return ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def _children_cpu_s() -> float:

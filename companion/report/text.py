@@ -57,8 +57,10 @@ def demo_summary(report: Mapping[str, Any]) -> list[str]:
                  f"{_ms(sol.get('p95_ms'))}, max {_ms(sol.get('max_ms'))}")
     cpu, emu = report.get("companion_cpu_ms_per_step"), report.get("emulator_cpu_ms_per_step")
     load = _num(report.get("load_1min"))
+    start = _num(report.get("emulator_startup_cpu_s"))
     lines.append(f"  CPU per step (getrusage): companion {_ms(cpu)} (its threads and solver "
                  f"process), emulator {_ms(emu)}"
+                 + ("" if start is None else f" (start-up {start:.2f} s apart)")
                  + ("" if load is None else f"; load average {load:.1f}"))
     lines.append(f"  {verdict_line(report)}")
     return lines
