@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_bridge.camera.scene import EdgeLine
-from sim_bridge.camera.upsample import build_library
+from sim_bridge.camera.upsample import build_library, load_checked
 
 log = logging.getLogger(__name__)
 
@@ -123,17 +123,4 @@ def _matches(fn: _Kernel) -> bool:
 @functools.lru_cache(maxsize=1)
 def kernel(directory: Path | None = None) -> _Kernel | None:
     """The checked kernel of this process, or None (the numpy passes then)."""
-    from sim_bridge.camera.scene import cache_dir
-
-    lib = _build(cache_dir() if directory is None else directory)
-    if lib is None:
-        return None
-    try:
-        fn = _load(lib)
-    except (OSError, AttributeError) as e:  # not a library, or not this one
-        log.info("box kernel not loaded (%s): numpy", e)
-        return None
-    if not _matches(fn):
-        log.warning("box kernel differs from the numpy passes here: numpy")
-        return None
-    return fn
+    return load_checked("box", _build, _load, _matches, "the numpy passes", directory)

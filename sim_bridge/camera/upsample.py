@@ -103,23 +103,33 @@ def _matches(fn: _Kernel) -> bool:
     return True
 
 
-@functools.lru_cache(maxsize=1)
-def kernel(directory: Path | None = None) -> _Kernel | None:
-    """The checked kernel of this process, or None (``cv2.resize`` then)."""
+def load_checked(what: str, build: Callable[[Path], Path | None],
+                 load: Callable[[Path], _Kernel], matches: Callable[[_Kernel], bool],
+                 fallback: str, directory: Path | None) -> _Kernel | None:
+    """A compiled kernel built (``build``) into ``directory`` (default: the emulator's cache),
+    loaded and held to what it replaces (``matches``) before first use; None (``fallback``
+    runs then) without a compiler, a loadable library or an exact match. The one loader of
+    the camera's kernels (upsampling, warp, box)."""
     from sim_bridge.camera.scene import cache_dir
 
-    lib = _build(cache_dir() if directory is None else directory)
+    lib = build(cache_dir() if directory is None else directory)
     if lib is None:
         return None
     try:
-        fn = _load(lib)
+        fn = load(lib)
     except (OSError, AttributeError) as e:  # not a library, or not this one
-        log.info("upsample kernel not loaded (%s): cv2.resize", e)
+        log.info("%s kernel not loaded (%s): %s", what, e, fallback)
         return None
-    if not _matches(fn):
-        log.warning("upsample kernel differs from cv2.resize on this machine: cv2.resize")
+    if not matches(fn):
+        log.warning("%s kernel differs from %s on this machine: %s", what, fallback, fallback)
         return None
     return fn
+
+
+@functools.lru_cache(maxsize=1)
+def kernel(directory: Path | None = None) -> _Kernel | None:
+    """The checked kernel of this process, or None (``cv2.resize`` then)."""
+    return load_checked("upsample", _build, _load, _matches, "cv2.resize", directory)
 
 
 def upsample2x(src: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sim_bridge.camera.upsample import build_library
+from sim_bridge.camera.upsample import build_library, load_checked
 
 log = logging.getLogger(__name__)
 
@@ -120,20 +120,7 @@ def _matches(fn: _Kernel) -> bool:
 @functools.lru_cache(maxsize=1)
 def kernel(directory: Path | None = None) -> _Kernel | None:
     """The checked kernel of this process, or None (``cv2.warpPerspective`` then)."""
-    from sim_bridge.camera.scene import cache_dir
-
-    lib = _build(cache_dir() if directory is None else directory)
-    if lib is None:
-        return None
-    try:
-        fn = _load(lib)
-    except (OSError, AttributeError) as e:  # not a library, or not this one
-        log.info("warp kernel not loaded (%s): cv2.warpPerspective", e)
-        return None
-    if not _matches(fn):
-        log.warning("warp kernel differs from cv2.warpPerspective here: cv2.warpPerspective")
-        return None
-    return fn
+    return load_checked("warp", _build, _load, _matches, "cv2.warpPerspective", directory)
 
 
 def warp_perspective(src: np.ndarray, m: np.ndarray, size: tuple[int, int],

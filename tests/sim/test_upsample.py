@@ -78,3 +78,23 @@ def test_a_kernel_that_differs_is_refused(tmp_path: Path) -> None:
         assert not upsample._matches(upsample._load(lib))
     finally:
         upsample.SOURCE_PATH = src_path
+
+
+def test_load_checked_falls_back_at_each_step(tmp_path: Path) -> None:
+    """The camera kernels' one loader: no library, an unloadable one, or one that differs
+    from what it replaces each give None (the OpenCV / numpy path); only a match is used."""
+    def fn(*args: object) -> int:
+        return 0
+
+    def bad_load(lib: Path) -> upsample._Kernel:
+        raise OSError("not a library")
+
+    lib = tmp_path / "k.so"
+    assert upsample.load_checked("t", lambda d: None, lambda p: fn, lambda f: True,
+                                 "ref", tmp_path) is None
+    assert upsample.load_checked("t", lambda d: lib, bad_load, lambda f: True,
+                                 "ref", tmp_path) is None
+    assert upsample.load_checked("t", lambda d: lib, lambda p: fn, lambda f: False,
+                                 "ref", tmp_path) is None
+    assert upsample.load_checked("t", lambda d: lib, lambda p: fn, lambda f: True,
+                                 "ref", tmp_path) is fn
