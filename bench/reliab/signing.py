@@ -102,10 +102,18 @@ def _attack(f: Any, out: Path, sent: dict[str, Any], n_unsigned: int, n_replay: 
     s.sendto(forged_frame(ap.heartbeat_encode(2, 12, 209, 3 << 16, 8, 3), 1, 1), to_c)
     s.sendto(forged_frame(comp.set_attitude_target_encode(
         0, 1, 1, 7, [1, 0, 0, 0], 0, 0, 0, 0.0), 1, 191), to_v)
-    time.sleep(2.0)  # the log is flushed every second: genuine frames to replay
-    rin = _raw_frames(f.out / "flight.mcap", "/mavlink/in/ATTITUDE_QUATERNION", n_replay)
-    rout = _raw_frames(f.out / "flight.mcap", "/mavlink/out/SET_ATTITUDE_TARGET",
-                       n_replay)
+    # genuine frames to replay, from the log being written (flushed about every second; under
+    # load a chunk can take longer: wait until both directions have some, at most 15 s)
+    rin: list[bytes] = []
+    rout: list[bytes] = []
+    deadline = time.monotonic() + 15.0
+    while time.monotonic() < deadline and f.sim.poll() is None:
+        time.sleep(1.0)
+        rin = _raw_frames(f.out / "flight.mcap", "/mavlink/in/ATTITUDE_QUATERNION", n_replay)
+        rout = _raw_frames(f.out / "flight.mcap", "/mavlink/out/SET_ATTITUDE_TARGET",
+                           n_replay)
+        if rin and rout:
+            break
     for d in rin:
         s.sendto(d, to_c)
     for d in rout:
