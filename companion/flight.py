@@ -354,6 +354,7 @@ def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
                            pass_fds=(sockets.frame_fd,))
     sockets.frame.close()  # the emulator's now: its port stays held until the emulator exits
     startup_cpu_s: float | None = None
+    sampled = False  # the start-up sample taken (or tried: no /proc), once
     try:
         while time.monotonic() - t0 < budget_s:
             sim_rc = sim.poll()
@@ -367,10 +368,10 @@ def _supervise(sim_cmd: list[str], output: Any, comp: subprocess.Popen[bytes],
                     comp.send_signal(signal.SIGTERM)
                 return _Ended(sim_rc, comp.wait(timeout=30.0), wall, emulator_cpu_s,
                               startup_cpu_s)
-            if startup_cpu_s is None and first_step():
+            if not sampled and first_step():
                 # the emulator's start-up (imports, kernels' checks, first frames) ends where
                 # the companion's per-step figure begins: its first step
-                startup_cpu_s = proc_cpu_s(sim.pid)
+                startup_cpu_s, sampled = proc_cpu_s(sim.pid), True
             if comp_rc is not None:  # the companion stopped: at the end, or early?
                 try:
                     sim_rc = sim.wait(timeout=5.0)
