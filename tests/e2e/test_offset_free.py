@@ -144,7 +144,10 @@ def test_the_realistic_world_is_held_within_a_centimetre(tmp_path: Path) -> None
 @pytest.fixture(scope="module")
 def latency_flight(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     lat = "[sim.camera_model]\nlatency_ms = 60.0\nlatency_jitter_ms = 15.0"
-    return _fly(tmp_path_factory.mktemp("latency"), "edge", 6.0, [], lat)
+    # "the flight ran" only: with 60 +- 15 ms of camera latency the 6 s flight steps on 108-115
+    # of its 120 frames (six runs, 2026-11-28: the jittered frames overtake each other and the
+    # newest is answered), so 0.9 (108) sat on that spread's edge and failed once in CI at 108
+    return _fly(tmp_path_factory.mktemp("latency"), "edge", 6.0, [], lat, min_share=0.8)
 
 
 def test_camera_latency_edge_keeps_the_target_in_view(latency_flight: dict[str, Any]) -> None:
