@@ -42,7 +42,6 @@ def test_now_is_the_emulators_time_within_the_link_delay(tmp_path: Path) -> None
                    '[sim.camera_model]\nlatency_ms = 60.0\nlatency_jitter_ms = 15.0\n')
     rep = run_demo(DEFAULT_CONFIG, "paper", DURATION_S, tmp_path, [], [], plots=False,
                    sim_config=sim)
-    assert rep["steps"] > 0.9 * DURATION_S * 20
     with LogReader(tmp_path / "flight.mcap") as r:
         truth = {m.data["frame_seq"]: m.data for m in r.messages(topics=["/truth"]) if m.data}
         steps = [m.data for m in r.messages(topics=["/control/step"]) if m.data]
@@ -50,6 +49,7 @@ def test_now_is_the_emulators_time_within_the_link_delay(tmp_path: Path) -> None
     # delivered at the first step at or after its delivery time, and the step then waits for
     # the answer: that step's time is the emulator's "now" while the companion answers
     step_us = sorted(rec["t_us"] for rec in truth.values())
+    assert_every_delivery_answered(truth, step_us, steps, rep["steps"])
     lags = []
     for s in steps:
         rec = truth.get(s["frame_seq"])
@@ -64,3 +64,24 @@ def test_now_is_the_emulators_time_within_the_link_delay(tmp_path: Path) -> None
     bound = MAX_DELAY_S + FASTEST_PERIOD_S + STAMP_RESOLUTION_S
     assert max(lags) <= bound, (
         f"now up to {max(lags) * 1e3:.1f} ms behind the emulator (bound {bound * 1e3:.0f} ms)")
+
+
+def assert_every_delivery_answered(truth: dict, step_us: list[int], steps: list[dict],
+                                   n_steps: int) -> None:
+    """The flight ran: the newest frame of every lockstep step that delivered frames was
+    answered. Latency jitter (60 +- 15 ms against 50 ms steps) delivers two frames in one step
+    now and then, and the companion, reading the newest frame (``?frames=newest``), may skip the
+    older one: a count of answered frames against all frames (52-57 of 60 in 3 s) is not a
+    bound. Frames due after the run's end are not delivered; the first delivery may precede the
+    companion's first step (it still builds on its first frame)."""
+    newest: dict[int, int] = {}
+    for seq, rec in truth.items():
+        at = next((t for t in step_us if t >= rec["frame_deliver_t_us"] - 1), None)
+        if at is not None:
+            newest[at] = max(seq, newest.get(at, seq))
+    answered = {s["frame_seq"] for s in steps}
+    missed = sorted(seq for at, seq in newest.items() if seq not in answered)
+    assert n_steps == len(steps)
+    assert len(newest) > 0.8 * DURATION_S * 20, len(newest)
+    assert missed in ([], [min(newest.values())]), (
+        f"newest frame of a delivery step unanswered: {missed} of {len(newest)}")
