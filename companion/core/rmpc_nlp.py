@@ -74,14 +74,16 @@ class NlpSolver:
         self.kind = "soft" if soft else "hard"
         self.solver_name = solver
         opts: dict[str, Any] = {"print_time": False, "record_time": True}
+        max_iter = (rmpc.max_iter if soft or rmpc.hard_max_iter is None
+                    else rmpc.hard_max_iter)
         if solver == "fatrop":
             opts |= {
                 "structure_detection": "auto",
                 "equality": list(layout.equality),
-                "fatrop": FATROP_OPTIONS | {"max_iter": rmpc.max_iter},
+                "fatrop": FATROP_OPTIONS | {"max_iter": max_iter},
             }
         else:
-            opts |= {"ipopt": IPOPT_OPTIONS | {"max_iter": rmpc.max_iter}}
+            opts |= {"ipopt": IPOPT_OPTIONS | {"max_iter": max_iter}}
         name = f"rmpc_{self.kind}"
         self.options = opts  # a solver process loads the same library with these (solve_guard)
         self.compiled: CompiledNlp | None = None

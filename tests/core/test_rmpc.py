@@ -157,7 +157,7 @@ def test_closed_loop_paper_every_constraint_holds_and_enters_omega(
 def test_forced_solver_failure_falls_back_to_the_clipped_terminal_law(
     cfg: Config, design: TerminalDesign
 ) -> None:
-    rc = dataclasses.replace(cfg.rmpc, max_iter=1)
+    rc = dataclasses.replace(cfg.rmpc, max_iter=1, hard_max_iter=1)
     m = Rmpc(rc, cfg.camera, design)
     assert all(c is not None and not c.compiled_now for c in m.compiled)  # same code: cache hit
     tm = horizon_motion(0.0, PAPER_POSE[1], rc.horizon, rc.dt_s)
