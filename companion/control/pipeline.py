@@ -53,7 +53,7 @@ from companion.core.geometry import (
 from companion.core.latency import Prediction, predict_error_state
 from companion.core.lead import TiltLead
 from companion.core.moments import DegenerateTargetError, a_star, fold_s4
-from companion.core.prediction import advance_target, predict_target_motion
+from companion.core.prediction import advance_target, load_kernel, predict_target_motion
 from companion.core.reacquire import reacquire_input
 from companion.core.rmpc import RmpcResult, TargetMotion, terminal_law
 from companion.core.setpoint import (
@@ -91,6 +91,7 @@ class ControlPipeline:
             rmpc = build_controller(cfg, self.terminal)
         self.rmpc: Controller = rmpc
         self.safety = SafetySupervisor(cfg.safety)
+        load_kernel()  # (the horizon's prediction, compiled: checked now, not at step 1)
         self.a_star = a_star(_target_points(cfg), cfg.rmpc.desired_depth_m,
                              cfg.camera.focal_length_m)
         self._estimator = ImageVelocityEstimator(cfg.rmpc.desired_depth_m)

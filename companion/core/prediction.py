@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from companion.core.prediction_kernel import MotionKernel, Values, motion_kernel
 from companion.core.rmpc import TargetMotion
 
 
@@ -66,19 +67,46 @@ def predict_target_motion(
     """
     v0x, v0y = _first_two(v_a_ned_m_s)
     a0x, a0y = _first_two(a_a_ned_m_s2)
+    speed = float(np.hypot(v0x, v0y))  # numpy's hypot: math's differs in the last bit
+    values = (v0x, v0y, a0x, a0y, speed, float(psidot_a_rad_s), float(yaw_q_rad), float(dt_s),
+              None if speed_cap_m_s is None else float(speed_cap_m_s))
+    d = None if d_ned_m_s2 is None else _three(d_ned_m_s2)
+    kernel = load_kernel()
+    if kernel is None:
+        return TargetMotion.built(*python_loop(values, horizon, d))
+    arrays, finite = kernel(values, horizon, d)
+    # (not finite: built's checks raise the error naming the array)
+    return TargetMotion.finite(*arrays) if finite else TargetMotion.built(*arrays)
+
+
+_KERNEL: list[MotionKernel | None] = []
+
+
+def load_kernel() -> MotionKernel | None:
+    """The compiled stage loop (:mod:`companion.core.prediction_kernel`), loaded and checked
+    once per process (a pipeline calls it when it is built, so that its first step does not
+    pay the check, ~15 ms, or a first-ever compile); None: the Python loop."""
+    if not _KERNEL:
+        _KERNEL.append(motion_kernel(python_loop))
+    return _KERNEL[0]
+
+
+def python_loop(values: Values, horizon: int, d: list[float] | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The stage loop of :func:`predict_target_motion` in Python (the reference the compiled
+    one is checked against). ``values``: (v0x, v0y, a0x, a0y, speed, psidot, yaw_q, dt, the
+    speed cap or None); ``d``: the disturbance (NED, 3) or None."""
+    v0x, v0y, a0x, a0y, speed, w, yaw_q_rad, dt_s, speed_cap_m_s = values
     # stage by stage on plain floats (numpy's formulas row by row; ~16 stages of 2-vectors
     # cost more in numpy's per-call overhead than in arithmetic), into flat lists that
     # become the TargetMotion's arrays in one call each
-    speed = float(np.hypot(v0x, v0y))  # numpy's hypot: math's differs in the last bit
     moving = speed > 1e-6
     cos, sin = math.cos, math.sin
     heading = math.atan2(v0y, v0x) if moving else 0.0
     a_along = a0x * cos(heading) + a0y * sin(heading) if moving else 0.0
-    w = float(psidot_a_rad_s)
     top = math.inf
     if moving and speed_cap_m_s is not None and a_along > 0.0:
-        top = max(speed, float(speed_cap_m_s))
-    d = None if d_ned_m_s2 is None else _three(d_ned_m_s2)
+        top = max(speed, speed_cap_m_s)
     d0, d1, d2 = (0.0, 0.0, 0.0) if d is None else d
     v_v: list[float] = []
     vdot: list[float] = []
@@ -114,9 +142,8 @@ def predict_target_motion(
         vdot += (c * ax + s * ay + w * vvy, -s * ax + c * ay + w * -vvx)
         if d is not None:
             d_out += (c * d0 + s * d1, -s * d0 + c * d1, d2)
-    return TargetMotion.built(np.array(v_v).reshape(horizon, 2),
-                              np.array(vdot).reshape(horizon, 2), np.array([w] * horizon),
-                              None if d is None else np.array(d_out).reshape(horizon, 3))
+    return (np.array(v_v).reshape(horizon, 2), np.array(vdot).reshape(horizon, 2),
+            np.array([w] * horizon), None if d is None else np.array(d_out).reshape(horizon, 3))
 
 
 def _first_two(x: np.ndarray | tuple[float, ...]) -> tuple[float, float]:

@@ -140,6 +140,21 @@ class TargetMotion:
                             psidot_a_rad_s=psidot_a_rad_s, disturbance_v_m_s2=dd)
         return out
 
+    @classmethod
+    def finite(cls, v_a_m_s: np.ndarray, vdot_a_m_s2: np.ndarray, psidot_a_rad_s: np.ndarray,
+               disturbance_v_m_s2: np.ndarray | None = None) -> TargetMotion:
+        """:meth:`built` of arrays whose shapes (N, 2), (N, 2), (N,), (N, 3), float64 and
+        finiteness the caller has established (the compiled prediction: its views of one
+        buffer, each value tested by the kernel), without testing them again."""
+        dd = (np.zeros((v_a_m_s.shape[0], 3)) if disturbance_v_m_s2 is None
+              else disturbance_v_m_s2)
+        for a in (v_a_m_s, vdot_a_m_s2, psidot_a_rad_s, dd):
+            a.setflags(write=False)
+        out = _new(cls)
+        out.__dict__.update(v_a_m_s=v_a_m_s, vdot_a_m_s2=vdot_a_m_s2,
+                            psidot_a_rad_s=psidot_a_rad_s, disturbance_v_m_s2=dd)
+        return out
+
     @property
     def horizon(self) -> int:
         return int(self.v_a_m_s.shape[0])

@@ -27,9 +27,7 @@ import hashlib
 import logging
 import os
 import platform
-import shutil
 import subprocess
-import tempfile
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,6 +38,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from companion.core.ckernel import DEFAULT_CACHE_DIR, compiled_library, source_key
 from companion.perception._types import FloatArray
 from companion.perception.edges import EdgeFit
 from companion.perception.edges_kernel_check import refine_mismatch, warp_matches
@@ -49,10 +48,6 @@ from companion.perception.edges_lean2 import _grid, refine_quad_lean2
 _log = logging.getLogger(__name__)
 
 SOURCE_PATH = Path(__file__).with_name("edges_lean2_kernel.c")
-FLAGS = ("-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
-"""gcc flags: every operation rounded as written (no contraction into fma, no fast-math);
-no -march (a cached library runs on any machine of the architecture)."""
-DEFAULT_CACHE_DIR = "~/.cache/rmpc-ibvs"
 _BLOCKS = (16, 8, 32, 64, 4)  # OpenCV's vector block widths to try (AVX2, SSE/NEON, AVX-512)
 _DGEMV_NAMES = ("scipy_cblas_dgemv64_", "cblas_dgemv64_", "scipy_cblas_dgemv", "cblas_dgemv")
 _OUT = 36  # corners 8, line points 8, directions 8, rms 4, kept 4, blur scales 4
@@ -167,7 +162,7 @@ def lean2_kernel(cache_dir: str = DEFAULT_CACHE_DIR, source: str | None = None
     """The checked kernel (once per process and source), or None (the numpy path; the reason
     logged). ``source``: other C (tests: a deliberately broken kernel must fail the check)."""
     text = SOURCE_PATH.read_text() if source is None else source
-    key = (str(Path(cache_dir).expanduser()), _source_key(text))
+    key = (str(Path(cache_dir).expanduser()), source_key(text))
     with _LOCK:
         if key not in _LOADED:
             try:
@@ -176,13 +171,6 @@ def lean2_kernel(cache_dir: str = DEFAULT_CACHE_DIR, source: str | None = None
                 _log.warning("compiled edges: unavailable (%s); the numpy path", exc)
                 _LOADED[key] = None
         return _LOADED[key]
-
-
-def _source_key(text: str) -> str:
-    h = hashlib.sha256(text.encode())
-    for part in (" ".join(FLAGS), platform.machine()):
-        h.update(b"\0" + part.encode())
-    return h.hexdigest()[:24]
 
 
 def _load_checked(directory: Path, text: str) -> Lean2Kernel | None:
@@ -257,12 +245,17 @@ def numpy_dgemv() -> tuple[int, str] | None:
                      if "blas" in line.lower() and len(line.split(None, 5)) == 6}
     except OSError:
         return None
+    # the most specific name first, wherever it is: numpy's bundled OpenBLAS exports its
+    # symbols prefixed (scipy_...); another library's plain cblas_dgemv (CasADi ships an
+    # OpenBLAS of its own, loaded once an RMPC is built) is other code with other roundings
+    libs = []
     for path in sorted(paths):
         try:
-            lib = ct.CDLL(path)
+            libs.append((ct.CDLL(path), path))
         except OSError:
             continue
-        for name in _DGEMV_NAMES:
+    for name in _DGEMV_NAMES:
+        for lib, path in libs:
             fn = getattr(lib, name, None)
             if fn is not None:
                 address = ct.cast(fn, ct.c_void_p).value
@@ -272,26 +265,8 @@ def numpy_dgemv() -> tuple[int, str] | None:
 
 
 def _compiled(directory: Path, text: str) -> Path | None:
-    """The library of ``text`` in ``directory``, compiling it on a miss (atomic rename: a
-    concurrent process never loads half a file); None without a compiler."""
-    library = directory / f"perception_lean2_{_source_key(text)}.so"
-    if library.exists():
-        return library
-    env_cc = os.environ.get("CC")
-    cc = shutil.which(env_cc) if env_cc else shutil.which("gcc") or shutil.which("cc")
-    if not cc:
-        _log.info("compiled edges: no C compiler; the numpy path")
-        return None
-    directory.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="perception_gen_") as tmp:
-        src = Path(tmp) / "edges_lean2_kernel.c"
-        src.write_text(text)
-        built = directory / f"{library.name}.tmp{os.getpid()}"
-        _log.info("compiled edges: compiling %s (one-off)", library.name)
-        subprocess.run([cc, *FLAGS, "-o", str(built), str(src), "-lm"], check=True,
-                       capture_output=True, timeout=120)
-        os.replace(built, library)
-    return library
+    """The library of ``text`` in ``directory``, compiled on a miss; None without a compiler."""
+    return compiled_library(directory, text, "perception_lean2", "compiled edges")
 
 
 __all__ = ["Lean2Kernel", "Lean2Refiner", "lean2_kernel", "lean2_refiner"]

@@ -10,6 +10,8 @@ import ctypes
 import functools
 import math
 import shutil
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -208,3 +210,25 @@ def test_every_warp_path_is_cv2s(kernel, path: int) -> None:  # type: ignore[no-
     if one is None:
         pytest.skip(f"warp path {path} is not on this CPU")
     assert warp_matches(one, kernel.block, probes=600, adversarial=15, seed=9)
+
+
+def test_numpys_blas_is_found_after_casadis_is_loaded() -> None:
+    """Once an RMPC is built, CasADi's own OpenBLAS is in the process too, with a plain
+    ``cblas_dgemv`` of other roundings: the kernel must still take numpy's (and then pass its
+    check), whichever of the two was loaded first (the replay and the tests build the
+    controller before the detector)."""
+    if not HAVE_CC:
+        pytest.skip("no C compiler")
+    code = ("from companion.perception.edges_kernel import numpy_dgemv, lean2_kernel\n"
+            "{before}\n"
+            "print(numpy_dgemv()[1]); print(lean2_kernel() is not None)\n")
+    build = ("from companion.config import load_config\n"
+             "from companion.core.design import design_terminal\n"
+             "from companion.core.rmpc import Rmpc\n"
+             "c = load_config(); Rmpc(c.rmpc, c.camera, design_terminal(c.rmpc, c.camera))\n"
+             "import re\n"
+             "assert any(re.search('casadi.*blas', ln) for ln in open('/proc/self/maps'))")
+    out = [subprocess.run([sys.executable, "-c", code.format(before=b)], capture_output=True,
+                          text=True, check=True, timeout=120).stdout.split()
+           for b in ("", build)]
+    assert out[0] == out[1] and out[1][1] == "True", out
