@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from companion.control.solver_child import NlpRecipe, child_main
+from companion.control.solver_server import solver_context
 from companion.core.params import CameraParams, RmpcParams
 from companion.core.rmpc import Evaluation, Rmpc, RmpcBuildError, SolveAborted
 from companion.core.terminal import TerminalDesign
@@ -88,16 +89,6 @@ def _proc_cpu_s(pid: int | None) -> float | None:
         return (int(fields[11]) + int(fields[12])) / _CLK_TCK
     except (OSError, IndexError, ValueError):
         return None
-
-
-def _context() -> Any:
-    """'forkserver' (children forked from a clean server with CasADi imported: cheap starts,
-    nothing of the companion's loop, threads or sockets inherited), else 'spawn'."""
-    if "forkserver" in multiprocessing.get_all_start_methods():
-        ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["companion.control.solver_child"])
-        return ctx
-    return multiprocessing.get_context("spawn")  # pragma: no cover - not POSIX
 
 
 def cpu_clock_wall_backstop_s(max_solve_time_s: float) -> float:
@@ -147,7 +138,7 @@ class ProcessSolveBackend:
         self._wait_s = self.max_solve_time_s if time_clock == "wall" else self.backstop_s
         self._stall_next_s = 0.0
         self._clock = clock
-        self._ctx = _context()
+        self._ctx = solver_context()
         self._proc: BaseProcess | None = None
         self._conn: multiprocessing.connection.Connection | None = None
         self._ready = False

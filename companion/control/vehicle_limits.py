@@ -33,6 +33,7 @@ from typing import Any
 
 from companion.config import Config
 from companion.control.faults import check_faults
+from companion.control.solver_server import start_server
 from companion.link.params import ParamReader, ParamReadResult
 from companion.log import schemas as sch
 
@@ -228,6 +229,8 @@ async def adopt_vehicle_limits(app: Any, build: Callable[..., Any]) -> None:
     if built:
         app.limits.task = asyncio.create_task(app.limits.run(app._link, text, record, wait_s))
         return
+    if app.cfg.rmpc.solve_isolation == "process" and app.cfg.controller.kind != "ibvs-pd":
+        start_server()  # (its CasADi import while the limits are read, not after)
     cfg = await app.limits.run(app._link, text, record, wait_s)
     t0 = time.monotonic()
     pipeline = await asyncio.to_thread(build, cfg, timer=time.perf_counter)
