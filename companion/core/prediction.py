@@ -85,7 +85,7 @@ _KERNEL: list[MotionKernel | None] = []
 def load_kernel() -> MotionKernel | None:
     """The compiled stage loop (:mod:`companion.core.prediction_kernel`), loaded and checked
     once per process (a pipeline calls it when it is built, so that its first step does not
-    pay the check, ~15 ms, or a first-ever compile); None: the Python loop."""
+    pay the check, ~30 ms, or a first-ever compile); None: the Python loop."""
     if not _KERNEL:
         _KERNEL.append(motion_kernel(python_loop))
     return _KERNEL[0]

@@ -8,7 +8,7 @@ double operations in the same order, calling the C library's ``cos``, ``sin`` an
 
 Before first use in a process, :func:`motion_kernel` checks it against the Python loop on
 fixed pseudo-random cases (moving, stopped, capped, turning, with and without a disturbance;
-~15 ms): any bit of difference, no compiler, or a failed build, and the Python loop is used
+~30 ms of CPU): any bit of difference, no compiler, or a failed build, and the Python loop is used
 (logged once): the same numbers either way, only slower.
 """
 
@@ -41,7 +41,7 @@ PythonLoop = Callable[[Values, int, list[float] | None], Arrays]
 
 
 class MotionKernel:
-    """The loaded ``predict_motion`` (one per process; not thread-safe: one input buffer)."""
+    """The loaded ``predict_motion`` (one per process; each call builds its own arguments)."""
 
     def __init__(self, fn: Callable[..., int]) -> None:
         self._fn = fn
