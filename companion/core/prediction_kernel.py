@@ -18,7 +18,6 @@ import ctypes as ct
 import logging
 import math
 import subprocess
-import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -65,7 +64,6 @@ class MotionKernel:
 
 
 _LOADED: dict[tuple[str, str], MotionKernel | None] = {}
-_LOCK = threading.Lock()
 
 
 def motion_kernel(python_loop: PythonLoop, cache_dir: str = DEFAULT_CACHE_DIR,
@@ -75,14 +73,15 @@ def motion_kernel(python_loop: PythonLoop, cache_dir: str = DEFAULT_CACHE_DIR,
     C (tests: a deliberately wrong kernel must fail the check)."""
     text = SOURCE_PATH.read_text() if source is None else source
     key = (str(Path(cache_dir).expanduser()), source_key(text))
-    with _LOCK:
-        if key not in _LOADED:
-            try:
-                _LOADED[key] = _load_checked(Path(key[0]), text, python_loop)
-            except (OSError, subprocess.SubprocessError, AttributeError) as exc:
-                _log.warning("compiled prediction: unavailable (%s); the Python loop", exc)
-                _LOADED[key] = None
-        return _LOADED[key]
+    # (no lock: the core stays free of threading; two threads loading at once would both
+    # build and check the same library, each renaming its own file into place)
+    if key not in _LOADED:
+        try:
+            _LOADED[key] = _load_checked(Path(key[0]), text, python_loop)
+        except (OSError, subprocess.SubprocessError, AttributeError) as exc:
+            _log.warning("compiled prediction: unavailable (%s); the Python loop", exc)
+            _LOADED[key] = None
+    return _LOADED[key]
 
 
 def _load_checked(directory: Path, text: str, python_loop: PythonLoop) -> MotionKernel | None:
