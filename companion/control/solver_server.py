@@ -4,8 +4,11 @@ with :mod:`companion.control.solver_child` and so CasADi imported once): its con
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 def solver_context() -> Any:
@@ -23,9 +26,14 @@ def start_server() -> None:
     imports CasADi (~0.45 s of CPU) while the caller waits for something else (the companion
     for the autopilot's limits, which its controller is built from; on a small computer that
     import was ~1.5 s of the wait between the limits' arrival and the first step). Returns at
-    once (the server imports in its own process); a no-op where there is no 'forkserver'."""
+    once (the server imports in its own process); a no-op where there is no 'forkserver'. An
+    OS error (no file descriptor or process left) is logged, not raised: the first child's start
+    meets it again and reports it as the controller's build error, as before."""
     ctx = solver_context()
     if ctx.get_start_method() == "forkserver":
         from multiprocessing import forkserver
 
-        forkserver.ensure_running()
+        try:
+            forkserver.ensure_running()
+        except OSError as exc:
+            log.warning("RMPC solver server not started early: %s", exc)

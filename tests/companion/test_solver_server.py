@@ -45,3 +45,15 @@ def test_a_child_forks_from_the_started_server() -> None:
     p.join(30)
     assert p.exitcode == 0
     assert forkserver._forkserver._forkserver_pid == pid  # type: ignore[attr-defined]
+
+
+def test_an_os_error_starting_the_server_is_logged_not_raised(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    from multiprocessing import forkserver
+
+    def no_fds() -> None:
+        raise OSError(24, "Too many open files")
+
+    monkeypatch.setattr(forkserver, "ensure_running", no_fds)
+    start_server()  # the companion goes on reading the limits; the first child reports it
+    assert "not started early" in caplog.text and "Too many open files" in caplog.text
