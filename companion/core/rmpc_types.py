@@ -133,12 +133,7 @@ class TargetMotion:
                                            + _sum_all(psidot_a_rad_s, None)
                                            + _sum_all(dd, None)))):
             return cls(*arrays)  # (its checks name what is wrong)
-        for a in arrays:
-            a.setflags(write=False)
-        out = _new(cls)
-        out.__dict__.update(v_a_m_s=v_a_m_s, vdot_a_m_s2=vdot_a_m_s2,
-                            psidot_a_rad_s=psidot_a_rad_s, disturbance_v_m_s2=dd)
-        return out
+        return cls.finite(*arrays)
 
     @classmethod
     def finite(cls, v_a_m_s: np.ndarray, vdot_a_m_s2: np.ndarray, psidot_a_rad_s: np.ndarray,
